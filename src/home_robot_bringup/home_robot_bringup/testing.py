@@ -1,0 +1,123 @@
+"""pytest plugin: real ROS 2 node processes per test, each test on its own ROS_DOMAIN_ID.
+
+Registered by the repository's ``conftest.py``. Fixtures:
+
+* ``ros_domain`` -- a leased, unique domain id (tests may run in parallel: pytest -n 2).
+* ``launch_nodes`` -- ``launch_nodes(nodeset=..., nodes=[NodeSpec...], set=[...], ready_timeout=...)``
+  starts nodes as processes on the test's domain, waits for readiness, and always stops them;
+  if the test failed, their output is printed (pytest shows it under "Captured stdout teardown").
+* ``ros_node`` -- an rclpy node in the test process on the test's domain, spun by a
+  MultiThreadedExecutor in a background thread; wait on futures/events from the test.
+
+Every environment created here sets ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST.
+"""
+
+from __future__ import annotations
+
+import os
+import threading
+from collections.abc import Callable, Iterator
+
+import pytest
+
+from home_robot_bringup.domain import DomainLease
+from home_robot_bringup.launcher import apply_overrides
+from home_robot_bringup.nodeset import NodeSpec, load_nodeset
+from home_robot_bringup.process import Supervisor, node_environment
+
+os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+
+
+@pytest.hookimpl(wrapper=True, tryfirst=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo) -> Iterator[None]:
+    report = yield
+    setattr(item, f"rep_{report.when}", report)
+    return report
+
+
+def _failed(request: pytest.FixtureRequest) -> bool:
+    return any(getattr(request.node, f"rep_{w}", None) is not None and getattr(request.node, f"rep_{w}").failed
+               for w in ("setup", "call"))
+
+
+@pytest.fixture
+def ros_domain() -> Iterator[int]:
+    with DomainLease() as lease:
+        yield lease.domain_id
+
+
+@pytest.fixture
+def launch_nodes(ros_domain: int, request: pytest.FixtureRequest) -> Iterator[Callable[..., Supervisor]]:
+    started: list[Supervisor] = []
+
+    def start(nodeset: str | None = None, nodes: list[NodeSpec] | None = None, set: list[str] | None = None,
+              ready_timeout: float = 60.0, env: dict[str, str] | None = None) -> Supervisor:
+        specs = list(load_nodeset(nodeset) if nodeset else []) + list(nodes or [])
+        specs = apply_overrides(specs, set or [])
+        node_env = node_environment(ros_domain)
+        node_env.update(env or {})
+        sup = Supervisor(specs, node_env, echo=None)
+        started.append(sup)
+        sup.start()
+        sup.wait_ready(ready_timeout)
+        return sup
+
+    yield start
+    for sup in started:
+        sup.stop()
+    if _failed(request):
+        for sup in started:
+            print(sup.output())
+
+
+class RosTestNode:
+    """An rclpy context + node on the test's domain, spun in a background thread."""
+
+    def __init__(self, domain_id: int, name: str = "test_client") -> None:
+        import rclpy
+        from rclpy.context import Context
+        from rclpy.executors import MultiThreadedExecutor
+
+        self.context = Context()
+        rclpy.init(context=self.context, domain_id=domain_id)
+        self.node = rclpy.create_node(name, context=self.context)
+        self.executor = MultiThreadedExecutor(num_threads=2, context=self.context)
+        self.executor.add_node(self.node)
+        self._thread = threading.Thread(target=self._spin, name="test-executor", daemon=True)
+        self._thread.start()
+
+    def _spin(self) -> None:
+        from rclpy.executors import ExternalShutdownException
+
+        try:
+            self.executor.spin()
+        except ExternalShutdownException:
+            pass
+
+    def close(self) -> None:
+        self.executor.shutdown(timeout_sec=2.0)
+        self.node.destroy_node()
+        self.context.try_shutdown()
+        self._thread.join(2.0)
+
+
+@pytest.fixture
+def ros_node(ros_domain: int) -> Iterator[object]:
+    """The test's own rclpy node (``rclpy.node.Node``), already being spun."""
+    helper = RosTestNode(ros_domain)
+    try:
+        yield helper.node
+    finally:
+        helper.close()
+
+
+def wait_for(predicate: Callable[[], bool], timeout: float, interval: float = 0.02) -> bool:
+    """Poll ``predicate`` until true or ``timeout`` seconds; returns its last value."""
+    import time
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(interval)
+    return bool(predicate())

@@ -1,0 +1,9 @@
+"""Typed errors of the object-query package."""
+
+
+class ObjectQueryError(Exception):
+    """Base class of every error raised by the object-query core."""
+
+
+class MapLoadError(ObjectQueryError):
+    """A map or semantic-label file is missing, unreadable or malformed."""

@@ -1,0 +1,64 @@
+"""Integration: object_query_server as a real process, queried over ROS 2 from this process."""
+
+import json
+import subprocess
+import threading
+
+import pytest
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import String
+
+from home_robot_bringup.nodeset import find_executable
+from home_robot_bringup.process import node_environment
+from object_query.object_query_client import ObjectQueryClient
+
+pytestmark = pytest.mark.ros
+
+
+def test_query_and_late_joining_object_list(launch_nodes, ros_node, ros_domain):
+    launch_nodes(nodeset="object_query")
+    client = ObjectQueryClient(ros_node)
+    assert client.wait_for_service(timeout_sec=20.0)
+
+    bottle = client.query("BOTTLE", timeout_sec=5.0)
+    assert bottle.found, bottle.message
+    x, y, z = bottle.position
+    # the sample map's bottle stands on the kitchen counter at (5.2, 0.3), 0.9-1.15 m high
+    assert 4.9 < x < 5.5 and 0.0 < y < 0.7 and 0.9 < z < 1.2
+
+    missing = client.query("unicorn", timeout_sec=5.0)
+    assert not missing.found and "unicorn" in missing.message
+
+    # /object_list is latched (transient local): we subscribe after it was published
+    got = threading.Event()
+    box: list[str] = []
+
+    def on_list(msg: String) -> None:
+        box.append(msg.data)
+        got.set()
+
+    qos = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
+    ros_node.create_subscription(String, "object_list", on_list, qos)
+    assert got.wait(10.0), "late joiner did not receive /object_list"
+    objects = json.loads(box[0])
+    assert {"bottle", "chair", "table", "sofa", "bin", "cup", "trash"} <= set(objects)
+
+
+def test_command_line_client_exit_codes(launch_nodes, ros_domain):
+    launch_nodes(nodeset="object_query")
+    env = node_environment(ros_domain)
+    exe = find_executable("object_query", "object_query_client")
+    found = subprocess.run([exe, "table", "--timeout", "20"], env=env, capture_output=True, text=True, timeout=60)
+    assert found.returncode == 0, found.stdout + found.stderr
+    assert "found: table" in found.stdout
+    missing = subprocess.run([exe, "unicorn"], env=env, capture_output=True, text=True, timeout=60)
+    assert missing.returncode == 1 and "not found" in missing.stdout
+
+
+def test_missing_map_file_is_a_clear_error(launch_nodes, tmp_path):
+    from home_robot_bringup.errors import NodeNotReady
+
+    with pytest.raises(NodeNotReady) as err:
+        launch_nodes(nodeset="object_query", set=[f"object_query_server.map_path={tmp_path}/nope.npz"],
+                     ready_timeout=30)
+    assert "map_path" in str(err.value) and "nope.npz" in str(err.value)
