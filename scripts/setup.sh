@@ -108,6 +108,10 @@ PY
 fi
 
 # --- 4. colcon build ----------------------------------------------------------------------------
+if ! "$PY" -c 'import colcon_core' 2>/dev/null && ! command -v colcon >/dev/null; then
+  log "colcon not found: installing colcon-common-extensions into the venv"
+  "$PY" -m pip install -q --disable-pip-version-check colcon-common-extensions==0.3.0
+fi
 # shellcheck source=scripts/env.sh
 HOME_ROBOT_ENV_QUIET=1 source "$ROOT/scripts/env.sh" --no-workspace
 skip=()
