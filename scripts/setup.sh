@@ -128,6 +128,7 @@ sys.exit(1)
 PY
 then skip=(--packages-skip nav2_msgs); fi
 log "colcon build"
+mkdir -p "$ROOT/log"
 colcon build --symlink-install --base-paths src "${skip[@]}" \
   --event-handlers console_cohesion- summary+ status- \
   --cmake-args -DPython3_EXECUTABLE="$PY" -DBUILD_TESTING=OFF -DCMAKE_BUILD_TYPE=Release \
