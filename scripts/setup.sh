@@ -52,6 +52,12 @@ if [ ! -x "$VENV/bin/python" ]; then
   if [ "$WORLD" = system ]; then "$PYTHON" -m venv --system-site-packages "$VENV"; else "$PYTHON" -m venv "$VENV"; fi
 fi
 echo "$WORLD" > "$VENV/home_robot_world"
+if [ "$WORLD" = system ]; then
+  # remember which ROS 2 to source, so `source scripts/env.sh` works in a new shell too
+  for d in /opt/ros/"$ROS_DISTRO" ${AMENT_PREFIX_PATH//:/ }; do
+    if [ -f "$d/setup.bash" ]; then echo "$d/setup.bash" > "$VENV/home_robot_ros_setup"; break; fi
+  done
+fi
 PY="$VENV/bin/python"
 
 # --- 2. Python packages (skipped while the requirement files are unchanged) ---------------------
