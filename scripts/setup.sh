@@ -36,10 +36,22 @@ for t in cmake gcc g++ make; do command -v "$t" >/dev/null || missing+=("$t"); d
 "$PYTHON" -c 'import os,sys,sysconfig; sys.exit(not os.path.exists(sysconfig.get_paths()["include"]+"/Python.h"))' \
   || missing+=(python3-dev)
 "$PYTHON" -c 'import ensurepip, venv' 2>/dev/null || missing+=(python3-venv)
+# Voice: espeak-ng + sox make the test speech, libportaudio2 is the microphone backend.
+optional=()
+command -v espeak-ng >/dev/null || optional+=(espeak-ng)
+command -v sox >/dev/null || optional+=(sox)
+ldconfig -p 2>/dev/null | grep -q libportaudio.so.2 || optional+=(libportaudio2)
 if [ ${#missing[@]} -gt 0 ]; then
   [ "$(id -u)" = 0 ] || die "missing host packages: ${missing[*]} (run: sudo apt-get install ${missing[*]})"
-  log "installing host packages: ${missing[*]}"
-  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${missing[@]}"
+fi
+if [ $(( ${#missing[@]} + ${#optional[@]} )) -gt 0 ]; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+    log "installing host packages: ${missing[*]} ${optional[*]}"
+    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends \
+      "${missing[@]}" "${optional[@]}" >/dev/null
+  else
+    log "optional host packages missing: ${optional[*]} (voice tests are skipped; sudo apt-get install ${optional[*]})"
+  fi
 fi
 
 # --- 1. virtualenv --------------------------------------------------------------------------
