@@ -54,23 +54,18 @@ class Vocabulary:
         return Vocabulary(self.command_phrases, tuple(objects), self.places, self.wake_word)
 
     def prompt(self) -> str:
-        """Whisper's ``initial_prompt``: a short sentence listing the vocabulary.
+        """Whisper's ``initial_prompt``: the vocabulary as one lower-case, comma-separated list.
 
-        Command phrases that end in an article ("give me the") are completed with the first
-        object name so that the prompt reads like the commands users say.
+        Whisper copies the prompt's style, and this plain style measured best (37 of 40 espeak
+        commands exact, vs 33 with a "Robot commands: ..." sentence in capitals). Command phrases
+        that end in an article ("give me the") are completed with the first object name so that
+        they read like the commands users say; the wake word comes first when set.
         """
-        parts: list[str] = []
         example_object = self.objects[0] if self.objects else "bottle"
         phrases = [f"{p} {example_object}" if p.split()[-1].lower() in {"the", "a", "an"} else p
                    for p in self.command_phrases]
-        if phrases:
-            lead = f"{self.wake_word.capitalize()}, " if self.wake_word else ""
-            parts.append("Robot commands: " + lead + ", ".join(phrases) + ".")
-        if self.objects:
-            parts.append("Objects: " + ", ".join(self.objects) + ".")
-        if self.places:
-            parts.append("Places: " + ", ".join(self.places) + ".")
-        return " ".join(parts)
+        items = ([self.wake_word] if self.wake_word else []) + phrases + list(self.objects) + list(self.places)
+        return ", ".join(i.lower() for i in items)
 
     def prompt_words(self) -> list[str]:
         """The prompt's words after normalisation (for the prompt-echo filter)."""
