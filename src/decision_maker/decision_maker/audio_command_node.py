@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import os
 import threading
+import time
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")  # never download a model (the transcriber enforces it too)
 
@@ -49,6 +50,7 @@ _PARAMS: dict[str, tuple[object, bool]] = {
     "stdin_sample_rate": (16000, True),
     "retry_s": (0.0, True),  # > 0: retry a busy/missing device every retry_s seconds
     "exit_at_end": (False, True),  # WAV/stdin: shut down after the end of the stream
+    "wait_for_subscriber_s": (0.0, True),  # WAV/stdin: wait up to this long for a /manual_command subscriber
     "segmentation": ("vad", True),  # vad | fixed
     "chunk_s": (5.0, True),
     "vad_threshold": (0.5, True),
@@ -219,6 +221,8 @@ class AudioCommandNode(Node):
                 self._status({"event": "ready", "source": source.name,
                               "segmentation": self._pipeline_config.segmentation, "prompt": self._pipeline.prompt})
                 announced = True
+            if kind != "microphone":
+                self._wait_for_subscribers(float(p("wait_for_subscriber_s")))
             try:
                 self._pipeline.run(source, self._stop)
             except AudioSourceError as exc:
@@ -234,6 +238,21 @@ class AudioCommandNode(Node):
             if p("exit_at_end"):
                 self.done.set()
             return
+
+    def _wait_for_subscribers(self, timeout_s: float) -> None:
+        """Recorded audio (WAV/stdin) is not played into the void: wait for a command subscriber.
+
+        ``timeout_s`` <= 0 = do not wait; after the timeout the stream starts anyway.
+        """
+        if timeout_s <= 0:
+            return
+        deadline = time.monotonic() + timeout_s
+        while not self._stop.is_set() and time.monotonic() < deadline:
+            if self._command_pub.get_subscription_count() > 0 and self._status_pub.get_subscription_count() > 0:
+                self._stop.wait(0.3)  # let the subscriber's side finish matching too
+                return
+            self._stop.wait(0.05)
+        self.get_logger().warning(f"no subscriber on /manual_command after {timeout_s:g} s; streaming anyway")
 
     def _device_problem(self, exc: AudioSourceError, retry_s: float) -> bool:
         """Report a source problem; True = retry after the wait, False = give up (node exits)."""
