@@ -45,6 +45,11 @@ class Listener:
         with self._lock:
             self.status.append(json.loads(msg.data))
 
+    def clear(self) -> None:
+        with self._lock:
+            self.commands.clear()
+            self.status.clear()
+
     def events(self, kind: str) -> list[dict]:
         with self._lock:
             return [s for s in self.status if s.get("event") == kind]
@@ -108,9 +113,7 @@ def test_silence_and_noise_alone_publish_nothing(launch_nodes, ros_node, tmp_pat
                             (None, ta.silence(1.0))])
     ta.write_wav(str(tmp_path / "noise.wav"), stream)
     for mode in ("vad", "fixed"):
-        with listener._lock:
-            listener.commands.clear()
-            listener.status.clear()
+        listener.clear()
         sup = launch_nodes(nodeset="voice", set=wav_node(str(tmp_path / "noise.wav"), segmentation=mode))
         assert wait_for(listener.finished, 120), listener.dump()
         assert listener.commands == [], listener.dump()
