@@ -218,11 +218,11 @@ class AudioCommandNode(Node):
             if not announced:
                 self.get_logger().info(f"ready: listening on {source.name} ({self._pipeline_config.segmentation} "
                                        f"segmentation); commands go to /manual_command")
-                self._status({"event": "ready", "source": source.name,
-                              "segmentation": self._pipeline_config.segmentation, "prompt": self._pipeline.prompt})
                 announced = True
             if kind != "microphone":
                 self._wait_for_subscribers(float(p("wait_for_subscriber_s")))
+            self._status({"event": "ready", "source": source.name,
+                          "segmentation": self._pipeline_config.segmentation, "prompt": self._pipeline.prompt})
             try:
                 self._pipeline.run(source, self._stop)
             except AudioSourceError as exc:
