@@ -105,9 +105,10 @@ class AudioCommandNode(Node):
         self._transcriber = Transcriber(TranscriberConfig(
             model=p("model"), device=p("device"), compute_type=p("compute_type"), cpu_threads=p("cpu_threads"),
             beam_size=p("beam_size"), language=p("language")))
+        warm_s = self._transcriber.warm_up()
         self.get_logger().info(f"Whisper model {self._transcriber.model_path} loaded in "
-                               f"{self._transcriber.load_s:.2f} s ({p('device')}, {p('compute_type')}, "
-                               f"beam {p('beam_size')})")
+                               f"{self._transcriber.load_s:.2f} s, warmed up in {warm_s:.2f} s ({p('device')}, "
+                               f"{p('compute_type')}, beam {p('beam_size')})")
         self._pipeline = VoicePipeline(self._pipeline_config, self._transcriber.transcribe, self._vocabulary(),
                                        self._on_result)
         self._command_pub = self.create_publisher(String, "manual_command", 10)

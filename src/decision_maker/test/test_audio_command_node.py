@@ -217,3 +217,43 @@ def test_invalid_parameter_is_rejected_at_start(ros_domain):
                          env=node_environment(ros_domain), capture_output=True, text=True, timeout=60,
                          stdin=subprocess.DEVNULL)
     assert run.returncode == 2 and "segmentation must be one of" in run.stdout + run.stderr
+
+
+def test_wake_word_and_filter_parameters_change_at_run_time(ros_node, ros_domain):
+    from rclpy.parameter import Parameter
+    from rclpy.parameter_client import AsyncParameterClient
+
+    listener = Listener(ros_node)
+    proc = _start_stdin_node(ros_domain)
+    out: list[str] = []
+    threading.Thread(target=lambda: out.extend(line.decode(errors="replace") for line in proc.stdout),
+                     daemon=True).start()
+    try:
+        client = AsyncParameterClient(ros_node, NODE)
+        assert client.wait_for_services(timeout_sec=60), "".join(out)
+
+        def set_params(params):
+            fut = client.set_parameters(params)
+            done = threading.Event()
+            fut.add_done_callback(lambda _f: done.set())
+            assert done.wait(20), "set_parameters timed out"
+            return fut.result().results
+
+        (bad,) = set_params([Parameter("max_no_speech_prob", value=1.5)])
+        assert not bad.successful and "max_no_speech_prob" in bad.reason
+        (ok,) = set_params([Parameter("wake_word", value="robot")])
+        assert ok.successful, ok.reason
+        assert wait_for(lambda: any(e["prompt"].startswith("robot,") for e in listener.events("vocabulary")), 20)
+
+        stream, _ = ta.compose(stream_of([("robot go home", "en-us", 150), ("stop", "en+f2", 170)]))
+        proc.stdin.write((np.clip(stream, -1, 1) * 32767).astype("<i2").tobytes())
+        proc.stdin.close()
+        assert wait_for(listener.finished, 120), "".join(out) + listener.dump()
+        assert proc.wait(timeout=30) == 0, "".join(out)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(5)
+    assert listener.commands == ["go home"], listener.dump()
+    dropped = [u for u in listener.events("utterance") if u["command"] is None]
+    assert len(dropped) == 1 and dropped[0]["dropped"] == "no_wake_word" and matches(dropped[0]["text"], "stop")

@@ -126,6 +126,13 @@ class Transcriber:
                                  f"local cache; nothing is downloaded at run time") from exc
         self.load_s = time.monotonic() - t0
 
+    def warm_up(self) -> float:
+        """One throw-away transcription, so that the first real command is not slowed down by
+        CTranslate2's first-call allocations. Returns its wall time in seconds."""
+        t0 = time.monotonic()
+        self.transcribe(np.zeros(SAMPLE_RATE, dtype=np.float32), "go home")
+        return time.monotonic() - t0
+
     def transcribe(self, audio: np.ndarray, prompt: str = "", vad_filter: bool = False) -> Transcript:
         """Transcribe one utterance.
 
