@@ -150,6 +150,11 @@ class Transcriber:
         if audio.ndim != 1:
             raise ValueError(f"audio must be [n], got shape {audio.shape}")
         t0 = time.monotonic()
+        audio_s = audio.size / SAMPLE_RATE
+        # Commands are short: a cap on new tokens stops Whisper's repetition loops on junk audio
+        # (up to 448 tokens, seconds of decoding) early. ~9 tokens per second of speech is typical;
+        # the cap stays below 448 minus the longest prompt faster-whisper passes (223 tokens).
+        max_new_tokens = min(200, int(20 + 15 * audio_s))
         segments, _info = self._model.transcribe(
             audio.astype(np.float32, copy=False),
             language=self.config.language or None,
@@ -159,10 +164,10 @@ class Transcriber:
             without_timestamps=True,
             temperature=0.0,
             vad_filter=vad_filter,
+            max_new_tokens=max_new_tokens,
         )
         segs = list(segments)
         elapsed = time.monotonic() - t0
-        audio_s = audio.size / SAMPLE_RATE
         if not segs:
             return Transcript("", 0.0, 1.0, 0.0, audio_s, elapsed)
         weights = np.array([max(len(s.tokens), 1) for s in segs], dtype=np.float64)
