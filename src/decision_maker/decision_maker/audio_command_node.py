@@ -199,6 +199,8 @@ class AudioCommandNode(Node):
             self._command_pub.publish(String(data=result.command))
             self.get_logger().info(f"command: '{result.command}' (confidence {result.confidence:.2f}, "
                                    f"latency {result.latency_s:.2f} s)")
+        elif result.dropped == "empty":  # silence: every chunk of it in fixed mode
+            self.get_logger().debug("dropped (empty)")
         else:
             self.get_logger().info(f"dropped ({result.dropped}): '{result.raw}'")
         self._status_pub.publish(String(data=result.to_json()))
