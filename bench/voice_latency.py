@@ -26,6 +26,7 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+
 from decision_maker.speech import testaudio as ta
 from decision_maker.speech.text import word_edit_distance, words
 from home_robot_bringup.domain import DomainLease

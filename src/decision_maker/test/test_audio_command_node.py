@@ -12,13 +12,14 @@ import threading
 
 import numpy as np
 import pytest
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import String
+
 from decision_maker.speech import testaudio as ta
 from decision_maker.speech.sources import list_input_devices
 from home_robot_bringup.nodeset import find_executable
 from home_robot_bringup.process import node_environment
 from home_robot_bringup.testing import wait_for
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from std_msgs.msg import String
 
 from .voice_testing import MISSING, SKIP_REASON, matches
 

@@ -1,6 +1,7 @@
 """Pure tests of the hallucination filter."""
 
 import pytest
+
 from decision_maker.speech.errors import ConfigError
 from decision_maker.speech.filtering import FilterConfig, judge, longest_common_run
 from decision_maker.speech.vocabulary import Vocabulary

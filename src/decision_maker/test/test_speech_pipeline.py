@@ -5,6 +5,7 @@ import threading
 
 import numpy as np
 import pytest
+
 from decision_maker.speech import testaudio as ta
 from decision_maker.speech.pipeline import PipelineConfig, VoicePipeline
 from decision_maker.speech.segmentation import VadConfig

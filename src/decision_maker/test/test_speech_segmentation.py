@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+
 from decision_maker.speech import testaudio
 from decision_maker.speech.errors import ConfigError
 from decision_maker.speech.segmentation import FRAME, FixedChunker, StreamingVad, VadConfig, VadEndpointer

@@ -5,6 +5,7 @@ import wave
 
 import numpy as np
 import pytest
+
 from decision_maker.speech.errors import AudioDeviceError, AudioSourceError
 from decision_maker.speech.sources import (
     PortAudioSource,

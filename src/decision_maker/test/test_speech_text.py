@@ -1,6 +1,7 @@
 """Pure tests: transcript normalisation, word edit distance, the wake-word gate, the vocabulary."""
 
 import pytest
+
 from decision_maker.speech.errors import ConfigError
 from decision_maker.speech.text import WakeWordGate, edit_distance, normalise, word_edit_distance
 from decision_maker.speech.vocabulary import Vocabulary, parse_object_list

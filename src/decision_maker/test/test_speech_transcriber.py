@@ -5,6 +5,7 @@ The model is loaded once for the module.
 
 import numpy as np
 import pytest
+
 from decision_maker.speech import testaudio as ta
 from decision_maker.speech.filtering import FilterConfig, judge
 from decision_maker.speech.pipeline import PipelineConfig, VoicePipeline
