@@ -1,0 +1,66 @@
+"""Safety input: every Enter → ``/cancel_command`` at once (the brain clears its queue, the robot stops).
+
+Usage::
+
+    ros_run decision_maker cancel_command_node          # press Enter to stop the robot; Ctrl-D ends
+    ros_run decision_maker cancel_command_node --once   # send one cancel now and exit (scripts)
+
+Text typed before Enter is sent as the reason. End of input (Ctrl-D, a closed pipe, /dev/null)
+ends the node cleanly after delivering what was sent.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import rclpy
+from rclpy.duration import Duration
+from rclpy.utilities import remove_ros_args
+from std_msgs.msg import String
+
+from decision_maker.topics import CANCEL_QOS
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv if argv is None else argv
+    ap = argparse.ArgumentParser(prog="cancel_command_node", description="Enter = stop the robot.")
+    ap.add_argument("--once", action="store_true", help="send one cancel and exit")
+    ap.add_argument("--discovery-timeout", type=float, default=5.0,
+                    help="seconds to wait for a listener before sending (a first cancel must not be lost)")
+    opts = ap.parse_args(remove_ros_args(argv)[1:])
+    rclpy.init(args=argv)
+    node = rclpy.create_node("cancel_command_node")
+    pub = node.create_publisher(String, "cancel_command", CANCEL_QOS)
+
+    def send(reason: str) -> None:
+        deadline = time.monotonic() + opts.discovery_timeout
+        while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
+            time.sleep(0.02)
+        pub.publish(String(data=f"operator: {reason}"))
+        print(f"cancel sent ({reason}) to {pub.get_subscription_count()} listener(s)", flush=True)
+
+    code = 0
+    try:
+        if opts.once:
+            send("cancel_command_node --once")
+        else:
+            if sys.stdin.isatty():
+                print("Press Enter to STOP the robot (Ctrl-D to quit).", flush=True)
+            while True:
+                line = sys.stdin.readline()
+                if not line:
+                    break
+                send(line.strip() or "Enter")
+        pub.wait_for_all_acked(Duration(seconds=2.0))
+    except KeyboardInterrupt:
+        code = 130
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
