@@ -23,6 +23,20 @@ from std_msgs.msg import String
 from decision_maker.topics import CANCEL_QOS
 
 
+def wait_for_listeners(pub, timeout_s: float, settle_s: float = 0.3) -> int:
+    """Wait until ``pub`` has subscribers and their count stayed unchanged for ``settle_s`` (or timeout)."""
+    deadline = time.monotonic() + timeout_s
+    count, since = pub.get_subscription_count(), time.monotonic()
+    while time.monotonic() < deadline:
+        now_count = pub.get_subscription_count()
+        if now_count != count:
+            count, since = now_count, time.monotonic()
+        elif count > 0 and time.monotonic() - since >= settle_s:
+            break
+        time.sleep(0.02)
+    return count
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv if argv is None else argv
     ap = argparse.ArgumentParser(prog="cancel_command_node", description="Enter = stop the robot.")
@@ -34,10 +48,13 @@ def main(argv: list[str] | None = None) -> int:
     node = rclpy.create_node("cancel_command_node")
     pub = node.create_publisher(String, "cancel_command", CANCEL_QOS)
 
+    settled = False
+
     def send(reason: str) -> None:
-        deadline = time.monotonic() + opts.discovery_timeout
-        while pub.get_subscription_count() == 0 and time.monotonic() < deadline:
-            time.sleep(0.02)
+        nonlocal settled
+        if not settled:  # first send: wait for listeners, and for discovery to settle (brain, nav, arm...)
+            wait_for_listeners(pub, opts.discovery_timeout)
+            settled = True
         pub.publish(String(data=f"operator: {reason}"))
         print(f"cancel sent ({reason}) to {pub.get_subscription_count()} listener(s)", flush=True)
 

@@ -369,9 +369,12 @@ class ExecutionEngine:
                 return self._final(cid, shown, TaskState.CANCELLED, i, n, str(prim),
                                    token.reason or str(exc), "Cancelled; I stopped.")
             except ActionTimeout as exc:
+                msg = f"{prim}: {exc}"
+                if self._clock() - start >= cfg.batch_timeout_s - 0.05:  # the batch deadline bounded the wait
+                    msg = f"batch time limit {cfg.batch_timeout_s:g} s reached during {msg}"
                 self._robot.cancel_active()
-                self._robot.emergency_stop(f"{prim}: {exc}")
-                return self._final(cid, shown, TaskState.TIMED_OUT, i, n, str(prim), f"{prim}: {exc}",
+                self._robot.emergency_stop(msg)
+                return self._final(cid, shown, TaskState.TIMED_OUT, i, n, str(prim), msg,
                                    f"I stopped: {describe(prim)} took too long.")
             except ExecutionError as exc:
                 return self._final(cid, shown, TaskState.FAILED, i, n, str(prim), f"{prim}: {exc}",

@@ -17,13 +17,13 @@ import argparse
 import collections
 import sys
 import threading
-import time
 
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.utilities import remove_ros_args
 from std_msgs.msg import String
 
+from decision_maker.cancel_command_node import wait_for_listeners
 from decision_maker.command_types import sanitize_text, shorten
 from decision_maker.execution import TaskState, TaskStatus
 from decision_maker.topics import COMMAND_QOS
@@ -42,10 +42,7 @@ class CommandSender:
         self.failures = 0
 
     def wait_for_listener(self, timeout_s: float) -> bool:
-        deadline = time.monotonic() + timeout_s
-        while self._pub.get_subscription_count() == 0 and time.monotonic() < deadline:
-            time.sleep(0.05)
-        return self._pub.get_subscription_count() > 0
+        return wait_for_listeners(self._pub, timeout_s) > 0
 
     def send(self, line: str) -> None:
         with self._cond:
