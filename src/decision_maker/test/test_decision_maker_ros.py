@@ -181,9 +181,17 @@ def test_cancel_during_navigation_then_batch_watchdog(launch_nodes, ros_node, ro
 def test_nav_hang_timeout_and_object_query_absent(launch_nodes, ros_node, ros_domain):
     """No object database; navigation hangs: both end in clear statuses, a hang stops the hardware."""
     sup = launch_nodes(nodes=robot_specs(with_query=False), set=[
-        "mock_nav_server.fault=hang", "decision_maker.nav_timeout_s=1.0", "decision_maker.query_timeout_s=1.0"])
+        "mock_nav_server.fault=hang", "decision_maker.nav_timeout_s=1.0", "decision_maker.query_timeout_s=2.0"])
     robot = Robot(ros_node)
     robot.wait_connected()
+
+    # cancel while the brain waits for the (absent) object query service
+    robot.send("grasp:cup")
+    assert wait_for(lambda: any(s.steps == 1 for s in robot.of("grasp:cup")), 10.0)
+    time.sleep(0.3)
+    robot.cancel("cancel while waiting for a server")
+    final = robot.final("grasp:cup", 10.0)
+    assert final.state is TaskState.CANCELLED and "waiting for a server" in final.message, final
 
     robot.send("grasp:bottle")
     final = robot.final("grasp:bottle", 15.0)
