@@ -26,6 +26,7 @@ from __future__ import annotations
 import json
 import os
 import threading
+import time
 
 import rclpy
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
@@ -100,8 +101,9 @@ class DecisionMakerNode(Node):
             server_wait_s=float(v["server_wait_s"]), cancel_wait_s=float(v["cancel_wait_s"]),
             names={"nav": v["nav_action"], "grasp": v["grasp_action"], "place": v["place_action"],
                    "query": v["query_service"]},
-            on_goal_sent=lambda what: self.get_logger().debug(f"goal sent: {what}"),
+            on_goal_sent=self._on_goal_sent,
         )
+        self._last_timed_id = 0  # command whose first goal was already logged (execution thread only)
         self.engine = ExecutionEngine(self._planner, self.robot, config, self._publish_status, self._planning_context)
         self.create_subscription(String, "cancel_command", self._on_cancel, CANCEL_QOS,
                                  callback_group=self._cancel_group)
@@ -114,6 +116,14 @@ class DecisionMakerNode(Node):
             f"{locations_file}, queue {config.max_queue}, batch {config.batch_timeout_s:g} s, "
             f"nav {config.nav_timeout_s:g} s, frame {frames.frame_id})"
         )
+
+    def _on_goal_sent(self, what: str) -> None:
+        current = self.engine.current()
+        if current is not None and current[0] != self._last_timed_id:
+            self._last_timed_id = current[0]
+            dt_ms = (time.monotonic() - current[1]) * 1000.0
+            self.get_logger().info(f"latency: command #{current[0]} received -> first goal sent ({what}): "
+                                   f"{dt_ms:.2f} ms")
 
     def _planning_context(self) -> PlanningContext:
         with self._objects_lock:

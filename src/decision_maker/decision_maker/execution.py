@@ -212,6 +212,7 @@ class RobotPort(Protocol):
 class _Command:
     id: int
     text: str
+    received: float  # engine clock at submit
 
 
 def describe(prim: Primitive) -> str:
@@ -278,7 +279,7 @@ class ExecutionEngine:
                                   sentence=f"I am busy with {len(self._queue)} waiting commands; "
                                            "please try again later.")
             ahead = len(self._queue) + (1 if self._current else 0)
-            self._queue.append(_Command(cid, text))
+            self._queue.append(_Command(cid, text, self._clock()))
             after = f" ({ahead} ahead of it)." if ahead else "."
             status = self._emit(cid, shown, TaskState.QUEUED, message=f"queued, {ahead} ahead",
                                 sentence=f"Okay: {shorten(text, 60)!r}{after}")
@@ -291,17 +292,22 @@ class ExecutionEngine:
             dropped = list(self._queue)
             self._queue.clear()
             current = self._current
+        if current is not None:  # the robot first, the bookkeeping after
+            current[1].abort(reason)
+            self._robot.cancel_active()
         for cmd in dropped:
             self._emit(cmd.id, shorten(cmd.text, 200), TaskState.CANCELLED, message=f"{reason} (was queued)",
                        sentence="Cancelled before it started.")
-        if current is not None:
-            current[1].abort(reason)
-            self._robot.cancel_active()
         return len(dropped) + (1 if current else 0)
 
     def queue_length(self) -> int:
         with self._cond:
             return len(self._queue)
+
+    def current(self) -> tuple[int, float] | None:
+        """Id and receive time (engine clock) of the running command, if any."""
+        with self._cond:
+            return None if self._current is None else (self._current[0].id, self._current[0].received)
 
     def busy(self) -> bool:
         with self._cond:
