@@ -15,7 +15,8 @@ cancel input, the command input and the clients apart, so ``/cancel_command`` is
 the execution thread blocks; the execution thread waits on futures/events with deadlines.
 
 Parameters (read at start; see config/params/decision_maker.yaml for the defaults and units):
-    planner, locations_file, max_queue, max_text_chars, batch_timeout_s, nav_timeout_s,
+    planner, planner_options (JSON object: the planner's keyword arguments), locations_file,
+    max_queue, max_text_chars, batch_timeout_s, nav_timeout_s,
     grasp_timeout_s, place_timeout_s, query_timeout_s, server_wait_s, cancel_wait_s,
     frame_id, frame_offset ([x, y, yaw] of the map in the command frame: Isaac Sim and co.),
     nav_action, grasp_action, place_action, query_service.
@@ -55,7 +56,7 @@ class DecisionMakerNode(Node):
         super().__init__("decision_maker")
         d = EngineConfig()
         p = {
-            "planner": "registry", "locations_file": "",
+            "planner": "registry", "planner_options": "{}", "locations_file": "",
             "max_queue": d.max_queue, "max_text_chars": d.max_text_chars,
             "batch_timeout_s": d.batch_timeout_s, "nav_timeout_s": d.nav_timeout_s,
             "grasp_timeout_s": d.grasp_timeout_s, "place_timeout_s": d.place_timeout_s,
@@ -84,7 +85,13 @@ class DecisionMakerNode(Node):
         frames = FrameTransform(str(v["frame_id"]), *(float(o) for o in offset))
         locations_file = v["locations_file"] or default_locations_file()
         self._locations = load_locations(locations_file)
-        self._planner = make_planner(str(v["planner"]))
+        try:
+            planner_options = json.loads(v["planner_options"] or "{}")
+        except json.JSONDecodeError as exc:
+            raise ConfigError(f"planner_options must be a JSON object: {exc}") from exc
+        if not isinstance(planner_options, dict):
+            raise ConfigError("planner_options must be a JSON object")
+        self._planner = make_planner(str(v["planner"]), **planner_options)
 
         self._objects_lock = threading.Lock()  # guards _objects
         self._objects: dict[str, tuple[float, float, float]] = {}

@@ -19,6 +19,7 @@ Every command gets an id and at least one status: ``queued`` or ``rejected`` at 
 from __future__ import annotations
 
 import collections
+import dataclasses
 import enum
 import itertools
 import json
@@ -344,8 +345,10 @@ class ExecutionEngine:
         shown = shorten(text, 200)
         self._emit(cid, shown, TaskState.RUNNING, message="planning", sentence="Thinking about it...")
         try:
-            plan = self._planner.plan(text, self._context())
+            plan = self._planner.plan(text, dataclasses.replace(self._context(), should_stop=token.is_set))
         except PlanningError as exc:
+            if token.is_set():
+                return self._final(cid, shown, TaskState.CANCELLED, 0, 0, "", token.reason, "Cancelled; I stopped.")
             return self._final(cid, shown, TaskState.REJECTED, 0, 0, "", str(exc), f"Sorry, I can't do that: {exc}")
         except Exception as exc:  # a planner bug must not kill the worker
             return self._final(cid, shown, TaskState.REJECTED, 0, 0, "", f"planner error: {exc!r}",

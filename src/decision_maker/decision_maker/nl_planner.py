@@ -16,6 +16,7 @@ only the queue, never ``/cancel_command``.
 
 from __future__ import annotations
 
+import importlib
 import re
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -36,11 +37,14 @@ class PlanningContext:
         known_objects: object names in the object database (``/object_list``), lower case.
         locations: the named locations (name → :class:`NamedLocation`).
         object_positions: last known object centres from ``/object_list`` (map frame, metres).
+        should_stop: True once the command was cancelled; a slow planner should poll it and raise
+            PlanningError("cancelled") early (the engine reports the command cancelled either way).
     """
 
     known_objects: frozenset[str] = frozenset()
     locations: Mapping[str, NamedLocation] = field(default_factory=dict)
     object_positions: Mapping[str, tuple[float, float, float]] = field(default_factory=dict)
+    should_stop: Callable[[], bool] = lambda: False
 
 
 @runtime_checkable
@@ -118,9 +122,20 @@ def register_planner(name: str, factory: PlannerFactory) -> None:
 def make_planner(name: str, **options: Any) -> Planner:
     """The planner registered as ``name``, built with ``options``.
 
+    A name not registered yet is looked up as module ``decision_maker.<name>_planner``, which
+    registers itself on import (e.g. ``llm_planner.py`` ending in ``register_planner("llm", LlmPlanner)``).
+
     Raises:
-        ConfigError: unknown planner name.
+        ConfigError: unknown planner name, or its factory rejected the options.
     """
+    if name not in _PLANNERS and re.fullmatch(r"[a-z][a-z0-9_]*", name):
+        try:
+            importlib.import_module(f"decision_maker.{name}_planner")
+        except ModuleNotFoundError:
+            pass
     if name not in _PLANNERS:
         raise ConfigError(f"unknown planner {name!r}; known: {', '.join(sorted(_PLANNERS))}")
-    return _PLANNERS[name](**options)
+    try:
+        return _PLANNERS[name](**options)
+    except TypeError as exc:
+        raise ConfigError(f"planner {name!r}: bad options {sorted(options)}: {exc}") from exc

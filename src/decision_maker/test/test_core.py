@@ -30,7 +30,13 @@ from decision_maker.errors import (
     SimError,
 )
 from decision_maker.execution import AbortToken, EngineConfig, ExecutionEngine, TaskState, TaskStatus
-from decision_maker.nl_planner import PlanningContext, RegistryPlanner, make_planner, split_primitives
+from decision_maker.nl_planner import (
+    PlanningContext,
+    RegistryPlanner,
+    make_planner,
+    register_planner,
+    split_primitives,
+)
 from decision_maker.scenario_library import match_scenario
 from decision_maker.sim_world import BaseSim, ObjectWorld
 
@@ -340,3 +346,45 @@ def test_named_locations_reach_their_objects():
     assert LOCS["table"].pose.distance_to(Point3(2.28, 2.48, 0.8)) < reach
     for name in ("kitchen", "table", "user", "bin"):
         assert LOCS[name].pose.distance_to(LOCS[name].drop_point()) < reach
+
+
+def test_planner_seam_custom_planner_and_cancel_while_planning():
+    """A planner registered by name is used by the engine unchanged; a cancel during planning wins."""
+    from decision_maker.command_types import parse_plan as pp
+    from decision_maker.errors import PlanningError
+
+    class ScriptedPlanner:
+        name = "scripted"
+
+        def __init__(self, steps=("goto:home",)):
+            self.steps = list(steps)
+            self.seen = []
+
+        def plan(self, text, context):
+            self.seen.append((text, context.known_objects))
+            if text == "slow":
+                started.set()
+                assert release.wait(5.0)
+                if context.should_stop():
+                    raise PlanningError("cancelled")
+            return pp(self.steps, context.locations, scenario=self.name)
+
+    started, release = threading.Event(), threading.Event()
+    register_planner("scripted", ScriptedPlanner)
+    planner = make_planner("scripted", steps=["goto:kitchen", "grasp:cup"])
+    with pytest.raises(ConfigError, match="bad options"):
+        make_planner("scripted", nope=1)
+    robot = FakeRobot()
+    statuses = []
+    eng = ExecutionEngine(planner, robot, EngineConfig(), statuses.append, lambda: CTX)
+    assert eng.run_command(1, "anything at all", AbortToken()) is TaskState.SUCCEEDED
+    assert [c[0] for c in robot.calls] == ["nav", "locate", "grasp"] and planner.seen[0][1] == OBJECTS
+    token = AbortToken()
+    result = []
+    t = threading.Thread(target=lambda: result.append(eng.run_command(2, "slow", token)))
+    t.start()
+    assert started.wait(5.0)
+    token.abort("operator")
+    release.set()
+    t.join(5.0)
+    assert result == [TaskState.CANCELLED]
