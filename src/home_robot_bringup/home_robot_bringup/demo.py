@@ -143,13 +143,21 @@ def describe_world(world: dict, locations: dict) -> list[str]:
     return lines
 
 
-def _interactive(op: Operator, locations: dict) -> int:
+def _interactive(op: Operator, locations: dict, timeout: float) -> int:
     print("demo: type a command (e.g. 'give me the cup', 'go to the table', 'goto:2,1,0'); "
           "'stop' cancels, 'world' shows the world, Ctrl-D quits.", flush=True)
+    from decision_maker.command_types import sanitize_text, shorten
+
+    sent: list[str] = []
     while True:
         try:
             line = input("> " if sys.stdin.isatty() else "")
         except EOFError:
+            # end of input (a pipe): let what was sent finish, then show the world
+            op.wait_finals(sent, timeout)
+            time.sleep(0.6)  # the world state of the last step (published on change, and at 2 Hz)
+            world = op.snapshot()
+            print("demo: the world now:\n" + "\n".join(describe_world(world, locations)), flush=True)
             return 0
         cmd = line.strip()
         if not cmd:
@@ -162,6 +170,7 @@ def _interactive(op: Operator, locations: dict) -> int:
         elif cmd.lower() in ("quit", "exit"):
             return 0
         else:
+            sent.append(shorten(sanitize_text(line), 200))
             op.send(line)
 
 
@@ -225,7 +234,7 @@ def main(argv: list[str] | None = None) -> int:
                     ok = ok and math.dist(bottle, (user.x, user.y, user.z)) < 0.15 \
                         and math.dist(trash, (bin_.x, bin_.y, bin_.z)) < 0.15
             if opts.interactive:
-                _interactive(op, locations)
+                _interactive(op, locations, opts.timeout)
         finally:
             if op is not None:
                 op.close()
