@@ -20,11 +20,13 @@ setup(
     maintainer_email="maintainers@home-robot.dev",
     description="The brain: command inputs, scenario library, execution engine, simulated robot servers.",
     license="Apache-2.0",
-    entry_points={"console_scripts": [
-        "decision_maker_node = decision_maker.decision_maker_node:main",
-        "nl_command_node = decision_maker.nl_command_node:main",
-        "cancel_command_node = decision_maker.cancel_command_node:main",
-        "mock_nav_server = decision_maker.mock_nav_server:main",
-        "mock_grasp_server = decision_maker.mock_grasp_server:main",
-    ]},
+    entry_points={
+        "console_scripts": [
+            "decision_maker_node = decision_maker.decision_maker_node:main",
+            "nl_command_node = decision_maker.nl_command_node:main",
+            "cancel_command_node = decision_maker.cancel_command_node:main",
+            "mock_nav_server = decision_maker.mock_nav_server:main",
+            "mock_grasp_server = decision_maker.mock_grasp_server:main",
+        ]
+    },
 )
