@@ -13,28 +13,15 @@ from __future__ import annotations
 
 import argparse
 import sys
-import time
 
 import rclpy
 from rclpy.duration import Duration
+from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 from std_msgs.msg import String
 
+from decision_maker.console import stdin_lines, wait_for_listeners
 from decision_maker.topics import CANCEL_QOS
-
-
-def wait_for_listeners(pub, timeout_s: float, settle_s: float = 0.3) -> int:
-    """Wait until ``pub`` has subscribers and their count stayed unchanged for ``settle_s`` (or timeout)."""
-    deadline = time.monotonic() + timeout_s
-    count, since = pub.get_subscription_count(), time.monotonic()
-    while time.monotonic() < deadline:
-        now_count = pub.get_subscription_count()
-        if now_count != count:
-            count, since = now_count, time.monotonic()
-        elif count > 0 and time.monotonic() - since >= settle_s:
-            break
-        time.sleep(0.02)
-    return count
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -44,7 +31,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--discovery-timeout", type=float, default=5.0,
                     help="seconds to wait for a listener before sending (a first cancel must not be lost)")
     opts = ap.parse_args(remove_ros_args(argv)[1:])
-    rclpy.init(args=argv)
+    # Python's own SIGINT handling: Ctrl-C must interrupt the blocking stdin read (KeyboardInterrupt)
+    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node("cancel_command_node")
     pub = node.create_publisher(String, "cancel_command", CANCEL_QOS)
 
@@ -65,10 +53,7 @@ def main(argv: list[str] | None = None) -> int:
         else:
             if sys.stdin.isatty():
                 print("Press Enter to STOP the robot (Ctrl-D to quit).", flush=True)
-            while True:
-                line = sys.stdin.readline()
-                if not line:
-                    break
+            for line in stdin_lines():
                 send(line.strip() or "Enter")
         pub.wait_for_all_acked(Duration(seconds=2.0))
     except KeyboardInterrupt:

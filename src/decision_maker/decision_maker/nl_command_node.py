@@ -20,11 +20,12 @@ import threading
 
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 from std_msgs.msg import String
 
-from decision_maker.cancel_command_node import wait_for_listeners
 from decision_maker.command_types import sanitize_text, shorten
+from decision_maker.console import stdin_lines, wait_for_listeners
 from decision_maker.execution import TaskState, TaskStatus
 from decision_maker.topics import COMMAND_QOS
 
@@ -82,7 +83,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--discovery-timeout", type=float, default=10.0,
                     help="seconds to wait for the decision maker to be connected before the first send")
     opts = ap.parse_args(remove_ros_args(argv)[1:])
-    rclpy.init(args=argv)
+    # Python's own SIGINT handling: Ctrl-C must interrupt the blocking stdin read (KeyboardInterrupt)
+    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     node = rclpy.create_node("nl_command_node")
     sender = CommandSender(node)
     executor = SingleThreadedExecutor()
@@ -102,11 +104,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if interactive:
             print("Type a command (e.g. 'give me the bottle'), Enter to send; Ctrl-D to quit.", flush=True)
-        while True:
-            line = sys.stdin.readline()
-            if not line:
-                break
-            line = line.rstrip("\n")
+        for line in stdin_lines():
             if not line.strip():
                 continue
             if not connected:
