@@ -336,6 +336,9 @@ class ExecutionEngine:
                 self._current = (cmd, token)
             try:
                 self.run_command(cmd.id, cmd.text, token)
+            except Exception as exc:  # a bug in a port must not kill the worker: report and go on
+                self._emit(cmd.id, shorten(cmd.text, 200), TaskState.FAILED, message=f"internal error: {exc!r}",
+                           sentence="Sorry, something went wrong inside me; I stopped that command.")
             finally:
                 with self._cond:
                     self._current = None

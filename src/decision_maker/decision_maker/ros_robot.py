@@ -129,10 +129,13 @@ class RosRobot:
         with self._lock:
             handles = list(self._active)
         for gh in handles:
-            try:
-                gh.cancel_goal_async()
-            except Exception as exc:  # context already shut down, ...
-                self._node.get_logger().warn(f"cancel of an active goal failed: {exc}")
+            self._cancel(gh)
+
+    def _cancel(self, gh: ClientGoalHandle) -> None:
+        try:
+            gh.cancel_goal_async()
+        except Exception as exc:  # context already shut down (Ctrl-C), ...
+            print(f"decision_maker: cancel of an active goal failed: {exc!r}", flush=True)
 
     def emergency_stop(self, reason: str) -> None:
         self._node.get_logger().warn(f"publishing /cancel_command: {reason}")
@@ -199,7 +202,7 @@ class RosRobot:
             if self._wait_future(send_future, time.monotonic() + self._cancel_wait_s, None):
                 gh = send_future.result()
                 if gh.accepted:
-                    gh.cancel_goal_async()
+                    self._cancel(gh)
             if abort.is_set():
                 raise ActionCancelled(abort.reason)
             raise ActionTimeout(f"{what} goal not accepted within {timeout_s:.1f} s")
@@ -210,11 +213,11 @@ class RosRobot:
             self._active.append(gh)
         try:
             if abort.is_set():  # a cancel arrived while the goal was being accepted
-                gh.cancel_goal_async()
+                self._cancel(gh)
             result_future = gh.get_result_async()
             if not self._wait_future(result_future, deadline, abort):
                 timed_out = not abort.is_set()
-                gh.cancel_goal_async()  # (again, if the cancel path already did: harmless)
+                self._cancel(gh)  # (again, if the cancel path already did: harmless)
                 self._wait_future(result_future, time.monotonic() + self._cancel_wait_s, None)
                 if timed_out:
                     raise ActionTimeout(f"{what} did not finish within {timeout_s:.1f} s; goal cancelled")

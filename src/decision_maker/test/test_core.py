@@ -388,3 +388,29 @@ def test_planner_seam_custom_planner_and_cancel_while_planning():
     release.set()
     t.join(5.0)
     assert result == [TaskState.CANCELLED]
+
+
+def test_worker_survives_a_port_bug_and_stdin_lines():
+    import io
+
+    from decision_maker.console import stdin_lines
+
+    robot = FakeRobot()
+    robot.behaviour["nav"] = RuntimeError("bug")
+    eng, st = make_engine(robot)
+    worker = threading.Thread(target=eng.run)
+    worker.start()
+    try:
+        eng.submit("go home")
+        eng.submit("clean table")
+        for _ in range(500):
+            if sum(s.state.terminal for s in st) >= 2:
+                break
+            threading.Event().wait(0.01)
+        assert final(st, 1).state is TaskState.FAILED and "internal error" in final(st, 1).message
+        assert final(st, 2).state is TaskState.FAILED
+    finally:
+        eng.stop()
+        worker.join(5)
+    lines = stdin_lines(io.StringIO("give me the cup\n\ngo home"), poll_s=0.01)
+    assert list(lines) == ["give me the cup", "", "go home"]
