@@ -41,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
     def send(reason: str) -> None:
         nonlocal settled
         if not settled:  # first send: wait for listeners, and for discovery to settle (brain, nav, arm...)
-            wait_for_listeners(pub, opts.discovery_timeout)
+            wait_for_listeners(pub, opts.discovery_timeout, node=node)
             settled = True
         pub.publish(String(data=f"operator: {reason}"))
         print(f"cancel sent ({reason}) to {pub.get_subscription_count()} listener(s)", flush=True)

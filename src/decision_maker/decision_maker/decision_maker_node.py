@@ -179,6 +179,9 @@ def main(args: list[str] | None = None) -> int:
             executor.spin()
         except ExternalShutdownException:
             pass
+        except Exception:  # a wait interrupted by the shutdown (Ctrl-C) is not an error; anything else is
+            if rclpy.ok():
+                raise
 
     spinner = threading.Thread(target=spin, name="ros-executor", daemon=True)
     worker = threading.Thread(target=node.engine.run, name="execution", daemon=True)

@@ -43,7 +43,7 @@ class CommandSender:
         self.failures = 0
 
     def wait_for_listener(self, timeout_s: float) -> bool:
-        return wait_for_listeners(self._pub, timeout_s) > 0
+        return wait_for_listeners(self._pub, timeout_s, node=self._node) > 0
 
     def send(self, line: str) -> None:
         with self._cond:
