@@ -146,7 +146,8 @@ def test_cancel_during_navigation_then_batch_watchdog(launch_nodes, ros_node, ro
     for text in ("go home", "clean table"):
         assert robot.final(text, 5.0).state is TaskState.CANCELLED
         assert not [s for s in robot.of(text) if s.state is TaskState.RUNNING]
-    # the robot stopped where it was
+    # the robot stopped where it was (the world state comes at 2 Hz: let a fresh one arrive first)
+    time.sleep(0.6)
     x0 = robot.snapshot()["robot"]["x"]
     time.sleep(1.0)
     pose = robot.snapshot()["robot"]
