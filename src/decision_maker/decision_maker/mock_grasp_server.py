@@ -81,7 +81,8 @@ class MockGraspServer(Node):
         if not isinstance(objects, dict):
             raise ConfigError("objects must be a JSON object {id: [x, y, z] | {class, position}}")
         self._reach = float(v["reach"])
-        self._world = ObjectWorld.from_mapping(objects, self._reach)
+        from_list = v["objects_source"] == "object_list"
+        self._world = ObjectWorld.from_mapping({} if from_list else objects, self._reach)
         self._graspable = {str(c).lower() for c in v["graspable"]}
         self._frame = str(v["frame_id"])
         self._fault = str(v["fault"])
