@@ -28,6 +28,8 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv if argv is None else argv
     ap = argparse.ArgumentParser(prog="cancel_command_node", description="Enter = stop the robot.")
     ap.add_argument("--once", action="store_true", help="send one cancel and exit")
+    ap.add_argument("--brain", default="decision_maker",
+                    help="node name of the decision maker: the first cancel waits until it is connected")
     ap.add_argument("--discovery-timeout", type=float, default=5.0,
                     help="seconds to wait for a listener before sending (a first cancel must not be lost)")
     opts = ap.parse_args(remove_ros_args(argv)[1:])
@@ -41,7 +43,7 @@ def main(argv: list[str] | None = None) -> int:
     def send(reason: str) -> None:
         nonlocal settled
         if not settled:  # first send: wait for listeners, and for discovery to settle (brain, nav, arm...)
-            wait_for_listeners(pub, opts.discovery_timeout, node=node)
+            wait_for_listeners(pub, opts.discovery_timeout, node=node, required_node=opts.brain)
             settled = True
         pub.publish(String(data=f"operator: {reason}"))
         print(f"cancel sent ({reason}) to {pub.get_subscription_count()} listener(s)", flush=True)

@@ -39,22 +39,23 @@ def stdin_lines(stream: TextIO | None = None, poll_s: float = 0.2) -> Iterator[s
         yield line
 
 
-def wait_for_listeners(pub, timeout_s: float, settle_s: float = 0.3, node=None) -> int:
+def wait_for_listeners(pub, timeout_s: float, settle_s: float = 0.3, node=None, required_node: str = "") -> int:
     """Wait until ``pub`` is matched with its subscribers (or ``timeout_s``); returns how many.
 
-    "Matched" means: at least one, every subscription the ROS graph shows on the topic (when
-    ``node`` is given), and the count unchanged for ``settle_s``. Used before the first publish of
-    a short-lived node, so the message reaches every listener discovery is still finding (the
-    brain, the simulated nav and arm, observers).
+    "Matched" means: at least one; when ``node`` is given, every subscription the ROS graph shows
+    on the topic, including one of the node named ``required_node`` (e.g. the decision maker) if
+    set; and the count unchanged for ``settle_s``. Used before the first publish of a short-lived
+    node, so the message reaches the listeners discovery is still finding (brain, nav, arm...).
     """
     deadline = time.monotonic() + timeout_s
     count, since = pub.get_subscription_count(), time.monotonic()
     while time.monotonic() < deadline:
         now_count = pub.get_subscription_count()
-        known = len(node.get_subscriptions_info_by_topic(pub.topic_name)) if node is not None else 0
+        infos = node.get_subscriptions_info_by_topic(pub.topic_name) if node is not None else []
+        required_seen = not required_node or node is None or any(i.node_name == required_node for i in infos)
         if now_count != count:
             count, since = now_count, time.monotonic()
-        elif count > 0 and count >= known and time.monotonic() - since >= settle_s:
+        elif count > 0 and count >= len(infos) and required_seen and time.monotonic() - since >= settle_s:
             break
         time.sleep(0.02)
     return count

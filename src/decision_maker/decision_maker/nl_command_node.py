@@ -42,8 +42,8 @@ class CommandSender:
         self._pending: collections.Counter[str] = collections.Counter()
         self.failures = 0
 
-    def wait_for_listener(self, timeout_s: float) -> bool:
-        return wait_for_listeners(self._pub, timeout_s, node=self._node) > 0
+    def wait_for_listener(self, timeout_s: float, brain: str = "") -> bool:
+        return wait_for_listeners(self._pub, timeout_s, node=self._node, required_node=brain) > 0
 
     def send(self, line: str) -> None:
         with self._cond:
@@ -80,6 +80,8 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="nl_command_node", description="Type commands for the robot.")
     ap.add_argument("--no-wait", action="store_true", help="exit at end of input without waiting for results")
     ap.add_argument("--timeout", type=float, default=300.0, help="max seconds to wait for results after EOF")
+    ap.add_argument("--brain", default="decision_maker",
+                    help="node name of the decision maker: the first command waits until it is connected")
     ap.add_argument("--discovery-timeout", type=float, default=10.0,
                     help="seconds to wait for the decision maker to be connected before the first send")
     opts = ap.parse_args(remove_ros_args(argv)[1:])
@@ -108,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
             if not line.strip():
                 continue
             if not connected:
-                connected = sender.wait_for_listener(opts.discovery_timeout)
+                connected = sender.wait_for_listener(opts.discovery_timeout, opts.brain)
                 if not connected:
                     print("warning: nobody listens on /manual_command (decision maker running? same "
                           "ROS_DOMAIN_ID?); sending anyway", file=sys.stderr, flush=True)

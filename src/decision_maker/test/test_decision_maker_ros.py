@@ -63,7 +63,7 @@ class Robot:
     def wait_connected(self) -> None:
         assert wait_for(lambda: self._cmd.get_subscription_count() > 0 and self._cancel.get_subscription_count() > 0,
                         20.0), "decision maker not subscribed"
-        assert wait_for(lambda: self.snapshot() is not None, 20.0), "no world state"
+        assert wait_for(lambda: (self.snapshot() or {}).get("robot") is not None, 20.0), "no world state"
 
     def send(self, text: str) -> None:
         self._cmd.publish(String(data=text))
@@ -211,10 +211,22 @@ def test_nav_hang_timeout_and_object_query_absent(launch_nodes, ros_node, ros_do
 def test_bad_inputs_and_flood(launch_nodes, ros_node, ros_domain):
     # (this robot's world is made from the object database's /object_list instead of sim.yaml)
     launch_nodes(nodes=robot_specs(), set=[*FAST, "decision_maker.max_queue=3",
+                                           "mock_grasp_server.grasp_duration_s=2.0",
                                            "mock_grasp_server.objects_source=object_list"])
     robot = Robot(ros_node)
     robot.wait_connected()
     assert wait_for(lambda: set(robot.snapshot()["objects"]) == {"bottle", "cup", "trash"}, 10.0), robot.snapshot()
+    bottle = robot.snapshot()["objects"]["bottle"]["position"]
+
+    # cancel while grasping: the gripper stays empty, the bottle where it was
+    robot.send("give me the bottle")
+    assert wait_for(lambda: any(s.step == 2 for s in robot.of("give me the bottle")), 15.0)
+    time.sleep(0.5)
+    robot.cancel("cancel while grasping")
+    final = robot.final("give me the bottle", 10.0)
+    assert final.state is TaskState.CANCELLED and final.step == 2, final
+    time.sleep(2.0)  # longer than the grasp would have taken
+    assert robot.snapshot()["held"] is None and robot.snapshot()["objects"]["bottle"]["position"] == bottle
     cases = {
         "dance for me": (TaskState.REJECTED, "don't know how"),
         "give me the unicorn": (TaskState.FAILED, "unicorn"),
