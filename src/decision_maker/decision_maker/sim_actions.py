@@ -81,6 +81,7 @@ class SimGoals:
     def _cancel_cb(self, gh: ServerGoalHandle) -> CancelResponse:
         if self.key(gh) not in self.active:
             return CancelResponse.REJECT
+        self._on_cancel(gh)  # the simulation stops now; the goal ends in the next iteration
         self._cancelling.append(gh)
         self._wake.trigger()  # runs after this cancel request is processed (same thread)
         return CancelResponse.ACCEPT
@@ -88,9 +89,7 @@ class SimGoals:
     def _on_wake(self) -> None:
         pending, self._cancelling = self._cancelling, []
         for gh in pending:
-            if self.key(gh) in self.active:
-                self._on_cancel(gh)
-                self.finish(gh, "cancel", self.result())
+            self.finish(gh, "cancel", self.result())
 
     def result(self, **fields: Any) -> Any:
         res = self._action_type.Result()
