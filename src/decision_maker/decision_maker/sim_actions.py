@@ -41,11 +41,12 @@ class SimGoals:
         on_goal: ``(goal_request) -> str | None`` — a reason to reject, or None to accept.
         on_accepted: ``(goal_handle) -> None`` — start simulating it.
         on_cancel: ``(goal_handle) -> None`` — the goal is being cancelled: stop simulating it.
+        result_timeout_s: seconds a finished goal's result is kept for late ``get_result`` calls.
     """
 
     def __init__(self, node: Node, action_type: type, name: str, on_goal: Callable[[Any], str | None],
                  on_accepted: Callable[[ServerGoalHandle], None],
-                 on_cancel: Callable[[ServerGoalHandle], None]) -> None:
+                 on_cancel: Callable[[ServerGoalHandle], None], result_timeout_s: int = 10) -> None:
         self._node = node
         self._action_type = action_type
         self._on_goal = on_goal
@@ -61,6 +62,9 @@ class SimGoals:
             goal_callback=self._goal_cb,
             handle_accepted_callback=self._accepted_cb,
             cancel_callback=self._cancel_cb,
+            # finished goals leave the status array after this long (rclpy's default is 15 min: the
+            # array, which every client parses on every change, would grow with each goal)
+            result_timeout=result_timeout_s,
         )
 
     @staticmethod
