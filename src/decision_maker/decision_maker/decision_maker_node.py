@@ -30,6 +30,7 @@ import threading
 import time
 
 import rclpy
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
@@ -68,6 +69,10 @@ class DecisionMakerNode(Node):
         for name, default in p.items():
             self.declare_parameter(name, default)
         v = {name: self.get_parameter(name).value for name in p}
+        # Read once: a later change would be silently ignored, so it is refused with the reason.
+        self.add_on_set_parameters_callback(
+            lambda params: SetParametersResult(
+                successful=False, reason="decision_maker parameters are read at start; restart the node"))
 
         # Raises ConfigError (reported by main) on bad values.
         config = EngineConfig(
