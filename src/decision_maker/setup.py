@@ -1,3 +1,5 @@
+from glob import glob
+
 from setuptools import find_packages, setup
 
 package_name = "decision_maker"
@@ -9,6 +11,8 @@ setup(
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
+        ("share/" + package_name + "/config", glob("config/*.yaml")),
+        ("share/" + package_name + "/launch", glob("launch/*.py")),
     ],
     install_requires=["setuptools"],
     zip_safe=True,
@@ -18,6 +22,11 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": [
+            "decision_maker_node = decision_maker.decision_maker_node:main",
+            "nl_command_node = decision_maker.nl_command_node:main",
+            "cancel_command_node = decision_maker.cancel_command_node:main",
+            "mock_nav_server = decision_maker.mock_nav_server:main",
+            "mock_grasp_server = decision_maker.mock_grasp_server:main",
             "audio_command_node = decision_maker.audio_command_node:main",
         ]
     },

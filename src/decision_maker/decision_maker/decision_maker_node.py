@@ -1,0 +1,211 @@
+"""The brain: ``/manual_command`` → plan → primitives on Nav2 / Grasp / Place; ``/cancel_command`` stops.
+
+Topics:
+    /manual_command (std_msgs/String, in): a command in words ("give me the bottle") or primitives.
+    /cancel_command (std_msgs/String, in and out): stop now — clears the queue and cancels the
+        active goal(s); published by this node on any timeout so the hardware layer stops too.
+    /object_list (std_msgs/String JSON, in, transient local): known objects, for slot filling.
+    /task_status (std_msgs/String JSON, out): one update per state change (see execution.TaskStatus).
+
+Actions / services used: ``navigate_to_pose`` (nav2_msgs/NavigateToPose), ``grasp`` and ``place``
+(decision_maker_interfaces), ``object_query`` (object_query_interfaces/ObjectQuery).
+
+Threads: one MultiThreadedExecutor spins the node in its own thread; callback groups keep the
+cancel input, the command input and the clients apart, so ``/cancel_command`` is served while
+the execution thread blocks; the execution thread waits on futures/events with deadlines.
+
+Parameters (read at start; see config/params/decision_maker.yaml for the defaults and units):
+    planner, planner_options (JSON object: the planner's keyword arguments), locations_file,
+    max_queue, max_text_chars, batch_timeout_s, nav_timeout_s,
+    grasp_timeout_s, place_timeout_s, query_timeout_s, server_wait_s, cancel_wait_s,
+    frame_id, frame_offset ([x, y, yaw] of the map in the command frame: Isaac Sim and co.),
+    nav_action, grasp_action, place_action, query_service.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import threading
+import time
+
+import rclpy
+from rcl_interfaces.msg import SetParametersResult
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+from std_msgs.msg import String
+
+from decision_maker.command_types import FrameTransform, load_locations
+from decision_maker.errors import ConfigError
+from decision_maker.execution import EngineConfig, ExecutionEngine, TaskStatus
+from decision_maker.nl_planner import PlanningContext, make_planner
+from decision_maker.ros_robot import RosRobot
+from decision_maker.topics import CANCEL_QOS, COMMAND_QOS, OBJECT_LIST_QOS
+
+
+def default_locations_file() -> str:
+    from ament_index_python.packages import get_package_share_directory
+
+    return os.path.join(get_package_share_directory("decision_maker"), "config", "locations.yaml")
+
+
+class DecisionMakerNode(Node):
+    """Wires topics, clients and parameters to the :class:`ExecutionEngine`."""
+
+    def __init__(self) -> None:
+        super().__init__("decision_maker")
+        d = EngineConfig()
+        p = {
+            "planner": "registry", "planner_options": "{}", "locations_file": "",
+            "max_queue": d.max_queue, "max_text_chars": d.max_text_chars,
+            "batch_timeout_s": d.batch_timeout_s, "nav_timeout_s": d.nav_timeout_s,
+            "grasp_timeout_s": d.grasp_timeout_s, "place_timeout_s": d.place_timeout_s,
+            "query_timeout_s": d.query_timeout_s, "server_wait_s": 5.0, "cancel_wait_s": 2.0,
+            "frame_id": "map", "frame_offset": [0.0, 0.0, 0.0],
+            "nav_action": "navigate_to_pose", "grasp_action": "grasp", "place_action": "place",
+            "query_service": "object_query",
+        }
+        for name, default in p.items():
+            self.declare_parameter(name, default)
+        v = {name: self.get_parameter(name).value for name in p}
+        # Read once: a later change would be silently ignored, so it is refused with the reason.
+        self.add_on_set_parameters_callback(
+            lambda params: SetParametersResult(
+                successful=False, reason="decision_maker parameters are read at start; restart the node"))
+
+        # Raises ConfigError (reported by main) on bad values.
+        config = EngineConfig(
+            max_queue=int(v["max_queue"]), max_text_chars=int(v["max_text_chars"]),
+            batch_timeout_s=float(v["batch_timeout_s"]), nav_timeout_s=float(v["nav_timeout_s"]),
+            grasp_timeout_s=float(v["grasp_timeout_s"]), place_timeout_s=float(v["place_timeout_s"]),
+            query_timeout_s=float(v["query_timeout_s"]),
+        )
+        for name in ("server_wait_s", "cancel_wait_s"):
+            if not float(v[name]) > 0:
+                raise ConfigError(f"{name} must be > 0, got {v[name]}")
+        offset = list(v["frame_offset"])
+        if len(offset) != 3:
+            raise ConfigError(f"frame_offset must be [x, y, yaw], got {offset}")
+        frames = FrameTransform(str(v["frame_id"]), *(float(o) for o in offset))
+        locations_file = v["locations_file"] or default_locations_file()
+        self._locations = load_locations(locations_file)
+        try:
+            planner_options = json.loads(v["planner_options"] or "{}")
+        except json.JSONDecodeError as exc:
+            raise ConfigError(f"planner_options must be a JSON object: {exc}") from exc
+        if not isinstance(planner_options, dict):
+            raise ConfigError("planner_options must be a JSON object")
+        self._planner = make_planner(str(v["planner"]), **planner_options)
+
+        self._objects_lock = threading.Lock()  # guards _objects
+        self._objects: dict[str, tuple[float, float, float]] = {}
+
+        # Callback groups: cancel alone (never waits behind anything), command input, clients.
+        self._cancel_group = MutuallyExclusiveCallbackGroup()
+        self._input_group = MutuallyExclusiveCallbackGroup()
+        self._client_group = ReentrantCallbackGroup()
+
+        self._status_pub = self.create_publisher(String, "task_status", COMMAND_QOS)
+        cancel_pub = self.create_publisher(String, "cancel_command", CANCEL_QOS)
+        self.robot = RosRobot(
+            self, self._client_group, cancel_pub, frames,
+            server_wait_s=float(v["server_wait_s"]), cancel_wait_s=float(v["cancel_wait_s"]),
+            names={"nav": v["nav_action"], "grasp": v["grasp_action"], "place": v["place_action"],
+                   "query": v["query_service"]},
+            on_goal_sent=self._on_goal_sent,
+        )
+        self._last_timed_id = 0  # command whose first goal was already logged (execution thread only)
+        self.engine = ExecutionEngine(self._planner, self.robot, config, self._publish_status, self._planning_context)
+        self.create_subscription(String, "cancel_command", self._on_cancel, CANCEL_QOS,
+                                 callback_group=self._cancel_group)
+        self.create_subscription(String, "manual_command", self._on_command, COMMAND_QOS,
+                                 callback_group=self._input_group)
+        self.create_subscription(String, "object_list", self._on_object_list, OBJECT_LIST_QOS,
+                                 callback_group=self._input_group)
+        self.get_logger().info(
+            f"ready: decision maker (planner {self._planner.name}, {len(self._locations)} locations from "
+            f"{locations_file}, queue {config.max_queue}, batch {config.batch_timeout_s:g} s, "
+            f"nav {config.nav_timeout_s:g} s, frame {frames.frame_id})"
+        )
+
+    def _on_goal_sent(self, what: str) -> None:
+        current = self.engine.current()
+        if current is not None and current[0] != self._last_timed_id:
+            self._last_timed_id = current[0]
+            dt_ms = (time.monotonic() - current[1]) * 1000.0
+            self.get_logger().info(f"latency: command #{current[0]} received -> first goal sent ({what}): "
+                                   f"{dt_ms:.2f} ms")
+
+    def _planning_context(self) -> PlanningContext:
+        with self._objects_lock:
+            objects = dict(self._objects)
+        return PlanningContext(frozenset(objects), self._locations, objects)
+
+    def _publish_status(self, status: TaskStatus) -> None:
+        self.get_logger().info(status.line() + (f" — {status.message}" if status.state.terminal else ""))
+        self._status_pub.publish(String(data=status.to_json()))
+
+    def _on_command(self, msg: String) -> None:
+        self.engine.submit(msg.data)
+
+    def _on_cancel(self, msg: String) -> None:
+        reason = " ".join(msg.data.split())[:200] or "operator"
+        n = self.engine.cancel(f"/cancel_command ({reason})")
+        self.get_logger().warn(f"/cancel_command ({reason}): cancelled {n} command(s)")
+
+    def _on_object_list(self, msg: String) -> None:
+        try:
+            doc = json.loads(msg.data)
+            objects = {str(k).lower(): tuple(v) for k, v in doc.items()} if isinstance(doc, dict) else None
+        except (json.JSONDecodeError, TypeError, ValueError):
+            objects = None
+        if objects is None:
+            self.get_logger().warn("ignoring a malformed /object_list message")
+            return
+        with self._objects_lock:
+            self._objects = objects
+        self.get_logger().info(f"object list: {', '.join(sorted(objects))}")
+
+
+def main(args: list[str] | None = None) -> int:
+    rclpy.init(args=args)
+    try:
+        node = DecisionMakerNode()
+    except ConfigError as exc:
+        rclpy.logging.get_logger("decision_maker").fatal(f"configuration error: {exc}")
+        rclpy.try_shutdown()
+        return 2
+    executor = MultiThreadedExecutor(num_threads=4)
+    executor.add_node(node)
+
+    def spin() -> None:
+        try:
+            executor.spin()
+        except ExternalShutdownException:
+            pass
+        except Exception:  # a wait interrupted by the shutdown (Ctrl-C) is not an error; anything else is
+            if rclpy.ok():
+                raise
+
+    spinner = threading.Thread(target=spin, name="ros-executor", daemon=True)
+    worker = threading.Thread(target=node.engine.run, name="execution", daemon=True)
+    spinner.start()
+    worker.start()
+    try:
+        while spinner.is_alive():
+            spinner.join(0.2)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        node.engine.stop()
+        worker.join(3.0)
+        executor.shutdown(timeout_sec=2.0)
+        spinner.join(2.0)
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

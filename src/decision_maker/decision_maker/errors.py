@@ -1,0 +1,53 @@
+"""Typed errors of the decision maker (planning, execution, simulated hardware)."""
+
+
+class DecisionMakerError(Exception):
+    """Base class of the decision maker's errors."""
+
+
+class ConfigError(DecisionMakerError):
+    """A configuration file or parameter is malformed (locations file, objects, timeouts)."""
+
+
+class PlanningError(DecisionMakerError):
+    """A command could not be turned into a plan; the message says why, for a person."""
+
+
+class NoMatchingScenario(PlanningError):
+    """No scenario phrase matches the command."""
+
+
+class MissingSlot(PlanningError):
+    """A scenario matched but a slot (e.g. which object) could not be filled."""
+
+
+class InvalidPrimitive(PlanningError):
+    """A primitive string is malformed or names something unknown (the message gives the reason)."""
+
+
+class ExecutionError(DecisionMakerError):
+    """A primitive did not complete; subclasses say how."""
+
+
+class ActionFailed(ExecutionError):
+    """The action server reported failure (aborted / unsuccessful result) or refused the goal."""
+
+
+class ActionTimeout(ExecutionError):
+    """An action (or the object query) did not finish within its deadline."""
+
+
+class ActionCancelled(ExecutionError):
+    """The primitive was cancelled (``/cancel_command`` or shutdown)."""
+
+
+class ServerUnavailable(ExecutionError):
+    """An action server or the object query service is not available before the deadline."""
+
+
+class ObjectNotFound(ExecutionError):
+    """The object database does not know the object."""
+
+
+class SimError(DecisionMakerError):
+    """The simulated world refuses an operation (out of reach, gripper full, nothing held...)."""

@@ -1,0 +1,185 @@
+"""Simulated Nav2: a ``navigate_to_pose`` action server moving a kinematic robot base.
+
+The base turns toward the goal and drives straight at ``speed`` (no obstacles), then turns to the
+goal heading. Feedback carries ``current_pose`` and ``distance_remaining``; the pose is published
+on ``robot_pose`` every tick. A new goal preempts (aborts) the running one. Cancel is honoured in
+the next executor iteration; ``/cancel_command`` stops the base at once and aborts the goal
+unless its client cancels it within ``stop_grace_s``.
+
+Parameters:
+    speed (m/s, 1.0), turn_rate (rad/s, 2.0), rate_hz (simulation/feedback rate, 20),
+    initial_pose ([x, y, theta], [0.5, 0.5, 0.0]), frame_id ("map"), action_name
+    ("navigate_to_pose"), pose_topic ("robot_pose"), stop_grace_s (0.5),
+    fault: "none" | "fail" (abort after fail_after_s) | "hang" (never moves or finishes; cancel works),
+    fail_after_s (0.3).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import rclpy
+from builtin_interfaces.msg import Duration
+from geometry_msgs.msg import PoseStamped
+from rclpy.action.server import ServerGoalHandle
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import String
+
+from decision_maker.command_types import Pose2D
+from decision_maker.errors import ConfigError
+from decision_maker.sim_actions import SimGoals
+from decision_maker.sim_world import BaseSim
+from nav2_msgs.action import NavigateToPose
+
+POSE_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
+FAULTS = ("none", "fail", "hang")
+
+
+def yaw_of(q) -> float:
+    return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+
+
+def _duration(seconds: float) -> Duration:
+    seconds = max(0.0, seconds)
+    return Duration(sec=int(seconds), nanosec=int((seconds % 1.0) * 1e9))
+
+
+class MockNavServer(Node):
+    def __init__(self) -> None:
+        super().__init__("mock_nav_server")
+        defaults = {"speed": 1.0, "turn_rate": 2.0, "rate_hz": 20.0, "initial_pose": [0.5, 0.5, 0.0],
+                    "frame_id": "map", "action_name": "navigate_to_pose", "pose_topic": "robot_pose",
+                    "stop_grace_s": 0.5, "fault": "none", "fail_after_s": 0.3}
+        for k, val in defaults.items():
+            self.declare_parameter(k, val)
+        v = {k: self.get_parameter(k).value for k in defaults}
+        if v["fault"] not in FAULTS:
+            raise ConfigError(f"fault must be one of {FAULTS}, got {v['fault']!r}")
+        if not float(v["rate_hz"]) > 0:
+            raise ConfigError(f"rate_hz must be > 0, got {v['rate_hz']}")
+        init = [float(x) for x in v["initial_pose"]]
+        if len(init) != 3:
+            raise ConfigError(f"initial_pose must be [x, y, theta], got {init}")
+        self._base = BaseSim(Pose2D(*init), float(v["speed"]), float(v["turn_rate"]))
+        self._frame = str(v["frame_id"])
+        self._fault = str(v["fault"])
+        self._fail_after = float(v["fail_after_s"])
+        self._grace = float(v["stop_grace_s"])
+        self._active: ServerGoalHandle | None = None
+        self._started = 0.0
+        self._stop_deadline: float | None = None  # abort the goal at this time (after /cancel_command)
+        self._pose_pub = self.create_publisher(PoseStamped, str(v["pose_topic"]), POSE_QOS)
+        self._goals = SimGoals(self, NavigateToPose, str(v["action_name"]), self._check_goal, self._start,
+                               self._cancelled)
+        self.create_subscription(String, "cancel_command", self._on_stop, 10)
+        self._last = time.monotonic()
+        self.create_timer(1.0 / float(v["rate_hz"]), self._tick)
+        self._publish_pose()
+        p = self._base.pose
+        self.get_logger().info(
+            f"ready: simulated nav at ({p.x:.2f}, {p.y:.2f}, {p.theta:.2f}), speed {self._base.speed:g} m/s, "
+            f"fault {self._fault}"
+        )
+
+    # --- goals ------------------------------------------------------------------------------------
+
+    def _check_goal(self, goal: NavigateToPose.Goal) -> str | None:
+        pos = goal.pose.pose.position
+        if not all(math.isfinite(c) for c in (pos.x, pos.y, yaw_of(goal.pose.pose.orientation))):
+            return "non-finite goal pose"
+        frame = goal.pose.header.frame_id
+        if frame and frame != self._frame:
+            return f"goal frame {frame!r} is not {self._frame!r}"
+        return None
+
+    def _start(self, gh: ServerGoalHandle) -> None:
+        if self._active is not None:
+            self._goals.finish(self._active, "abort", self._result(9000, "preempted by a new goal"))
+        pose = gh.request.pose.pose
+        self._active = gh
+        self._started = time.monotonic()
+        self._stop_deadline = None
+        goal = Pose2D(pose.position.x, pose.position.y, yaw_of(pose.orientation))
+        self._base.goal = None if self._fault == "hang" else goal
+        self.get_logger().info(f"goal: ({goal.x:.2f}, {goal.y:.2f}, {goal.theta:.2f})")
+
+    def _cancelled(self, gh: ServerGoalHandle) -> None:
+        if gh is self._active:
+            self._base.stop()
+            self._active = None
+            self.get_logger().info("goal cancelled: stopped")
+
+    def _on_stop(self, msg: String) -> None:
+        self._base.stop()
+        if self._active is not None and self._stop_deadline is None:
+            self._stop_deadline = time.monotonic() + self._grace
+        self.get_logger().warn(f"/cancel_command: stopped ({msg.data[:80]})")
+
+    def _result(self, code: int = 0, msg: str = "") -> NavigateToPose.Result:
+        return self._goals.result(error_code=code, error_msg=msg)
+
+    # --- simulation -------------------------------------------------------------------------------
+
+    def _tick(self) -> None:
+        now = time.monotonic()
+        dt, self._last = now - self._last, now
+        self._base.step(dt)
+        self._publish_pose()
+        gh = self._active
+        if gh is None:
+            return
+        if self._stop_deadline is not None and now >= self._stop_deadline:
+            self._finish(gh, "abort", self._result(9000, "stopped by /cancel_command"))
+        elif self._fault == "fail" and now - self._started >= self._fail_after:
+            self._finish(gh, "abort", self._result(9000, "simulated navigation failure"))
+        elif self._base.arrived():
+            self._finish(gh, "succeed", self._result())
+        else:
+            fb = NavigateToPose.Feedback()
+            fb.current_pose = self._pose_msg()
+            fb.distance_remaining = float(self._base.distance_remaining())
+            fb.navigation_time = _duration(now - self._started)
+            fb.estimated_time_remaining = _duration(self._base.distance_remaining() / self._base.speed)
+            gh.publish_feedback(fb)
+
+    def _finish(self, gh: ServerGoalHandle, kind: str, result: NavigateToPose.Result) -> None:
+        self._active = None
+        self._base.stop()
+        self._goals.finish(gh, kind, result)
+
+    def _pose_msg(self) -> PoseStamped:
+        p = self._base.pose
+        msg = PoseStamped()
+        msg.header.frame_id = self._frame
+        msg.header.stamp = self.get_clock().now().to_msg()
+        msg.pose.position.x, msg.pose.position.y = p.x, p.y
+        msg.pose.orientation.z, msg.pose.orientation.w = math.sin(p.theta / 2), math.cos(p.theta / 2)
+        return msg
+
+    def _publish_pose(self) -> None:
+        self._pose_pub.publish(self._pose_msg())
+
+
+def main(args: list[str] | None = None) -> int:
+    rclpy.init(args=args)
+    try:
+        node = MockNavServer()
+    except ConfigError as exc:
+        rclpy.logging.get_logger("mock_nav_server").fatal(f"configuration error: {exc}")
+        rclpy.try_shutdown()
+        return 2
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

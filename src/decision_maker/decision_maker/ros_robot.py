@@ -1,0 +1,236 @@
+"""The engine's :class:`~decision_maker.execution.RobotPort` over ROS 2 actions and the object query.
+
+Blocking methods run in the execution thread only; they wait on ``threading.Event`` objects that
+future done-callbacks (executor threads) and the batch's abort token set, always with a deadline.
+Nothing here spins the node: the node is spun by the decision maker's MultiThreadedExecutor.
+
+Each action call follows the initialise / update / terminate shape: send the goal (after the
+server is available), wait for the result while watching the deadline and the abort token, and on
+timeout or abort cancel the goal and wait a bounded time (``cancel_wait_s``) for the server to
+confirm.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections.abc import Callable
+
+from action_msgs.msg import GoalStatus
+from geometry_msgs.msg import PointStamped, PoseStamped
+from object_query.object_query_client import ObjectQueryClient
+from rclpy.action import ActionClient
+from rclpy.action.client import ClientGoalHandle
+from rclpy.callback_groups import CallbackGroup
+from rclpy.node import Node
+from rclpy.task import Future
+from std_msgs.msg import String
+
+from decision_maker.command_types import FrameTransform, NamedLocation, Point3, Pose2D
+from decision_maker.errors import (
+    ActionCancelled,
+    ActionFailed,
+    ActionTimeout,
+    ObjectNotFound,
+    ServerUnavailable,
+)
+from decision_maker.execution import AbortToken
+from decision_maker_interfaces.action import Grasp, Place
+from nav2_msgs.action import NavigateToPose
+
+_STATUS_NAMES = {GoalStatus.STATUS_SUCCEEDED: "succeeded", GoalStatus.STATUS_ABORTED: "aborted",
+                 GoalStatus.STATUS_CANCELED: "canceled"}
+
+
+class RosRobot:
+    """Navigation, grasp, place and object lookup for the execution engine.
+
+    Args:
+        node: the decision maker node (spun elsewhere).
+        group: callback group of the action/service clients (not the input group).
+        cancel_publisher: publisher of ``/cancel_command`` (``std_msgs/String``: the reason).
+        frames: map → command frame transform (Isaac Sim etc.; identity by default).
+        server_wait_s: longest wait for an action server / the query service per call (> 0).
+        cancel_wait_s: longest wait for a cancelled goal's final result (> 0).
+        names: action / service names: ``nav``, ``grasp``, ``place``, ``query``.
+        on_goal_sent: called with the action name right after a goal is sent (for logs/benchmarks).
+    """
+
+    def __init__(self, node: Node, group: CallbackGroup, cancel_publisher, frames: FrameTransform,
+                 server_wait_s: float = 5.0, cancel_wait_s: float = 2.0, names: dict[str, str] | None = None,
+                 on_goal_sent: Callable[[str], None] | None = None) -> None:
+        names = {"nav": "navigate_to_pose", "grasp": "grasp", "place": "place", "query": "object_query",
+                 **(names or {})}
+        self._node = node
+        self._frames = frames
+        self._server_wait_s = server_wait_s
+        self._cancel_wait_s = cancel_wait_s
+        self._cancel_pub = cancel_publisher
+        self._on_goal_sent = on_goal_sent
+        self._nav = ActionClient(node, NavigateToPose, names["nav"], callback_group=group)
+        self._grasp = ActionClient(node, Grasp, names["grasp"], callback_group=group)
+        self._place = ActionClient(node, Place, names["place"], callback_group=group)
+        self._query = ObjectQueryClient(node, names["query"], callback_group=group)
+        self._query_name = names["query"]
+        self._names = {id(self._nav): names["nav"], id(self._grasp): names["grasp"], id(self._place): names["place"]}
+        self._lock = threading.Lock()  # guards _active
+        self._active: list[ClientGoalHandle] = []  # goals accepted and not finished
+
+    # --- RobotPort ---------------------------------------------------------------------------------
+
+    def navigate(self, pose: Pose2D, timeout_s: float, abort: AbortToken) -> None:
+        p = self._frames.pose(pose)
+        goal = NavigateToPose.Goal()
+        goal.pose = self._pose_stamped(p.x, p.y, 0.0, p.theta)
+        result = self._run_action(self._nav, goal, timeout_s, abort, "navigation")
+        if result.error_code != 0:
+            raise ActionFailed(f"navigation failed (error {result.error_code}: {result.error_msg})")
+
+    def locate(self, name: str, timeout_s: float, abort: AbortToken) -> Point3:
+        deadline = time.monotonic() + timeout_s
+        while not self._query.wait_for_service(timeout_sec=0.05):
+            if abort.is_set():
+                raise ActionCancelled(abort.reason)
+            if time.monotonic() >= deadline:
+                raise ServerUnavailable(f"object query service /{self._query_name} not available "
+                                        f"after {timeout_s:.1f} s")
+        future = self._query.query_async(name)
+        if not self._wait_future(future, deadline, abort):
+            if abort.is_set():
+                raise ActionCancelled(abort.reason)
+            raise ServerUnavailable(f"object query gave no answer within {timeout_s:.1f} s")
+        resp = future.result()
+        if not resp.found:
+            raise ObjectNotFound(resp.message or f"unknown object {name!r}")
+        return self._frames.point(Point3(resp.position.x, resp.position.y, resp.position.z))
+
+    def grasp(self, name: str, target: Point3, timeout_s: float, abort: AbortToken) -> None:
+        goal = Grasp.Goal()
+        goal.object_name = name
+        goal.target = PointStamped()
+        goal.target.header.frame_id = self._frames.frame_id
+        goal.target.header.stamp = self._node.get_clock().now().to_msg()
+        goal.target.point.x, goal.target.point.y, goal.target.point.z = target.x, target.y, target.z
+        result = self._run_action(self._grasp, goal, timeout_s, abort, "grasp")
+        if not result.success:
+            raise ActionFailed(result.message or "grasp failed")
+
+    def place(self, location: NamedLocation, target: Point3, timeout_s: float, abort: AbortToken) -> None:
+        t = self._frames.point(target)
+        goal = Place.Goal()
+        goal.location_name = location.name
+        goal.target_pose = self._pose_stamped(t.x, t.y, t.z, self._frames.pose(location.pose).theta)
+        result = self._run_action(self._place, goal, timeout_s, abort, "place")
+        if not result.success:
+            raise ActionFailed(result.message or "place failed")
+
+    def cancel_active(self) -> None:
+        with self._lock:
+            handles = list(self._active)
+        for gh in handles:
+            self._cancel(gh)
+
+    def _cancel(self, gh: ClientGoalHandle) -> None:
+        try:
+            gh.cancel_goal_async()
+        except Exception as exc:  # context already shut down (Ctrl-C), ...
+            print(f"decision_maker: cancel of an active goal failed: {exc!r}", flush=True)
+
+    def emergency_stop(self, reason: str) -> None:
+        self._node.get_logger().warn(f"publishing /cancel_command: {reason}")
+        self._cancel_pub.publish(String(data=f"decision_maker: {reason}"))
+
+    # --- helpers -----------------------------------------------------------------------------------
+
+    def _pose_stamped(self, x: float, y: float, z: float, theta: float) -> PoseStamped:
+        msg = PoseStamped()
+        msg.header.frame_id = self._frames.frame_id
+        msg.header.stamp = self._node.get_clock().now().to_msg()
+        msg.pose.position.x, msg.pose.position.y, msg.pose.position.z = x, y, z
+        msg.pose.orientation.z, msg.pose.orientation.w = math.sin(theta / 2), math.cos(theta / 2)
+        return msg
+
+    @staticmethod
+    def _wait_future(future: Future, deadline: float, abort: AbortToken | None) -> bool:
+        """Wait until ``future`` is done (True), ``deadline`` passes or ``abort`` is set (False)."""
+        wake = threading.Event()
+        future.add_done_callback(lambda _f: wake.set())
+        remove = abort.add_waker(wake) if abort is not None else (lambda: None)
+        try:
+            while not future.done():
+                if abort is not None and abort.is_set():
+                    return False
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                wake.wait(left)
+                wake.clear()
+            return True
+        finally:
+            remove()
+
+    def _run_action(self, client: ActionClient, goal, timeout_s: float, abort: AbortToken, what: str):
+        """Send ``goal`` and wait for its result; cancel it on timeout/abort. Returns the result message.
+
+        Raises:
+            ServerUnavailable, ActionFailed, ActionTimeout (goal cancelled), ActionCancelled.
+        """
+        start = time.monotonic()
+        deadline = start + timeout_s
+        server_deadline = min(deadline, start + self._server_wait_s)
+        wake = threading.Event()
+        remove = abort.add_waker(wake)
+        try:
+            while not client.server_is_ready():
+                if abort.is_set():
+                    raise ActionCancelled(abort.reason)
+                left = server_deadline - time.monotonic()
+                if left <= 0:
+                    raise ServerUnavailable(f"{what} server /{self._names[id(client)]} not available "
+                                            f"after {server_deadline - start:.1f} s")
+                wake.wait(min(0.05, left))
+                wake.clear()
+        finally:
+            remove()
+        send_future = client.send_goal_async(goal)
+        if self._on_goal_sent is not None:
+            self._on_goal_sent(what)
+        accepted = self._wait_future(send_future, deadline, abort)
+        if not accepted:
+            # the goal may still be accepted: give it a bounded chance, then cancel it
+            if self._wait_future(send_future, time.monotonic() + self._cancel_wait_s, None):
+                gh = send_future.result()
+                if gh.accepted:
+                    self._cancel(gh)
+            if abort.is_set():
+                raise ActionCancelled(abort.reason)
+            raise ActionTimeout(f"{what} goal not accepted within {timeout_s:.1f} s")
+        gh: ClientGoalHandle = send_future.result()
+        if not gh.accepted:
+            raise ActionFailed(f"{what} goal rejected by the server")
+        with self._lock:
+            self._active.append(gh)
+        try:
+            if abort.is_set():  # a cancel arrived while the goal was being accepted
+                self._cancel(gh)
+            result_future = gh.get_result_async()
+            if not self._wait_future(result_future, deadline, abort):
+                timed_out = not abort.is_set()
+                self._cancel(gh)  # (again, if the cancel path already did: harmless)
+                self._wait_future(result_future, time.monotonic() + self._cancel_wait_s, None)
+                if timed_out:
+                    raise ActionTimeout(f"{what} did not finish within {timeout_s:.1f} s; goal cancelled")
+                raise ActionCancelled(abort.reason)
+            response = result_future.result()
+        finally:
+            with self._lock:
+                if gh in self._active:
+                    self._active.remove(gh)
+        if response.status == GoalStatus.STATUS_SUCCEEDED:
+            return response.result
+        if response.status == GoalStatus.STATUS_CANCELED:
+            raise ActionCancelled(abort.reason if abort.is_set() else f"{what} goal was cancelled")
+        msg = getattr(response.result, "message", "") or getattr(response.result, "error_msg", "")
+        state = _STATUS_NAMES.get(response.status, f"status {response.status}")
+        raise ActionFailed(f"{what} {state}" + (f": {msg}" if msg else ""))

@@ -1,0 +1,15 @@
+"""Topic names and QoS shared by the brain and its input nodes (no node code)."""
+
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+MANUAL_COMMAND = "manual_command"
+CANCEL_COMMAND = "cancel_command"
+TASK_STATUS = "task_status"
+OBJECT_LIST = "object_list"
+
+#: Commands and statuses: reliable with a deep history, so a burst is queued, not dropped.
+COMMAND_QOS = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
+CANCEL_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
+#: Latched like the object database publishes it.
+OBJECT_LIST_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
+                             reliability=ReliabilityPolicy.RELIABLE)
