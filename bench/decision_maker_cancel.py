@@ -25,16 +25,17 @@ import time
 
 import rclpy
 from action_msgs.msg import GoalStatus, GoalStatusArray
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import String
+
 from decision_maker.execution import TaskState, TaskStatus
 from decision_maker.topics import CANCEL_QOS, COMMAND_QOS
 from home_robot_bringup.domain import DomainLease
 from home_robot_bringup.launcher import apply_overrides
 from home_robot_bringup.nodeset import load_nodeset
 from home_robot_bringup.process import Supervisor, node_environment
-from rclpy.context import Context
-from rclpy.executors import SingleThreadedExecutor
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from std_msgs.msg import String
 
 STATUS_QOS = QoSProfile(depth=10, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 

@@ -28,6 +28,7 @@ import time
 from dataclasses import dataclass
 
 import rclpy
+from decision_maker_interfaces.action import Grasp, Place
 from geometry_msgs.msg import PoseStamped
 from rclpy.action.server import ServerGoalHandle
 from rclpy.executors import ExternalShutdownException
@@ -40,7 +41,6 @@ from decision_maker.errors import ConfigError, SimError
 from decision_maker.mock_nav_server import FAULTS, POSE_QOS, yaw_of
 from decision_maker.sim_actions import SimGoals
 from decision_maker.sim_world import ObjectWorld
-from decision_maker_interfaces.action import Grasp, Place
 
 WORLD_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 GRASP_STAGES = ((0.4, "approach"), (0.7, "close_gripper"), (1.01, "lift"))

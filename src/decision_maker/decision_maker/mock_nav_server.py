@@ -22,6 +22,7 @@ import time
 import rclpy
 from builtin_interfaces.msg import Duration
 from geometry_msgs.msg import PoseStamped
+from nav2_msgs.action import NavigateToPose
 from rclpy.action.server import ServerGoalHandle
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
@@ -32,7 +33,6 @@ from decision_maker.command_types import Pose2D
 from decision_maker.errors import ConfigError
 from decision_maker.sim_actions import SimGoals
 from decision_maker.sim_world import BaseSim
-from nav2_msgs.action import NavigateToPose
 
 POSE_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 FAULTS = ("none", "fail", "hang")

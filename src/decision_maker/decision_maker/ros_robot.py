@@ -18,8 +18,9 @@ import time
 from collections.abc import Callable
 
 from action_msgs.msg import GoalStatus
+from decision_maker_interfaces.action import Grasp, Place
 from geometry_msgs.msg import PointStamped, PoseStamped
-from object_query.object_query_client import ObjectQueryClient
+from nav2_msgs.action import NavigateToPose
 from rclpy.action import ActionClient
 from rclpy.action.client import ClientGoalHandle
 from rclpy.callback_groups import CallbackGroup
@@ -36,8 +37,7 @@ from decision_maker.errors import (
     ServerUnavailable,
 )
 from decision_maker.execution import AbortToken
-from decision_maker_interfaces.action import Grasp, Place
-from nav2_msgs.action import NavigateToPose
+from object_query.object_query_client import ObjectQueryClient
 
 _STATUS_NAMES = {GoalStatus.STATUS_SUCCEEDED: "succeeded", GoalStatus.STATUS_ABORTED: "aborted",
                  GoalStatus.STATUS_CANCELED: "canceled"}

@@ -5,6 +5,7 @@ import os
 import threading
 
 import pytest
+
 from decision_maker.command_types import (
     FrameTransform,
     GoTo,

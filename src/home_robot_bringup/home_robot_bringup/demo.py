@@ -41,10 +41,11 @@ class Operator:
 
     def __init__(self, domain_id: int, echo=sys.stdout) -> None:
         import rclpy
-        from decision_maker.topics import CANCEL_QOS, COMMAND_QOS, OBJECT_LIST_QOS
         from rclpy.context import Context
         from rclpy.executors import SingleThreadedExecutor
         from std_msgs.msg import String
+
+        from decision_maker.topics import CANCEL_QOS, COMMAND_QOS, OBJECT_LIST_QOS
 
         self._String = String
         self._echo = echo
