@@ -19,6 +19,7 @@ import threading
 import time
 
 import rclpy
+from object_query_interfaces.srv import ObjectQuery
 from rclpy.callback_groups import CallbackGroup
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -27,7 +28,6 @@ from rclpy.utilities import remove_ros_args
 
 from object_query.errors import ObjectQueryError
 from object_query.semantic_map import QueryResult
-from object_query_interfaces.srv import ObjectQuery
 
 
 class ObjectQueryTimeout(ObjectQueryError):

@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 
 import rclpy
+from object_query_interfaces.srv import ObjectQuery
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -17,7 +18,6 @@ from std_msgs.msg import String
 
 from object_query.errors import MapLoadError
 from object_query.semantic_map import ObjectDatabase
-from object_query_interfaces.srv import ObjectQuery
 
 #: Latched: a node that subscribes later still receives the last object list.
 OBJECT_LIST_QOS = QoSProfile(

@@ -153,6 +153,5 @@ class ObjectDatabase:
 
     def to_json(self) -> str:
         """``{"chair": [x, y, z], ...}`` with finite floats rounded to mm."""
-        return json.dumps(
-            {n: [round(float(v), 4) if math.isfinite(v) else None for v in c] for n, c in sorted(self._centroids.items())}
-        )
+        items = sorted(self._centroids.items())
+        return json.dumps({n: [round(float(v), 4) if math.isfinite(v) else None for v in c] for n, c in items})
