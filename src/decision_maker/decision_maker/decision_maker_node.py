@@ -18,6 +18,7 @@ Parameters (read at start; see config/params/decision_maker.yaml for the default
     planner, planner_options (JSON object: the planner's keyword arguments), locations_file,
     max_queue, max_text_chars, batch_timeout_s, nav_timeout_s,
     grasp_timeout_s, place_timeout_s, query_timeout_s, server_wait_s, cancel_wait_s,
+    confirm_llm_plans, confirm_timeout_s (LLM plans wait for "yes"/"no" on /manual_command),
     frame_id, frame_offset ([x, y, yaw] of the map in the command frame: Isaac Sim and co.),
     nav_action, grasp_action, place_action, query_service.
 """
@@ -61,7 +62,9 @@ class DecisionMakerNode(Node):
             "max_queue": d.max_queue, "max_text_chars": d.max_text_chars,
             "batch_timeout_s": d.batch_timeout_s, "nav_timeout_s": d.nav_timeout_s,
             "grasp_timeout_s": d.grasp_timeout_s, "place_timeout_s": d.place_timeout_s,
-            "query_timeout_s": d.query_timeout_s, "server_wait_s": 5.0, "cancel_wait_s": 2.0,
+            "query_timeout_s": d.query_timeout_s,
+            "confirm_llm_plans": d.confirm_llm_plans, "confirm_timeout_s": d.confirm_timeout_s,
+            "server_wait_s": 5.0, "cancel_wait_s": 2.0,
             "frame_id": "map", "frame_offset": [0.0, 0.0, 0.0],
             "nav_action": "navigate_to_pose", "grasp_action": "grasp", "place_action": "place",
             "query_service": "object_query",
@@ -80,6 +83,7 @@ class DecisionMakerNode(Node):
             batch_timeout_s=float(v["batch_timeout_s"]), nav_timeout_s=float(v["nav_timeout_s"]),
             grasp_timeout_s=float(v["grasp_timeout_s"]), place_timeout_s=float(v["place_timeout_s"]),
             query_timeout_s=float(v["query_timeout_s"]),
+            confirm_llm_plans=bool(v["confirm_llm_plans"]), confirm_timeout_s=float(v["confirm_timeout_s"]),
         )
         for name in ("server_wait_s", "cancel_wait_s"):
             if not float(v[name]) > 0:

@@ -130,6 +130,8 @@ class EngineConfig:
         grasp_timeout_s: one Grasp action.
         place_timeout_s: one Place action.
         query_timeout_s: one object query (including waiting for the service).
+        confirm_llm_plans: show LLM plans and run them only after "yes" on /manual_command.
+        confirm_timeout_s: how long a plan waits for that answer before it is dropped.
     """
 
     max_queue: int = 10
@@ -139,9 +141,15 @@ class EngineConfig:
     grasp_timeout_s: float = 30.0
     place_timeout_s: float = 30.0
     query_timeout_s: float = 5.0
+    confirm_llm_plans: bool = False
+    confirm_timeout_s: float = 30.0
 
     def __post_init__(self) -> None:
         for name, value in asdict(self).items():
+            if name == "confirm_llm_plans":
+                if not isinstance(value, bool):
+                    raise ConfigError(f"{name} must be true or false, got {value!r}")
+                continue
             if not isinstance(value, int | float) or isinstance(value, bool) or not value > 0:
                 raise ConfigError(f"{name} must be a number > 0, got {value!r}")
 
@@ -209,6 +217,11 @@ class RobotPort(Protocol):
         ...
 
 
+#: Answers to a confirmation question (normalised words).
+YES_WORDS = frozenset({"yes", "y", "yeah", "yep", "ok", "okay", "confirm", "do it", "go ahead", "sure"})
+NO_WORDS = frozenset({"no", "n", "nope", "don't", "dont", "stop", "cancel", "never mind", "abort"})
+
+
 @dataclass
 class _Command:
     id: int
@@ -255,6 +268,8 @@ class ExecutionEngine:
         self._queue: collections.deque[_Command] = collections.deque()
         self._current: tuple[_Command, AbortToken] | None = None
         self._stopping = False
+        self._confirm: tuple[threading.Event, list[bool]] | None = None  # guarded by _cond: a plan awaiting yes/no
+        self._held: str | None = None  # worker thread only: what the robot holds after our own grasp/place
 
     # --- input side (callbacks; never block) -------------------------------------------------
 
@@ -274,6 +289,13 @@ class ExecutionEngine:
             if self._stopping:
                 return self._emit(cid, shown, TaskState.REJECTED, message="decision maker is shutting down",
                                   sentence="I am shutting down and cannot take commands.")
+            answer = " ".join(text.lower().strip(" .!?").split())
+            if self._confirm is not None and answer in YES_WORDS | NO_WORDS:
+                event, box = self._confirm
+                box.append(answer in YES_WORDS)
+                event.set()
+                return self._emit(cid, shown, TaskState.SUCCEEDED, message=f"answer to the pending plan: {answer}",
+                                  sentence="Understood.")
             if len(self._queue) >= self.config.max_queue:
                 return self._emit(cid, shown, TaskState.REJECTED,
                                   message=f"queue full ({len(self._queue)} commands waiting)",
@@ -348,7 +370,8 @@ class ExecutionEngine:
         shown = shorten(text, 200)
         self._emit(cid, shown, TaskState.RUNNING, message="planning", sentence="Thinking about it...")
         try:
-            plan = self._planner.plan(text, dataclasses.replace(self._context(), should_stop=token.is_set))
+            context = dataclasses.replace(self._context(), should_stop=token.is_set, held_object=self._held)
+            plan = self._planner.plan(text, context)
         except PlanningError as exc:
             if token.is_set():
                 return self._final(cid, shown, TaskState.CANCELLED, 0, 0, "", token.reason, "Cancelled; I stopped.")
@@ -356,7 +379,32 @@ class ExecutionEngine:
         except Exception as exc:  # a planner bug must not kill the worker
             return self._final(cid, shown, TaskState.REJECTED, 0, 0, "", f"planner error: {exc!r}",
                                "Sorry, my planner failed on that command.")
+        notes = "; ".join(f"{k}: {v}" for k, v in plan.slots.items() if k in ("message", "note"))
+        if notes:
+            self._emit(cid, shown, TaskState.RUNNING, 0, len(plan.primitives), "",
+                       f"plan ({plan.scenario}): {plan}; {notes}", f"My plan: {plan}. {plan.slots.get('note', '')}")
+        if plan.scenario == "llm" and self.config.confirm_llm_plans and not self._confirmed(cid, shown, plan, token):
+            reason = token.reason if token.is_set() else "plan not confirmed"
+            return self._final(cid, shown, TaskState.CANCELLED, 0, len(plan.primitives), "", reason,
+                               "Okay, I won't do it." if not token.is_set() else "Cancelled; I stopped.")
         return self.execute_plan(cid, shown, plan, token)
+
+    def _confirmed(self, cid: int, shown: str, plan: Plan, token: AbortToken) -> bool:
+        """Ask for "yes"/"no" on /manual_command; False on no, timeout or cancel (worker thread)."""
+        event, box = threading.Event(), []
+        with self._cond:
+            self._confirm = (event, box)
+        remove = token.add_waker(event)
+        self._emit(cid, shown, TaskState.RUNNING, 0, len(plan.primitives), "",
+                   f"awaiting confirmation ({self.config.confirm_timeout_s:g} s): {plan}",
+                   f"I would: {plan}. Shall I? Say yes or no.")
+        try:
+            event.wait(self.config.confirm_timeout_s)
+        finally:
+            remove()
+            with self._cond:
+                self._confirm = None
+        return bool(box) and box[0] and not token.is_set()
 
     def execute_plan(self, cid: int, shown: str, plan: Plan, token: AbortToken) -> TaskState:
         cfg = self.config
@@ -407,6 +455,7 @@ class ExecutionEngine:
         if isinstance(prim, Grasp):
             target = robot.locate(prim.object_name, self._budget(start, cfg.query_timeout_s, "object query"), token)
             robot.grasp(prim.object_name, target, self._budget(start, cfg.grasp_timeout_s, "grasp"), token)
+            self._held = prim.object_name
             return at
         if isinstance(prim, Place):
             loc = prim.location
@@ -415,6 +464,7 @@ class ExecutionEngine:
             if token.is_set():
                 raise ActionCancelled(token.reason)
             robot.place(loc, loc.drop_point(), self._budget(start, cfg.place_timeout_s, "place"), token)
+            self._held = None
             return loc.name
         raise ActionFailed(f"unsupported primitive {prim!r}")
 

@@ -28,13 +28,12 @@ import os
 import time
 import urllib.error
 import urllib.request
-from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 from decision_maker.command_types import MAX_NAME_CHARS, Plan, normalize_name, parse_plan, shorten
 from decision_maker.errors import ConfigError, InvalidPrimitive, NoMatchingScenario, PlanningError
-from decision_maker.nl_planner import Planner, PlanningContext, RegistryPlanner
+from decision_maker.nl_planner import Planner, PlanningContext, RegistryPlanner, register_planner
 
 VERBS = ("goto", "grasp", "place")
 DECISIONS = ("plan", "refuse", "clarify")
@@ -300,7 +299,8 @@ def validate_reply(doc: Any, context: PlanningContext, cfg: LLMConfig, held: str
         prefix = "I need more detail: " if decision == "clarify" else "I won't do that: "
         raise PlannerRefusal(prefix + (message or "the planner gave no reason"))
     if decision != "plan":
-        raise LLMBadReply(f"the LLM answer's decision must be plan, refuse or clarify, got {shorten(str(decision), 20)!r}")
+        raise LLMBadReply("the LLM answer's decision must be plan, refuse or clarify, "
+                          f"got {shorten(str(decision), 20)!r}")
     if not isinstance(steps, list) or not steps:
         raise LLMBadReply("the LLM plan has no steps")
     if len(steps) > cfg.max_steps:
@@ -370,7 +370,7 @@ class LLMPlanner:
         self.client = client or ChatClient(self.cfg)
 
     def plan(self, text: str, context: PlanningContext) -> Plan:
-        held = getattr(context, "held_object", None)
+        held = context.held_object
         doc = self.client.complete(build_messages(text, context, held, self.cfg.max_steps))
         return validate_reply(doc, context, self.cfg, held)
 
@@ -415,16 +415,27 @@ class TieredPlanner:
                                                          "used the scenario registry"})
 
 
-def llm_config_from_params(params: Mapping[str, Any]) -> LLMConfig:
-    """LLMConfig from flat ``llm.*`` parameters (``llm.bounds`` = [] means automatic)."""
-    kw: dict[str, Any] = {}
-    for f in LLMConfig.__dataclass_fields__:
-        key = f"llm.{f}"
-        if key in params:
-            kw[f] = params[key]
-    if "bounds" in kw:
-        b = list(kw["bounds"] or [])
-        kw["bounds"] = tuple(float(v) for v in b) if b else None
-    cfg = LLMConfig(**kw)
+def make_llm_planner(tier: str = "registry_first", **llm: Any) -> TieredPlanner:
+    """Factory of the decision maker's ``planner: llm`` (``planner_options`` are its arguments).
+
+    Args:
+        tier: ``registry_first`` (default), ``llm_only`` or ``registry_only``.
+        **llm: :class:`LLMConfig` fields (``base_url``, ``model``, ``api_key_env``, ``timeout_s``,
+            ``retries``, ``structured``, ``max_steps``, ``bounds`` ([] = automatic), ...).
+
+    Raises:
+        ConfigError: unknown field or bad value.
+    """
+    unknown = set(llm) - set(LLMConfig.__dataclass_fields__)
+    if unknown:
+        raise ConfigError(f"unknown LLM planner option(s) {sorted(unknown)}; "
+                          f"known: tier, {', '.join(LLMConfig.__dataclass_fields__)}")
+    if "bounds" in llm:
+        b = list(llm["bounds"] or [])
+        llm["bounds"] = tuple(float(v) for v in b) if b else None
+    cfg = LLMConfig(**llm)
     cfg.check()
-    return cfg
+    return TieredPlanner(LLMPlanner(cfg), tier=tier)
+
+
+register_planner("llm", make_llm_planner)

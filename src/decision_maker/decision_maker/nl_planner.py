@@ -39,12 +39,14 @@ class PlanningContext:
         object_positions: last known object centres from ``/object_list`` (map frame, metres).
         should_stop: True once the command was cancelled; a slow planner should poll it and raise
             PlanningError("cancelled") early (the engine reports the command cancelled either way).
+        held_object: what the robot holds after its own last grasp/place (None = nothing known).
     """
 
     known_objects: frozenset[str] = frozenset()
     locations: Mapping[str, NamedLocation] = field(default_factory=dict)
     object_positions: Mapping[str, tuple[float, float, float]] = field(default_factory=dict)
     should_stop: Callable[[], bool] = lambda: False
+    held_object: str | None = None
 
 
 @runtime_checkable
