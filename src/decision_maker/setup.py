@@ -28,6 +28,7 @@ setup(
             "mock_nav_server = decision_maker.mock_nav_server:main",
             "mock_grasp_server = decision_maker.mock_grasp_server:main",
             "audio_command_node = decision_maker.audio_command_node:main",
+            "plan_command = decision_maker.plan_command:main",
         ]
     },
 )

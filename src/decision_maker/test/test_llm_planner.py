@@ -11,9 +11,7 @@ from __future__ import annotations
 
 import json
 import os
-import threading
 import time
-from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -34,6 +32,8 @@ from decision_maker.llm_planner import (
 )
 from decision_maker.nl_planner import PlanningContext
 
+from .llm_testing import ScriptedEndpoint, completion
+
 LOCATIONS_FILE = os.path.join(os.path.dirname(__file__), "..", "config", "locations.yaml")
 OBJECTS = {"bottle": (5.2, 0.3, 1.0), "cup": (3.7, 1.5, 0.9), "chair": (2.9, 2.5, 0.5), "trash": (2.3, 2.5, 0.8),
            "bin": (5.6, 4.5, 0.25), "table": (2.5, 2.5, 0.7)}
@@ -42,61 +42,6 @@ OBJECTS = {"bottle": (5.2, 0.3, 1.0), "cup": (3.7, 1.5, 0.9), "chair": (2.9, 2.5
 @pytest.fixture(scope="module")
 def context() -> PlanningContext:
     return PlanningContext(frozenset(OBJECTS), load_locations(LOCATIONS_FILE), OBJECTS)
-
-
-def completion(doc=None, content=None, tool=False) -> bytes:
-    text = content if content is not None else json.dumps(doc)
-    if tool:
-        message = {"role": "assistant", "content": None,
-                   "tool_calls": [{"id": "c1", "type": "function",
-                                   "function": {"name": "submit_plan", "arguments": text}}]}
-    else:
-        message = {"role": "assistant", "content": text}
-    return json.dumps({"id": "x", "object": "chat.completion", "model": "scripted",
-                       "choices": [{"index": 0, "message": message, "finish_reason": "stop"}]}).encode()
-
-
-class ScriptedEndpoint:
-    """A chat-completions server on 127.0.0.1 replying from a script: each entry is
-    ``(status, body_bytes)`` or ``("sleep", seconds, (status, body))``; the last entry repeats."""
-
-    def __init__(self, script):
-        self.script = list(script)
-        self.requests: list[dict] = []
-        self.headers: list[dict] = []
-        endpoint = self
-
-        class Handler(BaseHTTPRequestHandler):
-            def do_POST(self):  # noqa: N802
-                body = self.rfile.read(int(self.headers.get("Content-Length", 0)))
-                endpoint.requests.append({"path": self.path, "body": json.loads(body)})
-                endpoint.headers.append(dict(self.headers))
-                step = endpoint.script.pop(0) if len(endpoint.script) > 1 else endpoint.script[0]
-                if step[0] == "sleep":
-                    time.sleep(step[1])
-                    step = step[2]
-                status, payload = step
-                try:
-                    self.send_response(status)
-                    self.send_header("Content-Type", "application/json")
-                    self.send_header("Content-Length", str(len(payload)))
-                    self.end_headers()
-                    self.wfile.write(payload)
-                except (BrokenPipeError, ConnectionResetError):
-                    pass
-
-            def log_message(self, *args):
-                pass
-
-        self.server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.server.daemon_threads = True
-        self.thread = threading.Thread(target=self.server.serve_forever, daemon=True)
-        self.thread.start()
-        self.url = f"http://127.0.0.1:{self.server.server_address[1]}/v1"
-
-    def close(self):
-        self.server.shutdown()
-        self.server.server_close()
 
 
 @pytest.fixture
@@ -345,3 +290,27 @@ def test_validator_accepts_what_is_valid(steps, context):
         return
     check_plan_is_valid(plan, context, cfg)
     assert len(plan.primitives) == len(steps)
+
+
+# --- the dry-run command line -------------------------------------------------------------------------
+
+def run_plan_command(*args: str):
+    import subprocess
+
+    from home_robot_bringup.nodeset import find_executable
+
+    exe = find_executable("decision_maker", "plan_command")
+    return subprocess.run([exe, *args], capture_output=True, text=True, timeout=60)
+
+
+def test_dry_run_command_line(endpoint):
+    out = run_plan_command("give me the cup please")  # registry, objects from the bundled map
+    assert out.returncode == 0 and "plan (give me): goto:kitchen, grasp:cup, place:user" in out.stdout, out.stderr
+    ep = endpoint((200, completion(PLAN_DRINK)))
+    out = run_plan_command("I am thirsty", "--planner", "tiered", "--llm-url", ep.url, "--json")
+    assert out.returncode == 0, out.stdout + out.stderr
+    assert json.loads(out.stdout)["steps"] == ["goto:kitchen", "grasp:bottle", "goto:user", "place:user"]
+    out = run_plan_command("I am thirsty", "--objects", "mug,plate")
+    assert out.returncode == 1 and out.stdout.startswith("refused:")
+    out = run_plan_command("go", "--locations", "/nonexistent.yaml")
+    assert out.returncode == 2 and "locations file not found" in out.stderr

@@ -1,0 +1,98 @@
+"""``plan_command``: show the plan a command would get, without moving anything (dry run).
+
+No ROS needed: the known objects come from a map (default: the bundled sample map) or a list::
+
+    ros_run decision_maker plan_command "give me the cup please"
+    ros_run decision_maker plan_command "I'm thirsty" --planner tiered --llm-url http://127.0.0.1:11434/v1 \\
+        --llm-model llama3.2
+    ros_run decision_maker plan_command "bring me the mug" --objects mug,plate --json
+
+Exit code: 0 a plan was made, 1 refused (reason printed), 2 bad arguments/configuration.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+from decision_maker.command_types import MAX_TEXT_CHARS, load_locations, sanitize_text
+from decision_maker.errors import ConfigError, PlanningError
+from decision_maker.llm_planner import TIERS, LLMConfig, LLMPlanner, TieredPlanner
+from decision_maker.nl_planner import PlanningContext, RegistryPlanner
+
+
+def known_objects(args: argparse.Namespace) -> dict[str, tuple[float, float, float]]:
+    if args.objects is not None:
+        return {n.strip().lower(): (0.0, 0.0, 0.0) for n in args.objects.split(",") if n.strip()}
+    from object_query.semantic_map import ObjectDatabase
+
+    if args.map:
+        map_path, sem_path = args.map, args.semantic
+    else:
+        from object_query.object_query_server import bundled_map_paths
+
+        map_path, sem_path = bundled_map_paths()
+    db = ObjectDatabase.from_files(map_path, sem_path)
+    out = {}
+    for name in db.names():
+        res = db.query(name)
+        out[name] = res.position
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="plan_command", description="Dry run: print the plan for a command.")
+    ap.add_argument("text", nargs="+", help="the command, e.g. give me the cup")
+    ap.add_argument("--planner", choices=("registry", "llm", "tiered"), default="registry")
+    ap.add_argument("--tier", choices=TIERS, default="registry_first", help="with --planner tiered")
+    ap.add_argument("--llm-url", default=LLMConfig.base_url)
+    ap.add_argument("--llm-model", default=LLMConfig.model)
+    ap.add_argument("--llm-timeout", type=float, default=LLMConfig.timeout_s)
+    ap.add_argument("--locations", default="", help="locations YAML (default: the installed one)")
+    ap.add_argument("--map", default="", help="params.npz for the known objects (default: bundled sample map)")
+    ap.add_argument("--semantic", default="", help="semantic.json next to --map")
+    ap.add_argument("--objects", default=None, help="comma-separated object names instead of a map")
+    ap.add_argument("--holding", default=None, help="object the robot holds now")
+    ap.add_argument("--json", action="store_true", help="print the plan as JSON")
+    args = ap.parse_args(argv)
+    text = sanitize_text(" ".join(args.text))
+    if not text or len(text) > MAX_TEXT_CHARS:
+        print(f"error: the command must have 1..{MAX_TEXT_CHARS} characters", file=sys.stderr)
+        return 2
+    try:
+        if args.locations:
+            locations = load_locations(args.locations)
+        else:
+            from decision_maker.decision_maker_node import default_locations_file
+
+            locations = load_locations(default_locations_file())
+        objects = known_objects(args)
+        cfg = LLMConfig(base_url=args.llm_url, model=args.llm_model, timeout_s=args.llm_timeout)
+        if args.planner == "registry":
+            planner = RegistryPlanner()
+        elif args.planner == "llm":
+            planner = LLMPlanner(cfg)
+        else:
+            planner = TieredPlanner(LLMPlanner(cfg), tier=args.tier)
+    except (ConfigError, OSError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    context = PlanningContext(frozenset(objects), locations, objects, held_object=args.holding)
+    try:
+        plan = planner.plan(text, context)
+    except PlanningError as exc:
+        print(f"refused: {exc}")
+        return 1
+    if args.json:
+        print(json.dumps({"text": text, "scenario": plan.scenario, "steps": [str(p) for p in plan.primitives],
+                          "slots": dict(plan.slots)}))
+    else:
+        print(f"plan ({plan.scenario or planner.name}): {plan}")
+        for key, value in plan.slots.items():
+            print(f"  {key}: {value}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
