@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from object_query.errors import MapLoadError
-from object_query.instances import split_instances
+from object_query.instances import _Ticker, split_instances
 from object_query.names import (
     MAX_NAME_LENGTH,
     Synonyms,
@@ -372,44 +372,50 @@ class ObjectDatabase:
 
     @classmethod
     def from_map(cls, semantic_map: SemanticMap, config: DatabaseConfig | None = None,
-                 synonyms: Synonyms | None = None) -> ObjectDatabase:
+                 synonyms: Synonyms | None = None, timings: dict[str, float] | None = None) -> ObjectDatabase:
         """Split every class into instances and compute their centres and boxes.
 
         Points are skipped when their coordinates are not finite (counted in a warning), when
         they are near-transparent (``config.min_opacity``), or when their id is not in the table
-        (warning); classes of the table without points get a warning.
+        (warning); classes of the table without points get a warning. ``timings``, when given,
+        receives the seconds of each stage.
         """
         t0 = time.perf_counter()
+        tick = _Ticker(timings)
         config = config or DatabaseConfig()
         warnings = list(semantic_map.warnings)
         means = semantic_map.means  # [N, 3]
+        if means.dtype not in (np.float32, np.float64):
+            means = means.astype(np.float64)
         n = len(means)
         labels, names = class_labels(semantic_map.semantic_ids, semantic_map.classes)  # [N]
         k = len(names)
 
-        finite = np.isfinite(means).all(axis=1) if means.dtype.kind == "f" else np.ones(n, dtype=bool)
-        non_finite = int(n - np.count_nonzero(finite))
-        if non_finite:
-            warnings.append(f"skipped {non_finite} point(s) with NaN/inf coordinates")
-        valid = finite
-        transparent = 0
-        if semantic_map.logit_opacities is not None and config.min_opacity > 0:
-            logit_min = math.log(config.min_opacity / (1.0 - config.min_opacity))
-            opaque = semantic_map.logit_opacities >= logit_min  # NaN opacity -> False
-            transparent = int(np.count_nonzero(valid & ~opaque))
-            valid = valid & opaque
-        labelled = labels < k
-        unlabelled = int(n - np.count_nonzero(labelled))
+        unlabelled = int(np.count_nonzero(labels == k))
         if unlabelled:
-            ids = semantic_map.semantic_ids[~labelled]
+            ids = semantic_map.semantic_ids[labels == k]
             uniq, cnt = np.unique(ids, return_counts=True)
             listed = ", ".join(f"{int(u)} ({int(c)} pts)" for u, c in zip(uniq[:10], cnt[:10], strict=True))
             more = f" and {len(uniq) - 10} more" if len(uniq) > 10 else ""
             warnings.append(f"ignored {unlabelled} point(s) whose semantic id is not in the class table: "
                             f"id {listed}{more}")
-        valid = valid & labelled
+        if means.dtype.kind != "f" or np.isfinite(means).all():  # one fast pass in the common case
+            non_finite = 0
+        else:
+            finite = np.isfinite(means).all(axis=1)  # [N]
+            non_finite = int(n - np.count_nonzero(finite))
+            warnings.append(f"skipped {non_finite} point(s) with NaN/inf coordinates")
+            means = np.where(finite[:, None], means, 0).astype(means.dtype)  # ignored below
+            labels = np.where(finite, labels, k)
+        transparent = 0
+        if semantic_map.logit_opacities is not None and config.min_opacity > 0:
+            logit_min = math.log(config.min_opacity / (1.0 - config.min_opacity))
+            transparent_mask = ~(semantic_map.logit_opacities >= logit_min)  # NaN opacity is transparent
+            transparent = int(np.count_nonzero(transparent_mask & (labels < k)))
+            labels = np.where(transparent_mask, k, labels)
+        tick("labels and validity")
 
-        split = split_instances(means, labels, valid, k, config.voxel_size, config.min_instance_points)
+        split = split_instances(means, labels, None, k, config.voxel_size, config.min_instance_points, timings)
         counts = split.instance_count
         if config.centre_method == "mean" or len(counts) == 0:
             centres = split.instance_sum / np.maximum(counts, 1)[:, None]
@@ -426,12 +432,12 @@ class ObjectDatabase:
             class_sum[name] = class_sum.get(name, 0.0) + split.instance_sum[i]
 
         # a class whose points are all in tiny components still gets one instance (all its points)
-        valid_count = np.bincount(labels[valid], minlength=k + 1)[:k]
+        valid_count = np.bincount(labels, minlength=k + 1)[:k]
         for j in np.flatnonzero(valid_count > 0):
             name = names[j]
             if name in by_class:
                 continue
-            pts = means[valid & (labels == j)].astype(np.float64)
+            pts = means[labels == j].astype(np.float64)
             inst = ObjectInstance(name, 1, _tuple3(pts.mean(axis=0)), _tuple3(pts.min(axis=0)),
                                   _tuple3(pts.max(axis=0)), len(pts))
             by_class[name] = [inst]
@@ -449,6 +455,8 @@ class ObjectDatabase:
                 positions[name] = _tuple3(class_sum[name] / max(total, 1))
             else:
                 positions[name] = group[0].centre
+        if timings is not None:
+            timings["centres and tables"] = time.perf_counter() - t0 - sum(timings.values())
         stats = MapStats(points=n, used=int(counts.sum()), non_finite=non_finite, transparent=transparent,
                          unlabelled=unlabelled, noise=split.noise_points, build_s=time.perf_counter() - t0)
         instances = {name: tuple(group) for name, group in by_class.items()}
