@@ -4,7 +4,8 @@ Services:
     ``/object_query`` (ObjectQuery): name → found, position, message (the seed's contract).
     ``/object_instances`` (ObjectInstances): every instance of a name with centre, box, point
     count and distance to an optional reference point, nearest first.
-    ``/object_query_server/reload`` (std_srvs/Trigger): reload the map files now.
+    ``/object_query_server/reload`` (std_srvs/Trigger): reload the map files now (served by the
+    helper node ``object_query_server_maintenance`` so that reloads never delay queries).
 
 Topics (transient local: late subscribers get the last message):
     ``/object_list`` (std_msgs/String): ``{"chair": [x, y, z], ...}``.
@@ -31,8 +32,7 @@ import threading
 import rclpy
 from geometry_msgs.msg import Point
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
-from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -100,7 +100,13 @@ def database_markers(db: ObjectDatabase, frame_id: str, stamp) -> MarkerArray:
 
 
 class ObjectQueryServer(Node):
-    """Serves the object database; reloads it atomically (on request, on file change, on parameter change)."""
+    """Serves the object database; reloads it atomically (on request, on file change, on parameter change).
+
+    Threads: queries and parameters are handled by this node's executor (single-threaded: the
+    lowest latency in rclpy 7.1.6). Reloads run on :attr:`maintenance_node`, a helper node
+    (``<name>_maintenance``) with the reload service and the polling timer, spun by a second
+    executor in another thread, so a reload (seconds for a 10 M map) never delays a query.
+    """
 
     def __init__(self) -> None:
         super().__init__("object_query_server")
@@ -132,14 +138,17 @@ class ObjectQueryServer(Node):
         # Raises MapLoadError/SynonymsError/ValueError, reported by main(): nothing to serve without a map.
         self._load_initial()
 
-        queries = ReentrantCallbackGroup()  # answers read an immutable snapshot: no lock held while answering
-        maintenance = MutuallyExclusiveCallbackGroup()  # reloads and polling never block queries
-        self._query_srv = self.create_service(ObjectQuery, "object_query", self._on_query, callback_group=queries)
-        self._instances_srv = self.create_service(ObjectInstances, "object_instances", self._on_instances,
-                                                  callback_group=queries)
-        self._reload_srv = self.create_service(Trigger, "~/reload", self._on_reload, callback_group=maintenance)
+        # answers read an immutable snapshot taken under the lock: no lock is held while answering
+        self._query_srv = self.create_service(ObjectQuery, "object_query", self._on_query)
+        self._instances_srv = self.create_service(ObjectInstances, "object_instances", self._on_instances)
+        # own node (no global remaps: `-r __node:=...` would rename it too), same namespace
+        self.maintenance_node = rclpy.create_node(f"{self.get_name()}_maintenance", namespace=self.get_namespace(),
+                                                  context=self.context, use_global_arguments=False,
+                                                  start_parameter_services=False)
+        self._reload_srv = self.maintenance_node.create_service(
+            Trigger, f"{self.get_fully_qualified_name()}/reload", self._on_reload)
         period = float(self.get_parameter("reload_poll_period").value)
-        self._poll_timer = self.create_timer(max(period, 0.05), self._on_poll, callback_group=maintenance)
+        self._poll_timer = self.maintenance_node.create_timer(max(period, 0.05), self._on_poll)
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
         db = self._snapshot()
@@ -287,20 +296,34 @@ def main(args: list[str] | None = None) -> int:
     try:
         node = ObjectQueryServer()
     except (MapLoadError, SynonymsError, ValueError) as exc:
-        rclpy.logging.get_logger("object_query_server").fatal(f"cannot load map: {exc}")
+        rclpy.logging.get_logger("object_query_server").fatal(f"cannot start: {exc}")
         rclpy.try_shutdown()
         return 2
-    executor = MultiThreadedExecutor(num_threads=3)
+    executor = SingleThreadedExecutor()
     executor.add_node(node)
+    maintenance = SingleThreadedExecutor()
+    maintenance.add_node(node.maintenance_node)
+    maintenance_thread = threading.Thread(target=_spin_quietly, args=(maintenance,), name="maintenance", daemon=True)
+    maintenance_thread.start()
     try:
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
-        executor.shutdown()
+        maintenance.shutdown(timeout_sec=2.0)
+        executor.shutdown(timeout_sec=2.0)
+        node.maintenance_node.destroy_node()
         node.destroy_node()
         rclpy.try_shutdown()
+        maintenance_thread.join(2.0)
     return 0
+
+
+def _spin_quietly(executor: SingleThreadedExecutor) -> None:
+    try:
+        executor.spin()
+    except ExternalShutdownException:
+        pass
 
 
 if __name__ == "__main__":
