@@ -112,7 +112,6 @@ def dedupe_keys(keys: np.ndarray, slots: np.ndarray | None = None, n_slots: int 
     n = len(keys)
     if n == 0:
         return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
-    index_dtype = np.int32 if n < 2**31 else np.int64
     inverse: np.ndarray | None = None
     firsts: list[np.ndarray] = []
     next_id = 0
@@ -121,9 +120,9 @@ def dedupe_keys(keys: np.ndarray, slots: np.ndarray | None = None, n_slots: int 
     while True:
         if active is None:
             k = keys
-            pts = np.arange(n, dtype=index_dtype)
+            pts = np.arange(n, dtype=np.intp)
             if slots is not None:
-                slot, size = slots, n_slots
+                slot, size = slots.astype(np.intp, copy=False), n_slots
             else:
                 bits = int(min(max(np.ceil(np.log2(n)), 10), MAX_TABLE_BITS))
                 slot, size = _hash(k, salt, bits), 1 << bits
@@ -132,25 +131,25 @@ def dedupe_keys(keys: np.ndarray, slots: np.ndarray | None = None, n_slots: int 
             pts = active
             bits = int(min(max(np.ceil(np.log2(len(active))) + 1, 10), MAX_TABLE_BITS))
             slot, size = _hash(k, salt, bits), 1 << bits
-        table = np.full(size, -1, dtype=index_dtype)  # slot -> representative point, then -> id
+        # intp everywhere: fancy indexing with other integer types casts a copy each time
+        table = np.full(size, -1, dtype=np.intp)  # slot -> representative point, then -> id
         table[slot] = pts
-        rep = table[slot]
-        settled = keys[rep] == k
+        settled = keys[table[slot]] == k
         rep_slots = np.flatnonzero(table >= 0)
-        firsts.append(table[rep_slots].astype(np.int64))
-        table[rep_slots] = np.arange(next_id, next_id + len(rep_slots), dtype=index_dtype)
+        firsts.append(table[rep_slots])
+        table[rep_slots] = np.arange(next_id, next_id + len(rep_slots), dtype=np.intp)
         next_id += len(rep_slots)
         ids = table[slot]  # correct where settled
+        all_settled = bool(settled.all())
         if inverse is None:
-            inverse = ids.astype(np.int64)
-            left = np.flatnonzero(~settled)
-            active = left.astype(index_dtype)
+            inverse = ids
+            active = None if all_settled else np.flatnonzero(~settled)
         else:
             inverse[pts[settled]] = ids[settled]
-            active = pts[~settled]
+            active = None if all_settled else pts[~settled]
         salt += 1
-        if len(active) == 0:
-            return inverse, np.concatenate(firsts)
+        if active is None:
+            return inverse, np.concatenate(firsts).astype(np.int64, copy=False)
 
 
 def dedupe_keys_reference(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
