@@ -270,16 +270,32 @@ def compute_centroids(semantic_map: SemanticMap, valid: np.ndarray | None = None
         ``{name: [3] float64}`` for classes with at least one (valid) point; several ids with one
         class name are merged; ids absent from the table are ignored.
     """
-    labels, names = class_labels(semantic_map.semantic_ids, semantic_map.classes)
-    k = len(names)
+    ids = semantic_map.semantic_ids
+    if len(ids) == 0:
+        return {}
+    # bins = the ids themselves (offset by the smallest): no per-point label lookup, one cast
+    lo = 0 if ids.dtype.kind == "u" else int(ids.min())
+    if int(ids.max()) - lo >= 1 << 22:  # sparse huge ids: go through compact labels instead
+        labels, names = class_labels(ids, semantic_map.classes)
+        bins, bin_names = labels, {j: [n] for j, n in enumerate(names)}
+    else:
+        bins = ids.astype(np.intp) if lo == 0 else (ids - lo).astype(np.intp)  # [N]
+        bin_names = {}
+        for sid, name in semantic_map.classes.items():
+            bin_names.setdefault(sid - lo, []).append(name)
+    size = int(bins.max()) + 1
     if valid is not None:
-        labels = np.where(valid, labels, k)
-    counts = np.bincount(labels, minlength=k + 1)[:k]  # [K]
-    sums = np.empty((k, 3))
-    for axis in range(3):
-        col = semantic_map.means[:, axis].astype(np.float64)
-        sums[:, axis] = np.bincount(labels, weights=col, minlength=k + 1)[:k]
-    return {names[j]: sums[j] / counts[j] for j in range(k) if counts[j] > 0}
+        bins = np.where(valid, bins, size)
+    counts = np.bincount(bins, minlength=size)[:size]  # [B]
+    sums = np.stack([np.bincount(bins, weights=semantic_map.means[:, a], minlength=size)[:size] for a in range(3)], 1)
+    total: dict[str, list] = {}
+    for b, names_of_bin in bin_names.items():
+        if 0 <= b < size and counts[b] > 0:
+            for name in names_of_bin:
+                acc = total.setdefault(name, [np.zeros(3), 0])
+                acc[0] = acc[0] + sums[b]
+                acc[1] += int(counts[b])
+    return {name: acc[0] / acc[1] for name, acc in total.items()}
 
 
 def compute_centroids_masked(semantic_map: SemanticMap) -> dict[str, np.ndarray]:

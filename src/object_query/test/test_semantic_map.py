@@ -327,3 +327,17 @@ def test_unicode_names_and_classes(tmp_path):
     r = db.query("椅子\x00\u200b")
     assert not r.found and "椅子" in r.message
     assert json.loads(db.to_json()).keys() == {"stuhl", "tasse ☕"}
+
+
+@pytest.mark.parametrize("id_values", [[-3, 0, 7], [5, 10**12, 2**40 + 1], [65535, 1, 300]])
+def test_bincount_centroids_with_negative_huge_and_wide_ids(id_values):
+    rng = np.random.default_rng(15)
+    ids = rng.choice(np.array(id_values, dtype=np.int64), 3000)
+    means = rng.normal(0, 2, (3000, 3))
+    smap = SemanticMap(means, ids, {id_values[0]: "a", id_values[1]: "b", id_values[2]: "a"})
+    valid = rng.random(3000) > 0.2
+    fast = compute_centroids(smap, valid)
+    for name, members in (("a", [id_values[0], id_values[2]]), ("b", [id_values[1]])):
+        sel = np.isin(ids, members) & valid
+        np.testing.assert_allclose(fast[name], means[sel].mean(0))
+    assert compute_centroids(smap).keys() == compute_centroids_masked(smap).keys()
