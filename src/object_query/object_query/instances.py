@@ -224,38 +224,58 @@ class VoxelKeys:
     spatial_size: int
 
 
-def voxel_keys(means: np.ndarray, labels: np.ndarray, voxel_size: float, n_labels: int) -> VoxelKeys:
-    """Pack ``(label, ix, iy, iz)`` of each point into one int64 key.
+def voxel_keys(means: np.ndarray, labels: np.ndarray, voxel_size: float, n_labels: int,
+               ignore_label: int | None = None) -> VoxelKeys:
+    """Pack ``(label, ix, iy, iz)`` of each point into one int32/int64 key.
+
+    The grid spans all points. If that grid is too large for an int64 key (a far-away floater),
+    it spans only the points whose label is not ``ignore_label``, and the ignored points are
+    clamped into its border voxels (they never form instances).
 
     Args:
         means: [N, 3] finite coordinates (float32 or float64).
         labels: [N] integer labels in [0, n_labels).
         voxel_size: edge of a voxel, metres (> 0).
         n_labels: number of labels.
+        ignore_label: label of points that may be clamped (see above).
 
     Raises:
-        ValueError: coordinates are not finite, or the extent of the map over ``voxel_size``
-            does not fit an int64 key.
+        ValueError: coordinates are not finite, or the points that count span too many voxels.
     """
     n = len(means)
     if n == 0:
         empty = np.empty(0, dtype=np.int64)
         return VoxelKeys(empty, empty, (1, 1, 1), 1)
     inv = 1.0 / voxel_size
+
+    def grid(los: np.ndarray, his: np.ndarray) -> tuple[list[int], int]:
+        extents = [int(math.floor((hi - lo) * inv)) + 4 for lo, hi in zip(los, his, strict=True)]  # shift+pad+margin
+        return extents, (n_labels + 1) * extents[0] * extents[1] * extents[2]
+
     los, his = column_bounds(means)
     if not (np.isfinite(los).all() and np.isfinite(his).all()):
         raise ValueError("voxel_keys needs finite coordinates")
-    extents = [int(math.floor((hi - lo) * inv)) + 4 for lo, hi in zip(los, his, strict=True)]  # shift, pad, margin
-    spatial = extents[0] * extents[1] * extents[2]
-    n_keys = (n_labels + 1) * spatial
+    extents, n_keys = grid(los, his)
+    clamp = False
+    if n_keys >= 2**62 and ignore_label is not None:
+        kept = labels != ignore_label
+        if kept.any():
+            los, his = column_bounds(means[kept])
+            extents, n_keys = grid(los, his)
+            clamp = True
     if n_keys >= 2**62:
-        raise ValueError(f"map extent {extents} voxels x {n_labels} labels is too large for voxel_size={voxel_size}")
+        span = ", ".join(f"{hi - lo:.3g}" for lo, hi in zip(los, his, strict=True))
+        raise ValueError(f"the map's points span ({span}) m: too many voxels of voxel_size={voxel_size} m "
+                         f"for {n_labels} labels; raise voxel_size or remove far-away points")
+    spatial = extents[0] * extents[1] * extents[2]
     key_dtype = np.int32 if n_keys < 2**31 else np.int64  # half the memory traffic when it fits
     cells = np.empty(0, dtype=key_dtype)
-    tmp = np.empty(n, dtype=means.dtype)
+    tmp = np.empty(n, dtype=np.float64 if clamp else means.dtype)
     for axis in range(3):
         np.subtract(means[:, axis], los[axis] - voxel_size, out=tmp)  # cell index + 1 >= 1 after scaling
         np.multiply(tmp, inv, out=tmp)
+        if clamp:
+            np.clip(tmp, 0, extents[axis] - 1, out=tmp)
         c = tmp.astype(key_dtype)  # truncation is floor for values >= 0
         if axis == 0:
             cells = c
@@ -304,7 +324,7 @@ def split_instances(
                           empty3, empty3, empty3, 0)
     # invalid points get the extra label n_labels: voxels of their own, never instances
     lab = labels if valid is None else np.where(valid, labels, n_labels)
-    vk = voxel_keys(means, lab, voxel_size, n_labels + 1)
+    vk = voxel_keys(means, lab, voxel_size, n_labels + 1, ignore_label=n_labels)
     tick("voxel keys")
     if vk.spatial_size <= DIRECT_TABLE_MAX:
         vox, first = dedupe_keys(vk.keys, vk.cells, vk.spatial_size)  # vox [N] in [0, M)

@@ -431,7 +431,10 @@ class ObjectDatabase:
             labels = np.where(transparent_mask, k, labels)
         tick("labels and validity")
 
-        split = split_instances(means, labels, None, k, config.voxel_size, config.min_instance_points, timings)
+        try:
+            split = split_instances(means, labels, None, k, config.voxel_size, config.min_instance_points, timings)
+        except ValueError as exc:  # e.g. far-away points: a map this database cannot grid
+            raise MapLoadError(str(exc)) from exc
         counts = split.instance_count
         if config.centre_method == "mean" or len(counts) == 0:
             centres = split.instance_sum / np.maximum(counts, 1)[:, None]

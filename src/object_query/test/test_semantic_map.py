@@ -341,3 +341,17 @@ def test_bincount_centroids_with_negative_huge_and_wide_ids(id_values):
         sel = np.isin(ids, members) & valid
         np.testing.assert_allclose(fast[name], means[sel].mean(0))
     assert compute_centroids(smap).keys() == compute_centroids_masked(smap).keys()
+
+
+def test_far_away_points():
+    rng = np.random.default_rng(16)
+    m, i = two_chairs_one_cup(rng, np.float64)
+    means = np.concatenate([m, [[1e15, -1e15, 3e14]]])
+    ids = np.concatenate([i, [2]]).astype(np.uint8)
+    # a transparent far-away floater is clamped away and changes nothing
+    opac = np.concatenate([np.full(len(m), 4.0), [-9.0]])
+    db = ObjectDatabase.from_map(SemanticMap(means, ids, {1: "chair", 2: "cup"}, opac))
+    assert len(db.instances("chair").instances) == 2 and np.allclose(db.query("cup").position, m[700:].mean(0))
+    # an opaque one makes the grid impossible: a clear error, not a crash
+    with pytest.raises(MapLoadError, match="raise voxel_size or remove far-away points"):
+        ObjectDatabase.from_map(SemanticMap(means, ids, {1: "chair", 2: "cup"}))
