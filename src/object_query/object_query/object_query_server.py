@@ -115,11 +115,13 @@ class ObjectQueryServer(Node):
         self.declare_parameter("semantic_path", "", ParameterDescriptor(description="semantic.json; empty = bundled"))
         self.declare_parameter("synonyms_path", "",
                                ParameterDescriptor(description="synonyms YAML; empty = bundled, 'none' = no synonyms"))
-        self.declare_parameter("voxel_size", defaults.voxel_size)
-        self.declare_parameter("min_instance_points", defaults.min_instance_points)
-        self.declare_parameter("min_opacity", defaults.min_opacity)
+        # numbers accept int or double (`-p min_opacity:=0` is fine); DatabaseConfig validates the values
+        number = ParameterDescriptor(dynamic_typing=True)
+        self.declare_parameter("voxel_size", defaults.voxel_size, number)
+        self.declare_parameter("min_instance_points", defaults.min_instance_points, number)
+        self.declare_parameter("min_opacity", defaults.min_opacity, number)
         self.declare_parameter("centre_method", defaults.centre_method)
-        self.declare_parameter("trim_fraction", defaults.trim_fraction)
+        self.declare_parameter("trim_fraction", defaults.trim_fraction, number)
         self.declare_parameter("query_position", defaults.query_position)
         self.declare_parameter("auto_reload", False)
         self.declare_parameter("reload_poll_period", 1.0, ParameterDescriptor(read_only=True))
@@ -171,6 +173,8 @@ class ObjectQueryServer(Node):
                   ("voxel_size", "min_instance_points", "min_opacity", "centre_method", "trim_fraction",
                    "query_position")}
         values.update(overrides or {})
+        if isinstance(values["min_instance_points"], float) and not values["min_instance_points"].is_integer():
+            raise ValueError(f"min_instance_points must be an integer, got {values['min_instance_points']}")
         return DatabaseConfig(voxel_size=float(values["voxel_size"]),
                               min_instance_points=int(values["min_instance_points"]),
                               min_opacity=float(values["min_opacity"]), centre_method=str(values["centre_method"]),
