@@ -196,7 +196,7 @@ def test_auto_reload_on_file_change_and_parameter_changes(launch_nodes, ros_node
 
     rewrite_map(map_path, shift_bottle=(0.0, 0.5, 0.0))  # what the SLAM server does
     assert wait_for(lambda: client.query("bottle", timeout_sec=5.0).position[1] > before[1] + 0.4, 15.0)
-    assert "reloaded (map files changed)" in sup.output()
+    assert wait_for(lambda: "reloaded (map files changed)" in sup.output(), 10.0)
 
     # a file that becomes unreadable is reported once and the map stays
     with open(map_path, "wb") as fh:
