@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 import time
 import zipfile
 from dataclasses import dataclass, field
@@ -35,6 +36,8 @@ from object_query.names import (
 #: Known-names list shown in "unknown object" messages is cut after this many names.
 _MAX_LISTED_NAMES = 20
 CENTRE_METHODS = ("mean", "median", "trimmed_mean")
+#: ``chair#2`` / ``chair #2``: one instance of a class.
+_INSTANCE_LABEL = re.compile(r"^(.+?)\s*#\s*(\d{1,6})$")
 QUERY_POSITIONS = ("largest", "class")
 
 
@@ -526,7 +529,24 @@ class ObjectDatabase:
         return alias in self._positions or any(a in self._positions for a in self._synonyms.alternatives(alias))
 
     def query(self, name: str) -> QueryResult:
-        """Where is ``name``? (the ``/object_query`` answer)."""
+        """Where is ``name``? (the ``/object_query`` answer).
+
+        ``name`` may address one instance by its label, ``chair#2`` (as listed by
+        :meth:`instances`); otherwise the answer is the class's query position.
+        """
+        label = _INSTANCE_LABEL.match(normalise_name(name)[: MAX_NAME_LENGTH + 1])
+        if label is not None:
+            key, note = self.resolve(label.group(1))
+            index = int(label.group(2))
+            group = self._instances.get(key, ()) if key is not None else ()
+            if key is not None and 1 <= index <= len(group):
+                inst = group[index - 1]
+                x, y, z = inst.centre
+                msg = f"{inst.label} at ({x:.3f}, {y:.3f}, {z:.3f}); {inst.point_count} points"
+                return QueryResult(True, (x, y, z), msg + (f" ({note})" if note else ""))
+            if key is not None:
+                return QueryResult(False, (0.0, 0.0, 0.0), f"no {key}#{index}: there are {len(group)} instance(s) "
+                                                            f"of {key} ({key}#1..{key}#{len(group)})")
         key, note = self.resolve(name)
         if key is None:
             return QueryResult(False, (0.0, 0.0, 0.0), note)

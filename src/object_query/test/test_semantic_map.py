@@ -355,3 +355,14 @@ def test_far_away_points():
     # an opaque one makes the grid impossible: a clear error, not a crash
     with pytest.raises(MapLoadError, match="raise voxel_size or remove far-away points"):
         ObjectDatabase.from_map(SemanticMap(means, ids, {1: "chair", 2: "cup"}))
+
+
+def test_query_one_instance_by_label(sample_db):
+    all_chairs = sample_db.instances("chair").instances
+    r = sample_db.query("Chair #2")
+    assert r.found and np.allclose(r.position, all_chairs[1].centre) and r.message.startswith("chair#2 at")
+    assert sample_db.query("mug#1").found  # labels work with synonyms too
+    r = sample_db.query("chair#3")
+    assert not r.found and "there are 2 instance(s) of chair (chair#1..chair#2)" in r.message
+    assert not sample_db.query("chair#0").found
+    assert not sample_db.query("unicorn#1").found and "unknown object" in sample_db.query("unicorn#1").message
