@@ -512,17 +512,30 @@ class ObjectDatabase:
             return None, f"object name too long ({len(key)} characters, at most {MAX_NAME_LENGTH})"
         if key in self._positions:
             return key, ""
-        for candidate in [key, *singular_forms(key)]:
-            if candidate != key and candidate in self._positions:
-                return candidate, f"{shorten(key)!r} read as {candidate!r}"
-            for alt in self._synonyms.alternatives(candidate):
-                if alt in self._positions:
-                    return alt, f"{shorten(key)!r} is a synonym of {alt!r}"
+        found = self._resolve_exact(key)
+        if found is not None:
+            return found
+        # "the red coffee mug": try the head noun phrase (the last two words, then the last word)
+        words = key.split(" ")
+        for tail in (" ".join(words[-2:]), words[-1]) if 1 < len(words) <= 8 else ():
+            found = self._resolve_exact(tail)
+            if found is not None:
+                return found[0], f"{shorten(key)!r} read as {found[0]!r}"
         aliases = [s for s in self._synonyms.all_names() if self.resolve_known(s)]
         suggestions = closest_names(key, self._names + aliases)
         hint = f"; did you mean: {', '.join(suggestions)}?" if suggestions else ""
         known = ", ".join(self._names[:_MAX_LISTED_NAMES]) + (" ..." if len(self._names) > _MAX_LISTED_NAMES else "")
         return None, f"unknown object {shorten(key)!r}{hint} (known: {known or 'none, the map is empty'})"
+
+    def _resolve_exact(self, key: str) -> tuple[str, str] | None:
+        """``key`` (normalised) as a class, a plural of one, or a synonym of one; else None."""
+        for candidate in [key, *singular_forms(key)]:
+            if candidate in self._positions:
+                return candidate, "" if candidate == key else f"{shorten(key)!r} read as {candidate!r}"
+            for alt in self._synonyms.alternatives(candidate):
+                if alt in self._positions:
+                    return alt, f"{shorten(key)!r} is a synonym of {alt!r}"
+        return None
 
     def resolve_known(self, alias: str) -> bool:
         """True when the synonym ``alias`` (normalised) leads to a class of this map."""

@@ -296,7 +296,8 @@ def sample_db():
 
 @pytest.mark.parametrize("spoken, expected", [("Chair", "chair"), ("  CHAIR  ", "chair"), ("cup", "mug"),
                                               ("MUG", "mug"), ("chairs", "chair"), ("cups", "mug"),
-                                              ("ｃｈａｉｒ", "chair")])
+                                              ("ｃｈａｉｒ", "chair"), ("the red chair", "chair"),
+                                              ("coffee mugs", "mug"), ("big blue coffee cup", "mug")])
 def test_names_people_use_resolve(sample_db, spoken, expected):
     r = sample_db.query(spoken)
     assert r.found, r.message
