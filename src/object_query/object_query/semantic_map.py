@@ -468,7 +468,7 @@ class ObjectDatabase:
                             f"{config.min_instance_points}+ points); using all of them as one instance")
         empty = [nm for nm in names if nm not in by_class]
         if empty:
-            warnings.append(f"class(es) in the table without points in the map: {', '.join(empty)}")
+            warnings.append(f"class(es) in the table without (usable) points in the map: {', '.join(empty)}")
 
         positions: dict[str, tuple[float, float, float]] = {}
         for name, group in by_class.items():

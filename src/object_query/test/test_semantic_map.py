@@ -133,7 +133,7 @@ def test_ids_missing_from_json_and_classes_missing_from_map_are_reported_not_fat
     assert db.names() == ["chair", "cup"]
     text = "\n".join(db.warnings)
     assert "ignored 50 point(s)" in text and "id 7 (50 pts)" in text
-    assert "without points in the map: sofa" in text
+    assert "without (usable) points in the map: sofa" in text
     assert db.stats.unlabelled == 50
 
 
