@@ -28,13 +28,14 @@ import time
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from object_query_map import make_big_map  # noqa: E402
+
 from object_query.semantic_map import (  # noqa: E402
     ObjectDatabase,
     SemanticMap,
     compute_centroids,
     compute_centroids_masked,
 )
-from object_query_map import make_big_map  # noqa: E402
 
 
 def best_of(fn, repeats: int) -> tuple[float, float, object]:
@@ -92,14 +93,14 @@ def bench_map(n_points: int, n_classes: int) -> None:
 
 def bench_ros(calls: int) -> None:
     import rclpy
+    from object_query_interfaces.srv import ObjectQuery
+    from rclpy.context import Context
+    from rclpy.executors import SingleThreadedExecutor
+
     from home_robot_bringup.domain import DomainLease
     from home_robot_bringup.nodeset import load_nodeset
     from home_robot_bringup.process import Supervisor, node_environment
     from object_query.object_query_client import ObjectQueryClient
-    from rclpy.context import Context
-    from rclpy.executors import SingleThreadedExecutor
-
-    from object_query_interfaces.srv import ObjectQuery
 
     os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
     with DomainLease() as lease:

@@ -26,7 +26,13 @@ else
     done
     export _ROS_WHEELS_BOOTSTRAP_COMPLETE=1 RMW_IMPLEMENTATION="${RMW_IMPLEMENTATION:-rmw_fastrtps_cpp}"
   elif [ -z "${ROS_DISTRO:-}" ]; then
-    echo "env.sh: this workspace was built against a system ROS 2; source /opt/ros/<distro>/setup.bash first" >&2
+    _hr_ros="$(cat "$_hr_venv/home_robot_ros_setup" 2>/dev/null || true)"
+    if [ -n "$_hr_ros" ] && [ -f "$_hr_ros" ]; then
+      # shellcheck disable=SC1090
+      . "$_hr_ros"
+    else
+      echo "env.sh: this workspace was built against a system ROS 2; source /opt/ros/<distro>/setup.bash first" >&2
+    fi
   fi
   if [ -n "$_hr_ws" ] && [ -f "$_hr_root/install/local_setup.bash" ]; then
     # shellcheck disable=SC1091
@@ -51,5 +57,5 @@ if [ -z "${HOME_ROBOT_ENV_QUIET:-}" ] && [ -x "$_hr_venv/bin/python" ]; then
   echo "home-robot env: ${_hr_world} world, ROS_DOMAIN_ID=$ROS_DOMAIN_ID, discovery LOCALHOST; ros_run PKG EXE to run a node"
 fi
 [ -n "$_hr_nu" ] && set -u
-unset _hr_root _hr_venv _hr_ws _hr_nu _hr_world _hr_d
+unset _hr_root _hr_venv _hr_ws _hr_nu _hr_world _hr_d _hr_ros
 true

@@ -70,7 +70,8 @@ def cylinder_surface(rng: np.random.Generator, centre, radius: float, z0: float,
     """Points on the side (and top disc) of a vertical cylinder."""
     n_side = max(1, int(2 * np.pi * radius * (z1 - z0) * density))
     a = rng.random(n_side) * 2 * np.pi
-    side = np.stack([centre[0] + radius * np.cos(a), centre[1] + radius * np.sin(a), z0 + rng.random(n_side) * (z1 - z0)], 1)
+    z = z0 + rng.random(n_side) * (z1 - z0)
+    side = np.stack([centre[0] + radius * np.cos(a), centre[1] + radius * np.sin(a), z], 1)
     if not top:
         return side
     n_top = max(1, int(np.pi * radius**2 * density))

@@ -36,10 +36,22 @@ for t in cmake gcc g++ make; do command -v "$t" >/dev/null || missing+=("$t"); d
 "$PYTHON" -c 'import os,sys,sysconfig; sys.exit(not os.path.exists(sysconfig.get_paths()["include"]+"/Python.h"))' \
   || missing+=(python3-dev)
 "$PYTHON" -c 'import ensurepip, venv' 2>/dev/null || missing+=(python3-venv)
+# Voice: espeak-ng + sox make the test speech, libportaudio2 is the microphone backend.
+optional=()
+command -v espeak-ng >/dev/null || optional+=(espeak-ng)
+command -v sox >/dev/null || optional+=(sox)
+ldconfig -p 2>/dev/null | grep -q libportaudio.so.2 || optional+=(libportaudio2)
 if [ ${#missing[@]} -gt 0 ]; then
   [ "$(id -u)" = 0 ] || die "missing host packages: ${missing[*]} (run: sudo apt-get install ${missing[*]})"
-  log "installing host packages: ${missing[*]}"
-  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends "${missing[@]}"
+fi
+if [ $(( ${#missing[@]} + ${#optional[@]} )) -gt 0 ]; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+    log "installing host packages: ${missing[*]} ${optional[*]}"
+    apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends \
+      "${missing[@]}" "${optional[@]}" >/dev/null
+  else
+    log "optional host packages missing: ${optional[*]} (voice tests are skipped; sudo apt-get install ${optional[*]})"
+  fi
 fi
 
 # --- 1. virtualenv --------------------------------------------------------------------------
@@ -52,6 +64,12 @@ if [ ! -x "$VENV/bin/python" ]; then
   if [ "$WORLD" = system ]; then "$PYTHON" -m venv --system-site-packages "$VENV"; else "$PYTHON" -m venv "$VENV"; fi
 fi
 echo "$WORLD" > "$VENV/home_robot_world"
+if [ "$WORLD" = system ]; then
+  # remember which ROS 2 to source, so `source scripts/env.sh` works in a new shell too
+  for d in /opt/ros/"$ROS_DISTRO" ${AMENT_PREFIX_PATH//:/ }; do
+    if [ -f "$d/setup.bash" ]; then echo "$d/setup.bash" > "$VENV/home_robot_ros_setup"; break; fi
+  done
+fi
 PY="$VENV/bin/python"
 
 # --- 2. Python packages (skipped while the requirement files are unchanged) ---------------------
@@ -63,7 +81,7 @@ for extra in ${HOME_ROBOT_EXTRAS:-}; do
   [ -f "requirements/$extra.in" ] || die "unknown extra '$extra' (no requirements/$extra.in)"
   reqs+=("requirements/$extra.in")
 done
-want=$(cat "${reqs[@]}" requirements/ros-jazzy.lock | sha256sum | cut -d' ' -f1)
+want=$(cat "${reqs[@]}" requirements/torch.in requirements/ros-jazzy.lock | sha256sum | cut -d' ' -f1)
 if [ "$(cat "$VENV/.requirements-installed" 2>/dev/null || true)" != "$want" ]; then
   log "pip install: ${reqs[*]}"
   args=(); for r in "${reqs[@]}"; do args+=(-r "$r"); done
@@ -71,6 +89,10 @@ if [ "$(cat "$VENV/.requirements-installed" 2>/dev/null || true)" != "$want" ]; 
   # (grep drops the noise of pip configs that list absent local indexes)
   "$PY" -m pip install -q --disable-pip-version-check "${args[@]}" "${cons[@]}" \
     2> >(grep -v "is ignored: it is neither a file nor a directory" >&2)
+  # torch without its declared deps (see requirements/torch.in); its runtime deps came with slam.in
+  "$PY" -m pip install -q --disable-pip-version-check --no-deps -r requirements/torch.in \
+    2> >(grep -v "is ignored: it is neither a file nor a directory" >&2)
+  "$PY" -c 'import torch, setuptools; print(f"[setup] torch {torch.__version__}, setuptools {setuptools.__version__}")'
   echo "$want" > "$VENV/.requirements-installed"
 else
   log "Python packages up to date"
@@ -108,6 +130,10 @@ PY
 fi
 
 # --- 4. colcon build ----------------------------------------------------------------------------
+if ! "$PY" -c 'import colcon_core' 2>/dev/null && ! command -v colcon >/dev/null; then
+  log "colcon not found: installing colcon-common-extensions into the venv"
+  "$PY" -m pip install -q --disable-pip-version-check colcon-common-extensions==0.3.0
+fi
 # shellcheck source=scripts/env.sh
 HOME_ROBOT_ENV_QUIET=1 source "$ROOT/scripts/env.sh" --no-workspace
 skip=()
@@ -124,6 +150,7 @@ sys.exit(1)
 PY
 then skip=(--packages-skip nav2_msgs); fi
 log "colcon build"
+mkdir -p "$ROOT/log"
 colcon build --symlink-install --base-paths src "${skip[@]}" \
   --event-handlers console_cohesion- summary+ status- \
   --cmake-args -DPython3_EXECUTABLE="$PY" -DBUILD_TESTING=OFF -DCMAKE_BUILD_TYPE=Release \

@@ -16,5 +16,9 @@ setup(
     maintainer_email="maintainers@home-robot.dev",
     description="The brain: command inputs, scenario library, execution engine, simulated robot servers.",
     license="Apache-2.0",
-    entry_points={"console_scripts": []},
+    entry_points={
+        "console_scripts": [
+            "audio_command_node = decision_maker.audio_command_node:main",
+        ]
+    },
 )

@@ -82,6 +82,8 @@ def main(argv: list[str] | None = None) -> int:
           f"(ROS_DOMAIN_ID={env.get('ROS_DOMAIN_ID', '0')}, discovery LOCALHOST)", flush=True)
     try:
         sup.start()
+        for p in sup.processes:
+            print(f"launch: started {p.name} (pid {p.popen.pid})", flush=True)
         sup.wait_ready(opts.ready_timeout)
         print(f"launch: all {len(specs)} nodes ready (Ctrl-C stops them)", flush=True)
     except BringupError as exc:

@@ -21,6 +21,7 @@ import threading
 import time
 
 import rclpy
+from object_query_interfaces.srv import ObjectInstances, ObjectQuery
 from rclpy.callback_groups import CallbackGroup
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -29,7 +30,6 @@ from rclpy.utilities import remove_ros_args
 
 from object_query.errors import ObjectQueryError
 from object_query.semantic_map import InstancesResult, ObjectInstance, QueryResult
-from object_query_interfaces.srv import ObjectInstances, ObjectQuery
 
 
 class ObjectQueryTimeout(ObjectQueryError):

@@ -31,6 +31,8 @@ import threading
 
 import rclpy
 from geometry_msgs.msg import Point
+from object_query_interfaces.msg import ObjectInstance as ObjectInstanceMsg
+from object_query_interfaces.srv import ObjectInstances, ObjectQuery
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
@@ -43,8 +45,6 @@ from visualization_msgs.msg import Marker, MarkerArray
 from object_query.errors import MapLoadError, SynonymsError
 from object_query.names import load_synonyms
 from object_query.semantic_map import DatabaseConfig, FileSignature, ObjectDatabase
-from object_query_interfaces.msg import ObjectInstance as ObjectInstanceMsg
-from object_query_interfaces.srv import ObjectInstances, ObjectQuery
 
 #: Latched: a node that subscribes later still receives the last message.
 OBJECT_LIST_QOS = QoSProfile(

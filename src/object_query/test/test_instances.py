@@ -6,6 +6,7 @@ import os
 
 import numpy as np
 import pytest
+
 from object_query.instances import (
     connected_components,
     dedupe_keys,

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 
 import pytest
+
 from object_query.errors import SynonymsError
 from object_query.names import closest_names, load_synonyms, normalise_name, singular_forms
 

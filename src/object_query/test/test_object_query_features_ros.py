@@ -9,10 +9,6 @@ import time
 
 import numpy as np
 import pytest
-from home_robot_bringup.nodeset import find_executable
-from home_robot_bringup.process import node_environment
-from home_robot_bringup.testing import wait_for
-from object_query.object_query_client import ObjectQueryClient
 from rcl_interfaces.msg import Parameter as ParameterMsg
 from rcl_interfaces.msg import ParameterType, ParameterValue
 from rcl_interfaces.srv import SetParameters
@@ -20,6 +16,11 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
+
+from home_robot_bringup.nodeset import find_executable
+from home_robot_bringup.process import node_environment
+from home_robot_bringup.testing import wait_for
+from object_query.object_query_client import ObjectQueryClient
 
 pytestmark = pytest.mark.ros
 

@@ -5,11 +5,12 @@ import subprocess
 import threading
 
 import pytest
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from std_msgs.msg import String
+
 from home_robot_bringup.nodeset import find_executable
 from home_robot_bringup.process import node_environment
 from object_query.object_query_client import ObjectQueryClient
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from std_msgs.msg import String
 
 pytestmark = pytest.mark.ros
 

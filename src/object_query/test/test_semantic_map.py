@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+
 from object_query.errors import MapLoadError
 from object_query.names import Synonyms
 from object_query.semantic_map import (

@@ -1,0 +1,86 @@
+"""The real Whisper tiny.en (bundled, offline) on espeak-ng commands, noise and silence.
+
+The model is loaded once for the module.
+"""
+
+import numpy as np
+import pytest
+
+from decision_maker.speech import testaudio as ta
+from decision_maker.speech.filtering import FilterConfig, judge
+from decision_maker.speech.pipeline import PipelineConfig, VoicePipeline
+from decision_maker.speech.sources import WavFileSource
+from decision_maker.speech.transcriber import Transcriber, TranscriberConfig, bundled_model_path, resolve_model
+from decision_maker.speech.vocabulary import Vocabulary
+
+from .voice_testing import MISSING, SKIP_REASON, matches
+
+pytestmark = pytest.mark.skipif(bool(MISSING), reason=SKIP_REASON)
+
+VOCAB = Vocabulary(objects=("bin", "bottle", "chair", "cup", "sofa", "table", "trash"))
+COMMANDS = ["give me the bottle", "bring me the cup", "go home", "clean table", "clean the table", "stop", "cancel"]
+PAD = ta.silence(0.2)
+
+
+@pytest.fixture(scope="module")
+def transcriber():
+    return Transcriber(TranscriberConfig())
+
+
+def test_bundled_model_is_resolved_offline():
+    path = bundled_model_path()
+    assert resolve_model("") == path and resolve_model("bundled") == path
+    assert resolve_model("tiny.en") == "tiny.en"  # a name is passed through (must be cached locally)
+
+
+def test_unknown_model_name_fails_without_downloading():
+    from decision_maker.speech.errors import ModelLoadError
+
+    with pytest.raises(ModelLoadError, match="nothing is downloaded"):
+        Transcriber(TranscriberConfig(model="no-such-model-xyz"))
+
+
+@pytest.mark.parametrize("noisy", [False, True], ids=["clean", "pink-noise"])
+def test_commands_in_several_voices(transcriber, noisy):
+    failures = []
+    for i, command in enumerate(COMMANDS):
+        voice, speed = ta.VOICES[(i + noisy) % len(ta.VOICES)]
+        audio = np.concatenate([PAD, ta.speak(command, voice, speed), PAD])
+        if noisy:  # moderate pink noise under the speech (≈ 12 dB below it)
+            audio = audio + np.resize(ta.noise("pinknoise", audio.size / 16000 + 0.1, 0.08, seed=i + 2), audio.size)
+        tr = transcriber.transcribe(audio, VOCAB.prompt())
+        verdict = judge(tr.text, tr.no_speech_prob, tr.avg_logprob, tr.compression_ratio, FilterConfig(),
+                        VOCAB.prompt_words())
+        if not (verdict.kept and matches(verdict.text, command)):
+            failures.append(f"{command!r} ({voice} {speed}) -> {tr.text!r} {verdict.reason}")
+    assert not failures, failures
+
+
+def test_noise_and_silence_give_no_command(transcriber):
+    for name, audio in [("silence", ta.silence(2.0)), ("pink", ta.noise("pinknoise", 2.0, 0.1)),
+                        ("white", ta.noise("whitenoise", 2.0, 0.05))]:
+        tr = transcriber.transcribe(audio, VOCAB.prompt())
+        verdict = judge(tr.text, tr.no_speech_prob, tr.avg_logprob, tr.compression_ratio, FilterConfig(),
+                        VOCAB.prompt_words())
+        assert not verdict.kept, f"{name} gave {tr.text!r}"
+
+
+def test_object_names_in_the_prompt_fix_rare_words(transcriber):
+    audio = np.concatenate([PAD, ta.speak("give me the teapot", "en-us", 170), PAD])
+    with_teapot = transcriber.transcribe(audio, VOCAB.with_objects(["bottle", "teapot"]).prompt())
+    assert matches(with_teapot.text, "give me the teapot") and "teapot" in with_teapot.text.lower()
+
+
+def test_pipeline_with_wake_word(transcriber, tmp_path):
+    stream, _ = ta.compose([
+        (None, ta.silence(0.5)), ("robot go home", ta.speak("robot, go home", "en-us", 150)), (None, ta.silence(1.0)),
+        ("stop", ta.speak("stop", "en+f2", 170)), (None, ta.silence(1.0)),
+    ])
+    ta.write_wav(str(tmp_path / "wake.wav"), stream)
+    results = []
+    cfg = PipelineConfig(wake_word="robot")
+    vocab = Vocabulary(VOCAB.command_phrases, VOCAB.objects, wake_word="robot")
+    VoicePipeline(cfg, transcriber.transcribe, vocab, results.append).run(WavFileSource(str(tmp_path / "wake.wav"),
+                                                                                        pacing=0))
+    assert [r.command for r in results] == ["go home", None], [r.to_json() for r in results]
+    assert results[1].dropped == "no_wake_word" and matches(results[1].text, "stop")

@@ -1,0 +1,102 @@
+"""Unit tests of the node-set reader and parameter overrides (no ROS)."""
+
+import os
+import textwrap
+
+import pytest
+
+from home_robot_bringup.errors import BringupError, ExecutableNotFound, NodeSetError
+from home_robot_bringup.launcher import apply_overrides
+from home_robot_bringup.nodeset import NodeSpec, find_executable, format_param, load_nodeset, read_nodesets
+
+REPO_CONFIG = os.path.join(os.path.dirname(__file__), "..", "config")
+
+
+def write_config(tmp_path, body: str, params: dict[str, str] | None = None) -> str:
+    (tmp_path / "params").mkdir()
+    (tmp_path / "nodesets.yaml").write_text(textwrap.dedent(body))
+    for name, text in (params or {}).items():
+        (tmp_path / "params" / name).write_text(text)
+    return str(tmp_path)
+
+
+def test_repository_node_sets_are_valid():
+    """Every node set shipped in config/ loads: params files exist, no unknown keys, no dup names."""
+    sets = read_nodesets(REPO_CONFIG)
+    assert "object_query" in sets
+    for name in sets:
+        specs = load_nodeset(name, REPO_CONFIG)
+        assert specs, f"node set {name} is empty"
+        for spec in specs:
+            assert all(os.path.isfile(f) for f in spec.params_files)
+
+
+def test_include_order_and_param_paths(tmp_path):
+    cfg = write_config(tmp_path, """
+        nodesets:
+          base:
+            nodes:
+              - {name: a, package: p, executable: ea, params: [a.yaml]}
+          full:
+            include: [base]
+            nodes:
+              - {name: b, package: p, executable: eb, parameters: {speed: 2.5}, ready: "ready:"}
+        """, {"a.yaml": "a:\n  ros__parameters: {x: 1}\n"})
+    specs = load_nodeset("full", cfg)
+    assert [s.name for s in specs] == ["a", "b"]
+    assert specs[0].params_files == (os.path.join(cfg, "params", "a.yaml"),)
+    assert specs[1].ready == "ready:"
+    args = specs[1].ros_args()
+    assert args[:3] == ["--ros-args", "-r", "__node:=b"]
+    assert args[-2:] == ["-p", "speed:=2.5"]
+
+
+@pytest.mark.parametrize("body, message", [
+    ("nodesets: {x: {nodes: [{name: a, package: p}]}}", "'executable'"),
+    ("nodesets: {x: {nodes: [{name: a, package: p, executable: e, colour: red}]}}", "unknown key"),
+    ("nodesets: {x: {nodes: [{name: a, package: p, executable: e, params: [nope.yaml]}]}}", "params file not found"),
+    ("nodesets: {x: {include: [y]}, y: {include: [x]}}", "include cycle"),
+    ("nodesets: {x: {nodes: [{name: a, package: p, executable: e}, {name: a, package: q, executable: e}]}}",
+     "used twice"),
+    ("nodes: []", "top-level 'nodesets:'"),
+    ("nodesets: {x: [", "cannot read"),
+])
+def test_malformed_node_sets_are_clear_errors(tmp_path, body, message):
+    cfg = write_config(tmp_path, body)
+    with pytest.raises(NodeSetError, match=message):
+        load_nodeset("x", cfg)
+
+
+def test_unknown_node_set_lists_known_ones(tmp_path):
+    cfg = write_config(tmp_path, "nodesets: {alpha: {}, beta: {}}")
+    with pytest.raises(NodeSetError, match="unknown node set 'gamma'; known: alpha, beta"):
+        load_nodeset("gamma", cfg)
+
+
+@pytest.mark.parametrize("value, text", [("123", '"123"'), ("/a b/c.npz", '"/a b/c.npz"'), (3, "3"),
+                                         (2.5, "2.5"), (True, "true"), ([1, 2], "[1, 2]")])
+def test_format_param_round_trips_through_yaml(value, text):
+    import yaml
+
+    assert format_param(value) == text
+    assert yaml.safe_load(format_param(value)) == value
+
+
+def test_overrides_parse_values_and_reject_bad_input():
+    specs = [NodeSpec("srv", "p", "e"), NodeSpec("other", "p", "e")]
+    out = apply_overrides(specs, ["srv.speed=3", "srv.path=/tmp/x.npz", "srv.flag=true", "srv.empty="])
+    assert out[0].parameters == {"speed": 3, "path": "/tmp/x.npz", "flag": True, "empty": ""}
+    assert out[1].parameters == {}
+    for bad in ["srv", "srv=3", ".x=1", "nosuch.x=1"]:
+        with pytest.raises(BringupError):
+            apply_overrides(specs, [bad])
+
+
+def test_find_executable_uses_ros2_run_layout(tmp_path):
+    exe = tmp_path / "prefix" / "lib" / "pkg" / "tool"
+    exe.parent.mkdir(parents=True)
+    exe.write_text("#!/bin/sh\n")
+    exe.chmod(0o755)
+    assert find_executable("pkg", "tool", f"/nonexistent:{tmp_path / 'prefix'}") == str(exe)
+    with pytest.raises(ExecutableNotFound, match="make setup"):
+        find_executable("pkg", "other", str(tmp_path / "prefix"))
