@@ -254,7 +254,7 @@ def class_labels(ids: np.ndarray, classes: dict[int, str]) -> tuple[np.ndarray, 
         for sid, name in classes.items():
             if 0 <= sid - lo < size:
                 table[sid - lo] = label_of[name]
-        return table[rel if rel is not None else ids - lo], names
+        return table[rel if rel is not None else ids.astype(np.intp) - lo], names  # (no int8 overflow)
     known = np.array(sorted(classes), dtype=np.int64)
     lab = np.array([label_of[classes[s]] for s in known.tolist()] + [k], dtype=np.int32)
     pos = np.searchsorted(known, ids)
@@ -278,15 +278,17 @@ def compute_centroids(semantic_map: SemanticMap, valid: np.ndarray | None = None
         return {}
     # bins = the ids themselves (offset by the smallest): no per-point label lookup, one cast
     lo = 0 if ids.dtype.kind == "u" else int(ids.min())
-    if int(ids.max()) - lo >= 1 << 22:  # sparse huge ids: go through compact labels instead
+    size = int(ids.max()) - lo + 1
+    if size > 1 << 22:  # sparse huge ids: go through compact labels instead
         labels, names = class_labels(ids, semantic_map.classes)
-        bins, bin_names = labels, {j: [n] for j, n in enumerate(names)}
+        bins, bin_names, size = labels, {j: [n] for j, n in enumerate(names)}, len(names) + 1
     else:
-        bins = ids.astype(np.intp) if lo == 0 else (ids - lo).astype(np.intp)  # [N]
+        bins = ids.astype(np.intp)  # [N]
+        if lo:
+            bins -= lo
         bin_names = {}
         for sid, name in semantic_map.classes.items():
             bin_names.setdefault(sid - lo, []).append(name)
-    size = int(bins.max()) + 1
     if valid is not None:
         bins = np.where(valid, bins, size)
     counts = np.bincount(bins, minlength=size)[:size]  # [B]

@@ -331,10 +331,11 @@ def test_unicode_names_and_classes(tmp_path):
     assert json.loads(db.to_json()).keys() == {"stuhl", "tasse ☕"}
 
 
-@pytest.mark.parametrize("id_values", [[-3, 0, 7], [5, 10**12, 2**40 + 1], [65535, 1, 300]])
-def test_bincount_centroids_with_negative_huge_and_wide_ids(id_values):
+@pytest.mark.parametrize("id_values, dtype", [([-3, 0, 7], np.int64), ([5, 10**12, 2**40 + 1], np.int64),
+                                             ([65535, 1, 300], np.uint16), ([-128, 127, 0], np.int8)])
+def test_bincount_centroids_with_negative_huge_and_wide_ids(id_values, dtype):
     rng = np.random.default_rng(15)
-    ids = rng.choice(np.array(id_values, dtype=np.int64), 3000)
+    ids = rng.choice(np.array(id_values, dtype=dtype), 3000)
     means = rng.normal(0, 2, (3000, 3))
     smap = SemanticMap(means, ids, {id_values[0]: "a", id_values[1]: "b", id_values[2]: "a"})
     valid = rng.random(3000) > 0.2
@@ -368,3 +369,12 @@ def test_query_one_instance_by_label(sample_db):
     assert not r.found and "there are 2 instance(s) of chair (chair#1..chair#2)" in r.message
     assert not sample_db.query("chair#0").found
     assert not sample_db.query("unicorn#1").found and "unknown object" in sample_db.query("unicorn#1").message
+
+
+def test_int8_ids_spanning_the_whole_range():
+    rng = np.random.default_rng(17)
+    m, _ = two_chairs_one_cup(rng, np.float64)
+    ids = np.array([-128] * 700 + [127] * 200, dtype=np.int8)
+    db = ObjectDatabase.from_map(SemanticMap(m, ids, {-128: "chair", 127: "cup"}))
+    assert db.names() == ["chair", "cup"] and len(db.instances("chair").instances) == 2
+    assert np.allclose(db.query("cup").position, m[700:].mean(0))
