@@ -16,6 +16,7 @@ setup(
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
         ("share/" + package_name + "/data", _data),
+        ("share/" + package_name + "/config", glob(os.path.join("config", "*.yaml"))),
     ],
     install_requires=["setuptools"],
     zip_safe=True,

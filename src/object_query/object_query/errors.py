@@ -7,3 +7,7 @@ class ObjectQueryError(Exception):
 
 class MapLoadError(ObjectQueryError):
     """A map or semantic-label file is missing, unreadable or malformed."""
+
+
+class SynonymsError(ObjectQueryError):
+    """The synonyms YAML file is missing or malformed."""

@@ -3,12 +3,14 @@
 Command line::
 
     object_query_client chair [--timeout 5]   # prints the answer; exit 1 when not found
+    object_query_client chair --all [--near X Y Z]   # every instance (nearest first with --near)
 
 Python (inside a node that is spun by an executor in another thread)::
 
     client = ObjectQueryClient(node)
     client.wait_for_service(timeout_sec=5.0)
     result = client.query("bottle", timeout_sec=2.0)   # -> QueryResult
+    chairs = client.query_instances("chair", reference=(0.5, 0.5, 0.0), timeout_sec=2.0)  # -> InstancesResult
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ import threading
 import time
 
 import rclpy
-from object_query_interfaces.srv import ObjectQuery
+from object_query_interfaces.srv import ObjectInstances, ObjectQuery
 from rclpy.callback_groups import CallbackGroup
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -27,7 +29,7 @@ from rclpy.task import Future
 from rclpy.utilities import remove_ros_args
 
 from object_query.errors import ObjectQueryError
-from object_query.semantic_map import QueryResult
+from object_query.semantic_map import InstancesResult, ObjectInstance, QueryResult
 
 
 class ObjectQueryTimeout(ObjectQueryError):
@@ -41,15 +43,18 @@ class ObjectQueryClient:
     ``spin=True`` in a single-threaded script (it then spins the node itself until the deadline).
     """
 
-    def __init__(self, node: Node, service: str = "object_query", callback_group: CallbackGroup | None = None):
+    def __init__(self, node: Node, service: str = "object_query", callback_group: CallbackGroup | None = None,
+                 instances_service: str = "object_instances"):
         self._node = node
         self._client = node.create_client(ObjectQuery, service, callback_group=callback_group)
+        self._instances_client = node.create_client(ObjectInstances, instances_service, callback_group=callback_group)
 
     def wait_for_service(self, timeout_sec: float) -> bool:
-        """True once the service is available; False after ``timeout_sec`` (must be > 0)."""
+        """True once ``/object_query`` is available; False after ``timeout_sec`` (must be > 0)."""
         return self._client.wait_for_service(timeout_sec=timeout_sec)
 
     def query_async(self, name: str) -> Future:
+        """Send the request; the future's result is an ``ObjectQuery.Response``."""
         return self._client.call_async(ObjectQuery.Request(name=name))
 
     def query(self, name: str, timeout_sec: float = 2.0, spin: bool = False) -> QueryResult:
@@ -58,9 +63,34 @@ class ObjectQueryClient:
         Raises:
             ObjectQueryTimeout: no answer within ``timeout_sec``.
         """
-        if not self._client.service_is_ready() and not self._client.wait_for_service(timeout_sec=timeout_sec):
-            raise ObjectQueryTimeout(f"service {self._client.srv_name} not available after {timeout_sec:.1f} s")
-        future = self.query_async(name)
+        resp = self._call(self._client, ObjectQuery.Request(name=name), timeout_sec, spin)
+        p = resp.position
+        return QueryResult(resp.found, (p.x, p.y, p.z), resp.message)
+
+    def query_instances(self, name: str, reference: tuple[float, float, float] | None = None,
+                        timeout_sec: float = 2.0, spin: bool = False) -> InstancesResult:
+        """Every instance of ``name``: nearest to ``reference`` first when given, else largest first.
+
+        Raises:
+            ObjectQueryTimeout: no answer within ``timeout_sec``.
+        """
+        request = ObjectInstances.Request(name=name, use_reference=reference is not None)
+        if reference is not None:
+            request.reference.x, request.reference.y, request.reference.z = (float(v) for v in reference)
+        resp = self._call(self._instances_client, request, timeout_sec, spin)
+        instances = tuple(
+            ObjectInstance(i.name, i.index, (i.centre.x, i.centre.y, i.centre.z),
+                           (i.bbox_min.x, i.bbox_min.y, i.bbox_min.z), (i.bbox_max.x, i.bbox_max.y, i.bbox_max.z),
+                           i.point_count)
+            for i in resp.instances)
+        distances = tuple(i.distance for i in resp.instances)
+        return InstancesResult(resp.found, resp.name, resp.message, instances, distances)
+
+    def _call(self, client, request, timeout_sec: float, spin: bool):
+        """Send ``request`` and wait for the response (see the class docstring for ``spin``)."""
+        if not client.service_is_ready() and not client.wait_for_service(timeout_sec=timeout_sec):
+            raise ObjectQueryTimeout(f"service {client.srv_name} not available after {timeout_sec:.1f} s")
+        future = client.call_async(request)
         if spin:
             executor = SingleThreadedExecutor(context=self._node.context)
             executor.add_node(self._node)
@@ -73,11 +103,9 @@ class ObjectQueryClient:
             future.add_done_callback(lambda _f: done.set())
             done.wait(timeout_sec)
         if not future.done():
-            self._client.remove_pending_request(future)
-            raise ObjectQueryTimeout(f"no answer from {self._client.srv_name} within {timeout_sec:.1f} s")
-        resp = future.result()
-        p = resp.position
-        return QueryResult(resp.found, (p.x, p.y, p.z), resp.message)
+            client.remove_pending_request(future)
+            raise ObjectQueryTimeout(f"no answer from {client.srv_name} within {timeout_sec:.1f} s")
+        return future.result()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -86,11 +114,19 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="object_query_client", description="Ask the robot where an object is.")
     parser.add_argument("name", nargs="+", help="object name, e.g. chair (several words allowed)")
     parser.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for the service (default 5)")
+    parser.add_argument("--all", action="store_true", help="list every instance (/object_instances)")
+    parser.add_argument("--near", type=float, nargs=3, metavar=("X", "Y", "Z"),
+                        help="with --all: sort by distance to this point")
     opts = parser.parse_args(ros_args)
+    name = " ".join(opts.name)
     rclpy.init(args=["prog", *argv])
     node = rclpy.create_node("object_query_client")
     try:
-        result = ObjectQueryClient(node).query(" ".join(opts.name), timeout_sec=opts.timeout, spin=True)
+        client = ObjectQueryClient(node)
+        if opts.all:
+            many = client.query_instances(name, tuple(opts.near) if opts.near else None, opts.timeout, spin=True)
+        else:
+            result = client.query(name, timeout_sec=opts.timeout, spin=True)
     except ObjectQueryTimeout as exc:
         print(f"error: {exc} (is object_query_server running on ROS_DOMAIN_ID the same as ours?)", file=sys.stderr)
         return 2
@@ -99,9 +135,20 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         node.destroy_node()
         rclpy.try_shutdown()
+    if opts.all:
+        if not many.found:
+            print(f"not found: {many.message}")
+            return 1
+        print(f"found: {many.message}")
+        for inst, dist in zip(many.instances, many.distances, strict=True):
+            (x, y, z), lo, hi = inst.centre, inst.bbox_min, inst.bbox_max
+            far = f" distance={dist:.3f}" if dist >= 0 else ""
+            print(f"  {inst.label}: x={x:.3f} y={y:.3f} z={z:.3f} points={inst.point_count}{far} "
+                  f"box=[{lo[0]:.2f} {lo[1]:.2f} {lo[2]:.2f}]..[{hi[0]:.2f} {hi[1]:.2f} {hi[2]:.2f}]")
+        return 0
     if result.found:
         x, y, z = result.position
-        print(f"found: {' '.join(opts.name)} at x={x:.3f} y={y:.3f} z={z:.3f} ({result.message})")
+        print(f"found: {name} at x={x:.3f} y={y:.3f} z={z:.3f} ({result.message})")
         return 0
     print(f"not found: {result.message}")
     return 1

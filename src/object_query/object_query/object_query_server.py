@@ -1,28 +1,58 @@
-"""ROS 2 shell of the object database: ``/object_query`` service and ``/object_list`` topic.
+"""ROS 2 shell of the object database (the logic is in :mod:`object_query.semantic_map`).
 
-Parameters:
-    map_path (str): ``params.npz`` of the map; empty = the bundled sample map.
-    semantic_path (str): ``semantic.json`` of the map; empty = the bundled sample map's.
+Services:
+    ``/object_query`` (ObjectQuery): name → found, position, message (the seed's contract).
+    ``/object_instances`` (ObjectInstances): every instance of a name with centre, box, point
+    count and distance to an optional reference point, nearest first.
+    ``/object_query_server/reload`` (std_srvs/Trigger): reload the map files now (served by the
+    helper node ``object_query_server_maintenance`` so that reloads never delay queries).
+
+Topics (transient local: late subscribers get the last message):
+    ``/object_list`` (std_msgs/String): ``{"chair": [x, y, z], ...}``.
+    ``/object_markers`` (visualization_msgs/MarkerArray): a labelled box per instance.
+
+Parameters (see docs/object_query.md):
+    map_path, semantic_path (str): the map; empty = the bundled sample map.
+    synonyms_path (str): synonyms YAML; empty = the bundled one, ``none`` = no synonyms.
+    voxel_size, min_instance_points, min_opacity, centre_method, trim_fraction, query_position:
+    how the database is built (:class:`object_query.semantic_map.DatabaseConfig`); changing any of
+    them, or a path, at run time reloads the map.
+    auto_reload (bool): reload when the files change on disk (polled every
+    reload_poll_period seconds; a file must be unchanged for one period before it is read).
+    frame_id (str): frame of the markers.
 """
 
 from __future__ import annotations
 
+import colorsys
+import hashlib
 import os
+import threading
 
 import rclpy
-from object_query_interfaces.srv import ObjectQuery
-from rclpy.executors import ExternalShutdownException
+from geometry_msgs.msg import Point
+from object_query_interfaces.msg import ObjectInstance as ObjectInstanceMsg
+from object_query_interfaces.srv import ObjectInstances, ObjectQuery
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
-from std_msgs.msg import String
+from std_msgs.msg import ColorRGBA, String
+from std_srvs.srv import Trigger
+from visualization_msgs.msg import Marker, MarkerArray
 
-from object_query.errors import MapLoadError
-from object_query.semantic_map import ObjectDatabase
+from object_query.errors import MapLoadError, SynonymsError
+from object_query.names import load_synonyms
+from object_query.semantic_map import DatabaseConfig, FileSignature, ObjectDatabase
 
-#: Latched: a node that subscribes later still receives the last object list.
+#: Latched: a node that subscribes later still receives the last message.
 OBJECT_LIST_QOS = QoSProfile(
     depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE
 )
+#: Parameters that change what the database holds: setting one reloads the map.
+_BUILD_PARAMS = ("map_path", "semantic_path", "synonyms_path", "voxel_size", "min_instance_points", "min_opacity",
+                 "centre_method", "trim_fraction", "query_position")
 
 
 def bundled_map_paths() -> tuple[str, str]:
@@ -33,47 +63,271 @@ def bundled_map_paths() -> tuple[str, str]:
     return os.path.join(share, "data", "params.npz"), os.path.join(share, "data", "semantic.json")
 
 
+def bundled_synonyms_path() -> str:
+    """Path of the synonyms file installed with this package (share/object_query/config)."""
+    from ament_index_python.packages import get_package_share_directory
+
+    return os.path.join(get_package_share_directory("object_query"), "config", "synonyms.yaml")
+
+
+def class_colour(name: str, alpha: float) -> ColorRGBA:
+    """A stable colour per class name (hue from a hash of the name)."""
+    hue = int.from_bytes(hashlib.sha1(name.encode("utf-8")).digest()[:2], "big") / 65536.0
+    r, g, b = colorsys.hsv_to_rgb(hue, 0.75, 0.95)
+    return ColorRGBA(r=r, g=g, b=b, a=alpha)
+
+
+def database_markers(db: ObjectDatabase, frame_id: str, stamp) -> MarkerArray:
+    """A translucent box and a text label per instance, after a DELETEALL of older markers."""
+    markers = [Marker(action=Marker.DELETEALL)]
+    for i, inst in enumerate(db.all_instances()):
+        lo, hi = inst.bbox_min, inst.bbox_max
+        box = Marker(type=Marker.CUBE, action=Marker.ADD, ns="object_boxes", id=i)
+        box.header.frame_id, box.header.stamp = frame_id, stamp
+        box.pose.position = Point(x=(lo[0] + hi[0]) / 2, y=(lo[1] + hi[1]) / 2, z=(lo[2] + hi[2]) / 2)
+        box.pose.orientation.w = 1.0
+        box.scale.x, box.scale.y, box.scale.z = (max(hi[k] - lo[k], 0.01) for k in range(3))
+        box.color = class_colour(inst.name, 0.35)
+        text = Marker(type=Marker.TEXT_VIEW_FACING, action=Marker.ADD, ns="object_labels", id=i)
+        text.header.frame_id, text.header.stamp = frame_id, stamp
+        text.pose.position = Point(x=inst.centre[0], y=inst.centre[1], z=hi[2] + 0.1)
+        text.pose.orientation.w = 1.0
+        text.scale.z = 0.12
+        text.color = ColorRGBA(r=1.0, g=1.0, b=1.0, a=1.0)
+        text.text = f"{inst.label} ({inst.point_count})"
+        markers += [box, text]
+    return MarkerArray(markers=markers)
+
+
 class ObjectQueryServer(Node):
+    """Serves the object database; reloads it atomically (on request, on file change, on parameter change).
+
+    Threads: queries and parameters are handled by this node's executor (single-threaded: the
+    lowest latency in rclpy 7.1.6). Reloads run on :attr:`maintenance_node`, a helper node
+    (``<name>_maintenance``) with the reload service and the polling timer, spun by a second
+    executor in another thread, so a reload (seconds for a 10 M map) never delays a query.
+    """
+
     def __init__(self) -> None:
         super().__init__("object_query_server")
-        self.declare_parameter("map_path", "")
-        self.declare_parameter("semantic_path", "")
+        defaults = DatabaseConfig()
+        self.declare_parameter("map_path", "", ParameterDescriptor(description="params.npz; empty = bundled sample"))
+        self.declare_parameter("semantic_path", "", ParameterDescriptor(description="semantic.json; empty = bundled"))
+        self.declare_parameter("synonyms_path", "",
+                               ParameterDescriptor(description="synonyms YAML; empty = bundled, 'none' = no synonyms"))
+        # numbers accept int or double (`-p min_opacity:=0` is fine); DatabaseConfig validates the values
+        number = ParameterDescriptor(dynamic_typing=True)
+        self.declare_parameter("voxel_size", defaults.voxel_size, number)
+        self.declare_parameter("min_instance_points", defaults.min_instance_points, number)
+        self.declare_parameter("min_opacity", defaults.min_opacity, number)
+        self.declare_parameter("centre_method", defaults.centre_method)
+        self.declare_parameter("trim_fraction", defaults.trim_fraction, number)
+        self.declare_parameter("query_position", defaults.query_position)
+        self.declare_parameter("auto_reload", False)
+        self.declare_parameter("reload_poll_period", 1.0, ParameterDescriptor(read_only=True))
+        self.declare_parameter("frame_id", "map")
+
+        self._lock = threading.Lock()  # guards _db, _signature, _failed_signature, _seen_signature, _pending
+        self._reload_lock = threading.Lock()  # one reload at a time (service, timer, parameter change)
+        self._db: ObjectDatabase | None = None
+        self._signature = FileSignature()
+        self._failed_signature: FileSignature | None = None
+        self._seen_signature: FileSignature | None = None
+        self._pending: str | None = None  # reason of a reload requested by a parameter change
+
+        self._list_pub = self.create_publisher(String, "object_list", OBJECT_LIST_QOS)
+        self._marker_pub = self.create_publisher(MarkerArray, "object_markers", OBJECT_LIST_QOS)
+        # Raises MapLoadError/SynonymsError/ValueError, reported by main(): nothing to serve without a map.
+        self._load_initial()
+
+        # answers read an immutable snapshot taken under the lock: no lock is held while answering
+        self._query_srv = self.create_service(ObjectQuery, "object_query", self._on_query)
+        self._instances_srv = self.create_service(ObjectInstances, "object_instances", self._on_instances)
+        # own node (no global remaps: `-r __node:=...` would rename it too), same namespace
+        self.maintenance_node = rclpy.create_node(f"{self.get_name()}_maintenance", namespace=self.get_namespace(),
+                                                  context=self.context, use_global_arguments=False,
+                                                  start_parameter_services=False)
+        self._reload_srv = self.maintenance_node.create_service(
+            Trigger, f"{self.get_fully_qualified_name()}/reload", self._on_reload)
+        period = float(self.get_parameter("reload_poll_period").value)
+        self._poll_timer = self.maintenance_node.create_timer(max(period, 0.05), self._on_poll)
+        self.add_on_set_parameters_callback(self._validate_parameters)
+        self.add_post_set_parameters_callback(self._apply_parameters)
+        db = self._snapshot()
+        self.get_logger().info(f"ready: {len(db.names())} objects from {self._paths()[0]} ({', '.join(db.names())})")
+
+    # -- settings --------------------------------------------------------------------------------
+
+    def _paths(self) -> tuple[str, str, str]:
+        """(map, semantic, synonyms) paths with the bundled defaults filled in ('' = no synonyms)."""
         default_map, default_sem = bundled_map_paths()
         map_path = self.get_parameter("map_path").value or default_map
-        semantic_path = self.get_parameter("semantic_path").value or default_sem
-        # Raises MapLoadError, reported by main(): without a map there is nothing to serve.
-        self._db = ObjectDatabase.from_files(map_path, semantic_path)
-        self._list_pub = self.create_publisher(String, "object_list", OBJECT_LIST_QOS)
-        self._srv = self.create_service(ObjectQuery, "object_query", self._on_query)
-        self._list_pub.publish(String(data=self._db.to_json()))
-        self.get_logger().info(
-            f"ready: {len(self._db.names())} objects from {map_path} ({', '.join(self._db.names())})"
-        )
+        sem_path = self.get_parameter("semantic_path").value or default_sem
+        syn = self.get_parameter("synonyms_path").value
+        syn_path = "" if syn.strip().lower() == "none" else (syn or bundled_synonyms_path())
+        return map_path, sem_path, syn_path
+
+    def _config(self, overrides: dict[str, object] | None = None) -> DatabaseConfig:
+        """The build configuration from the parameters (plus proposed ``overrides``); ValueError if bad."""
+        values = {name: self.get_parameter(name).value for name in
+                  ("voxel_size", "min_instance_points", "min_opacity", "centre_method", "trim_fraction",
+                   "query_position")}
+        values.update(overrides or {})
+        if isinstance(values["min_instance_points"], float) and not values["min_instance_points"].is_integer():
+            raise ValueError(f"min_instance_points must be an integer, got {values['min_instance_points']}")
+        return DatabaseConfig(voxel_size=float(values["voxel_size"]),
+                              min_instance_points=int(values["min_instance_points"]),
+                              min_opacity=float(values["min_opacity"]), centre_method=str(values["centre_method"]),
+                              trim_fraction=float(values["trim_fraction"]),
+                              query_position=str(values["query_position"]))
+
+    def _validate_parameters(self, params: list[Parameter]) -> SetParametersResult:
+        overrides = {p.name: p.value for p in params if p.name in _BUILD_PARAMS and not p.name.endswith("_path")}
+        try:
+            self._config(overrides)
+        except (TypeError, ValueError) as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        return SetParametersResult(successful=True)
+
+    def _apply_parameters(self, params: list[Parameter]) -> None:
+        changed = [p.name for p in params if p.name in _BUILD_PARAMS]
+        if changed:
+            with self._lock:
+                self._pending = f"parameter(s) {', '.join(changed)} changed"
+
+    # -- loading ---------------------------------------------------------------------------------
+
+    def _build(self) -> tuple[ObjectDatabase, FileSignature]:
+        map_path, sem_path, syn_path = self._paths()
+        signature = FileSignature.of(map_path, sem_path, *([syn_path] if syn_path else []))
+        db = ObjectDatabase.from_files(map_path, sem_path, self._config(), load_synonyms(syn_path))
+        return db, signature
+
+    def _load_initial(self) -> None:
+        db, signature = self._build()
+        with self._lock:
+            self._db, self._signature, self._seen_signature = db, signature, signature
+        self._publish(db)
+        self._log_loaded(db, "loaded")
+
+    def _log_loaded(self, db: ObjectDatabase, verb: str) -> None:
+        for warning in db.warnings:
+            self.get_logger().warning(warning)
+        self.get_logger().info(f"{verb} {self._paths()[0]}: {db.summary()}")
+
+    def _publish(self, db: ObjectDatabase) -> None:
+        self._list_pub.publish(String(data=db.to_json()))
+        frame = self.get_parameter("frame_id").value
+        self._marker_pub.publish(database_markers(db, frame, self.get_clock().now().to_msg()))
+
+    def _snapshot(self) -> ObjectDatabase:
+        with self._lock:
+            assert self._db is not None  # set in __init__ before any service exists
+            return self._db
+
+    def reload(self, reason: str) -> tuple[bool, str]:
+        """Build a new database from the files and swap it in; on error keep the old one.
+
+        Returns:
+            ``(success, message)``; the message says what was loaded or why the old map was kept.
+        """
+        with self._reload_lock:
+            try:
+                db, signature = self._build()
+            except (MapLoadError, SynonymsError, ValueError, OSError, MemoryError) as exc:
+                signature = FileSignature.of(*[p for p in self._paths() if p])
+                with self._lock:
+                    self._failed_signature = signature
+                    old = self._db
+                kept = f"{len(old.names())} objects" if old is not None else "nothing"
+                message = f"reload ({reason}) failed, keeping the previous map ({kept}): {exc}"
+                self.get_logger().error(message)
+                return False, message
+            with self._lock:
+                self._db, self._signature, self._seen_signature = db, signature, signature
+                self._failed_signature = None
+            self._publish(db)
+            self._log_loaded(db, f"reloaded ({reason})")
+            return True, f"reloaded ({reason}): {db.summary()}"
+
+    # -- callbacks -------------------------------------------------------------------------------
 
     def _on_query(self, request: ObjectQuery.Request, response: ObjectQuery.Response) -> ObjectQuery.Response:
-        result = self._db.query(request.name)
+        result = self._snapshot().query(request.name)
         response.found = result.found
         response.position.x, response.position.y, response.position.z = result.position
         response.message = result.message
         return response
+
+    def _on_instances(self, request: ObjectInstances.Request, response: ObjectInstances.Response
+                      ) -> ObjectInstances.Response:
+        ref = request.reference
+        reference = (ref.x, ref.y, ref.z) if request.use_reference else None
+        result = self._snapshot().instances(request.name, reference)
+        response.found, response.name, response.message = result.found, result.name, result.message
+        for inst, dist in zip(result.instances, result.distances, strict=True):
+            response.instances.append(ObjectInstanceMsg(
+                name=inst.name, label=inst.label, index=inst.index,
+                centre=Point(x=inst.centre[0], y=inst.centre[1], z=inst.centre[2]),
+                bbox_min=Point(x=inst.bbox_min[0], y=inst.bbox_min[1], z=inst.bbox_min[2]),
+                bbox_max=Point(x=inst.bbox_max[0], y=inst.bbox_max[1], z=inst.bbox_max[2]),
+                point_count=inst.point_count, distance=dist))
+        return response
+
+    def _on_reload(self, _request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        response.success, response.message = self.reload("reload service")
+        return response
+
+    def _on_poll(self) -> None:
+        with self._lock:
+            pending, self._pending = self._pending, None
+        if pending:
+            self.reload(pending)
+            return
+        if not self.get_parameter("auto_reload").value:
+            return
+        signature = FileSignature.of(*[p for p in self._paths() if p])
+        with self._lock:
+            unchanged = signature in (self._signature, self._failed_signature)
+            settled = signature == self._seen_signature  # same as one poll ago: the writer is done
+            self._seen_signature = signature
+        if not unchanged and settled:
+            self.reload("map files changed")
 
 
 def main(args: list[str] | None = None) -> int:
     rclpy.init(args=args)
     try:
         node = ObjectQueryServer()
-    except MapLoadError as exc:
-        rclpy.logging.get_logger("object_query_server").fatal(f"cannot load map: {exc}")
+    except (MapLoadError, SynonymsError, ValueError) as exc:
+        rclpy.logging.get_logger("object_query_server").fatal(f"cannot start: {exc}")
         rclpy.try_shutdown()
         return 2
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    maintenance = SingleThreadedExecutor()
+    maintenance.add_node(node.maintenance_node)
+    maintenance_thread = threading.Thread(target=_spin_quietly, args=(maintenance,), name="maintenance", daemon=True)
+    maintenance_thread.start()
     try:
-        rclpy.spin(node)
+        executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
+        maintenance.shutdown(timeout_sec=2.0)
+        executor.shutdown(timeout_sec=2.0)
+        node.maintenance_node.destroy_node()
         node.destroy_node()
         rclpy.try_shutdown()
+        maintenance_thread.join(2.0)
     return 0
+
+
+def _spin_quietly(executor: SingleThreadedExecutor) -> None:
+    try:
+        executor.spin()
+    except ExternalShutdownException:
+        pass
 
 
 if __name__ == "__main__":

@@ -1,9 +1,13 @@
-"""Loading a semantic Gaussian map and computing object centres (no ROS).
+"""Loading a semantic Gaussian map and building the object database (no ROS).
 
 Map files follow the SplaTAM / SGS-SLAM layout:
 
-* ``params.npz``: ``means3D`` [N, 3] float, ``semantic_ids`` [N] integer (other keys ignored);
+* ``params.npz``: ``means3D`` [N, 3] float and ``semantic_ids`` [N] (or [N, 1]) integer (SGS-SLAM
+  saves uint8); optional ``logit_opacities`` [N] or [N, 1]; every other key (``rgb_colors``,
+  ``unnorm_rotations``, ``log_scales``, ``semantic_colors``, ...) is ignored;
 * ``semantic.json``: ``{"segmentation": [{"id": 1, "class": "chair"}, ...]}``.
+
+:class:`ObjectDatabase` is immutable: a reload builds a new one and swaps the reference.
 """
 
 from __future__ import annotations
@@ -11,21 +15,41 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
+import time
 import zipfile
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from object_query.errors import MapLoadError
+from object_query.instances import _Ticker, split_instances
+from object_query.names import (
+    MAX_NAME_LENGTH,
+    Synonyms,
+    closest_names,
+    normalise_name,
+    shorten,
+    singular_forms,
+)
+
+#: Known-names list shown in "unknown object" messages is cut after this many names.
+_MAX_LISTED_NAMES = 20
+CENTRE_METHODS = ("mean", "median", "trimmed_mean")
+#: ``chair#2`` / ``chair #2``: one instance of a class.
+_INSTANCE_LABEL = re.compile(r"^(.+?)\s*#\s*(\d{1,6})$")
+QUERY_POSITIONS = ("largest", "class")
 
 
 @dataclass(frozen=True)
 class SemanticMap:
     """A loaded map: Gaussian centres with their semantic ids, and the id → class table."""
 
-    means: np.ndarray  # [N, 3] float64, map frame, metres
-    semantic_ids: np.ndarray  # [N] int64
-    classes: dict[int, str]  # semantic id -> lower-cased class name
+    means: np.ndarray  # [N, 3] float32 or float64, map frame, metres
+    semantic_ids: np.ndarray  # [N] integer (dtype as saved, e.g. uint8)
+    classes: dict[int, str]  # semantic id -> normalised class name
+    logit_opacities: np.ndarray | None = None  # [N] float, None when the map has none
+    warnings: tuple[str, ...] = ()  # non-fatal problems found while loading
 
 
 @dataclass(frozen=True)
@@ -37,49 +61,141 @@ class QueryResult:
     message: str
 
 
+@dataclass(frozen=True)
+class ObjectInstance:
+    """One spatially connected object of a class."""
+
+    name: str  # class name
+    index: int  # 1-based, largest first within the class
+    centre: tuple[float, float, float]
+    bbox_min: tuple[float, float, float]
+    bbox_max: tuple[float, float, float]
+    point_count: int
+
+    @property
+    def label(self) -> str:
+        """``chair#2``."""
+        return f"{self.name}#{self.index}"
+
+
+@dataclass(frozen=True)
+class InstancesResult:
+    """Answer to "which <name>s are there?": instances nearest first when a reference is given."""
+
+    found: bool
+    name: str  # the class the query resolved to ("" when not found)
+    message: str
+    instances: tuple[ObjectInstance, ...] = ()
+    distances: tuple[float, ...] = ()  # to the reference, metres; -1.0 each without a reference
+
+
+@dataclass(frozen=True)
+class DatabaseConfig:
+    """How a map becomes a database.
+
+    Attributes:
+        voxel_size: voxel edge (m) of instance splitting; points of one class in touching voxels
+            (26-neighbourhood) form one instance. Objects closer than this merge.
+        min_instance_points: connected components with fewer points are noise (floaters).
+        min_opacity: Gaussians with ``sigmoid(logit_opacity)`` below this are ignored
+            (0 keeps all); used only when the map has ``logit_opacities``.
+        centre_method: ``mean``, ``median`` (per axis) or ``trimmed_mean`` (mean after dropping
+            the ``trim_fraction`` of points farthest from the mean).
+        trim_fraction: fraction dropped by ``trimmed_mean``, in [0, 0.5).
+        query_position: what ``/object_query`` answers for a class with several instances:
+            ``largest`` (the instance with most points) or ``class`` (the centre of all of the
+            class's instance points, as the seed did).
+    """
+
+    voxel_size: float = 0.1
+    min_instance_points: int = 20
+    min_opacity: float = 0.05
+    centre_method: str = "mean"
+    trim_fraction: float = 0.1
+    query_position: str = "largest"
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.voxel_size) and self.voxel_size > 0):
+            raise ValueError(f"voxel_size must be > 0, got {self.voxel_size}")
+        if self.min_instance_points < 1:
+            raise ValueError(f"min_instance_points must be >= 1, got {self.min_instance_points}")
+        if not 0.0 <= self.min_opacity < 1.0:
+            raise ValueError(f"min_opacity must be in [0, 1), got {self.min_opacity}")
+        if self.centre_method not in CENTRE_METHODS:
+            raise ValueError(f"centre_method must be one of {CENTRE_METHODS}, got {self.centre_method!r}")
+        if not 0.0 <= self.trim_fraction < 0.5:
+            raise ValueError(f"trim_fraction must be in [0, 0.5), got {self.trim_fraction}")
+        if self.query_position not in QUERY_POSITIONS:
+            raise ValueError(f"query_position must be one of {QUERY_POSITIONS}, got {self.query_position!r}")
+
+
+# ---------------------------------------------------------------------------------------------
+# loading
+
+
 def load_semantic_map(map_path: str, semantic_path: str) -> SemanticMap:
-    """Load ``params.npz`` and ``semantic.json``.
+    """Load ``params.npz`` and ``semantic.json``, checking keys, shapes and dtypes.
 
     Args:
         map_path: path of the ``.npz`` archive.
         semantic_path: path of the ``.json`` class table.
 
     Returns:
-        The map, with means as float64 [N, 3] and ids as int64 [N].
+        The map; ``means`` and ``semantic_ids`` keep their saved dtypes (no copies).
 
     Raises:
-        MapLoadError: a file is missing or malformed; the message names the file and the problem.
+        MapLoadError: a file is missing or malformed; the message names the parameter or the
+            file and the problem.
     """
     if not os.path.isfile(map_path):
         raise MapLoadError(f"map file not found: map_path={map_path!r}")
     if not os.path.isfile(semantic_path):
         raise MapLoadError(f"semantic file not found: semantic_path={semantic_path!r}")
+    warnings: list[str] = []
     try:
         with np.load(map_path, allow_pickle=False) as npz:
             missing = [k for k in ("means3D", "semantic_ids") if k not in npz.files]
             if missing:
-                raise MapLoadError(
-                    f"{map_path}: missing key(s) {missing}; found {sorted(npz.files)}"
-                )
+                raise MapLoadError(f"{map_path}: missing key(s) {missing}; found {sorted(npz.files)}")
             means = np.asarray(npz["means3D"])
             ids = np.asarray(npz["semantic_ids"])
+            opac = np.asarray(npz["logit_opacities"]) if "logit_opacities" in npz.files else None
     except MapLoadError:
         raise
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, KeyError) as exc:
         raise MapLoadError(f"{map_path}: not a readable .npz archive ({exc})") from exc
-    if means.ndim != 2 or means.shape[1] != 3 or not np.issubdtype(means.dtype, np.number):
-        raise MapLoadError(f"{map_path}: means3D must be a numeric [N, 3] array, got {means.shape} {means.dtype}")
-    ids = ids.reshape(-1) if ids.ndim == 2 and 1 in ids.shape else ids
-    if ids.ndim != 1 or not np.issubdtype(ids.dtype, np.integer):
-        raise MapLoadError(f"{map_path}: semantic_ids must be an integer [N] array, got {ids.shape} {ids.dtype}")
+    if means.ndim != 2 or means.shape[1] != 3 or means.dtype.kind not in "fiu":
+        raise MapLoadError(f"{map_path}: means3D must be a real [N, 3] array, got shape {means.shape} {means.dtype}")
+    if ids.ndim == 2 and ids.shape[1] == 1:
+        ids = ids[:, 0]
+    if ids.ndim != 1 or ids.dtype.kind not in "iu":
+        raise MapLoadError(f"{map_path}: semantic_ids must be an integer [N] array, got shape {ids.shape} {ids.dtype}")
     if len(ids) != len(means):
-        raise MapLoadError(f"{map_path}: means3D has {len(means)} rows but semantic_ids has {len(ids)}")
-    classes = load_classes(semantic_path)
-    return SemanticMap(means.astype(np.float64, copy=False), ids.astype(np.int64, copy=False), classes)
+        raise MapLoadError(f"{map_path}: length mismatch: means3D has {len(means)} rows, semantic_ids {len(ids)}")
+    if opac is not None:
+        if opac.ndim == 2 and opac.shape[1] == 1:
+            opac = opac[:, 0]
+        if opac.shape != (len(means),) or opac.dtype.kind not in "fiu":
+            warnings.append(f"{map_path}: ignoring logit_opacities of shape {opac.shape} {opac.dtype} "
+                            f"(expected [{len(means)}] or [{len(means)}, 1])")
+            opac = None
+    classes = load_classes(semantic_path, warnings)
+    return SemanticMap(means, ids, classes, opac, tuple(warnings))
 
 
-def load_classes(semantic_path: str) -> dict[int, str]:
-    """Read the ``{"segmentation": [{"id", "class"}]}`` table into ``{id: lower-cased name}``."""
+def load_classes(semantic_path: str, warnings: list[str] | None = None) -> dict[int, str]:
+    """Read the ``{"segmentation": [{"id", "class"}]}`` table into ``{id: normalised name}``.
+
+    Several ids may share a class name (their points are one class). An id listed twice with
+    the same name is a warning; with two different names it is an error.
+
+    Args:
+        semantic_path: path of the JSON file.
+        warnings: non-fatal problems are appended here.
+
+    Raises:
+        MapLoadError: unreadable or malformed JSON, bad entries, conflicting duplicate ids.
+    """
     try:
         with open(semantic_path, encoding="utf-8") as fh:
             doc = json.load(fh)
@@ -91,67 +207,427 @@ def load_classes(semantic_path: str) -> dict[int, str]:
     classes: dict[int, str] = {}
     for i, entry in enumerate(entries):
         if not isinstance(entry, dict) or "id" not in entry or "class" not in entry:
-            raise MapLoadError(f"{semantic_path}: segmentation[{i}] needs 'id' and 'class'")
-        sid, name = entry["id"], entry["class"]
-        if isinstance(sid, bool) or not isinstance(sid, int) or not isinstance(name, str) or not name.strip():
-            raise MapLoadError(f"{semantic_path}: segmentation[{i}] has a bad id/class ({sid!r}, {name!r})")
+            raise MapLoadError(f"{semantic_path}: segmentation[{i}] needs 'id' and 'class', got {entry!r:.80}")
+        sid, raw = entry["id"], entry["class"]
+        name = normalise_name(raw) if isinstance(raw, str) else ""
+        if isinstance(sid, bool) or not isinstance(sid, int) or not name or len(name) > MAX_NAME_LENGTH:
+            raise MapLoadError(f"{semantic_path}: segmentation[{i}] has a bad id/class ({sid!r}, {raw!r:.80})")
         if sid in classes:
-            raise MapLoadError(f"{semantic_path}: duplicate id {sid} ({classes[sid]!r} and {name!r})")
-        classes[sid] = name.strip().lower()
+            if classes[sid] != name:
+                raise MapLoadError(f"{semantic_path}: duplicate id {sid} with two classes ({classes[sid]!r}, {name!r})")
+            if warnings is not None:
+                warnings.append(f"{semantic_path}: id {sid} ({name!r}) is listed twice")
+            continue
+        classes[sid] = name
     return classes
 
 
-def compute_centroids(semantic_map: SemanticMap) -> dict[str, np.ndarray]:
+# ---------------------------------------------------------------------------------------------
+# centroids
+
+
+def class_labels(ids: np.ndarray, classes: dict[int, str]) -> tuple[np.ndarray, list[str]]:
+    """Map semantic ids to compact labels of distinct class names, in O(N).
+
+    Args:
+        ids: [N] integer semantic ids.
+        classes: id → class name.
+
+    Returns:
+        ``(labels, names)``: labels [N] int32 in [0, K], K = ``len(names)`` meaning "id not in
+        the table"; names sorted.
+    """
+    names = sorted(set(classes.values()))
+    k = len(names)
+    label_of = {n: i for i, n in enumerate(names)}
+    if len(ids) == 0:
+        return np.empty(0, dtype=np.int32), names
+    if ids.dtype.kind == "u" and ids.dtype.itemsize <= 2:
+        lo, size = 0, 1 << (8 * ids.dtype.itemsize)
+        rel = ids
+    else:
+        lo, hi = int(ids.min()), int(ids.max())
+        size = hi - lo + 1
+        rel = None
+    if size <= 1 << 22:
+        table = np.full(size, k, dtype=np.int32)  # int32 labels: half the memory traffic of int64
+        for sid, name in classes.items():
+            if 0 <= sid - lo < size:
+                table[sid - lo] = label_of[name]
+        return table[rel if rel is not None else ids.astype(np.intp) - lo], names  # (no int8 overflow)
+    known = np.array(sorted(classes), dtype=np.int64)
+    lab = np.array([label_of[classes[s]] for s in known.tolist()] + [k], dtype=np.int32)
+    pos = np.searchsorted(known, ids)
+    hit = (pos < len(known)) & (known[np.minimum(pos, len(known) - 1)] == ids)
+    return np.where(hit, lab[np.minimum(pos, len(known))], k), names
+
+
+def compute_centroids(semantic_map: SemanticMap, valid: np.ndarray | None = None) -> dict[str, np.ndarray]:
     """Mean position of each class's points, in one O(N) pass (``np.bincount``).
 
-    Classes of the table without points are left out. Several ids with one class name are
-    merged. Returns ``{name: [3] float64}``.
+    Args:
+        semantic_map: the map.
+        valid: [N] bool, points to use; None uses all.
+
+    Returns:
+        ``{name: [3] float64}`` for classes with at least one (valid) point; several ids with one
+        class name are merged; ids absent from the table are ignored.
     """
     ids = semantic_map.semantic_ids
     if len(ids) == 0:
         return {}
-    offset = int(ids.min())
-    idx = ids - offset  # [N] >= 0
-    size = int(idx.max()) + 1
-    counts = np.bincount(idx, minlength=size).astype(np.float64)  # [K]
-    sums = np.stack(
-        [np.bincount(idx, weights=semantic_map.means[:, k], minlength=size) for k in range(3)], axis=1
-    )  # [K, 3]
-    by_name_sum: dict[str, np.ndarray] = {}
-    by_name_count: dict[str, float] = {}
+    # bins = the ids themselves (offset by the smallest): no per-point label lookup, one cast
+    lo = 0 if ids.dtype.kind == "u" else int(ids.min())
+    size = int(ids.max()) - lo + 1
+    if size > 1 << 22:  # sparse huge ids: go through compact labels instead
+        labels, names = class_labels(ids, semantic_map.classes)
+        bins, bin_names, size = labels, {j: [n] for j, n in enumerate(names)}, len(names) + 1
+    else:
+        bins = ids.astype(np.intp)  # [N]
+        if lo:
+            bins -= lo
+        bin_names = {}
+        for sid, name in semantic_map.classes.items():
+            bin_names.setdefault(sid - lo, []).append(name)
+    if valid is not None:
+        bins = np.where(valid, bins, size)
+    counts = np.bincount(bins, minlength=size)[:size]  # [B]
+    sums = np.stack([np.bincount(bins, weights=semantic_map.means[:, a], minlength=size)[:size] for a in range(3)], 1)
+    total: dict[str, list] = {}
+    for b, names_of_bin in bin_names.items():
+        if 0 <= b < size and counts[b] > 0:
+            for name in names_of_bin:
+                acc = total.setdefault(name, [np.zeros(3), 0])
+                acc[0] = acc[0] + sums[b]
+                acc[1] += int(counts[b])
+    return {name: acc[0] / acc[1] for name, acc in total.items()}
+
+
+def compute_centroids_masked(semantic_map: SemanticMap) -> dict[str, np.ndarray]:
+    """The seed's method: one boolean mask over all N points per class (O(N·K)).
+
+    Kept as the test reference and the benchmark baseline of :func:`compute_centroids`.
+    """
+    out: dict[str, list[np.ndarray]] = {}
     for sid, name in semantic_map.classes.items():
-        j = sid - offset
-        if 0 <= j < size and counts[j] > 0:
-            by_name_sum[name] = by_name_sum.get(name, 0.0) + sums[j]
-            by_name_count[name] = by_name_count.get(name, 0.0) + counts[j]
-    return {name: by_name_sum[name] / by_name_count[name] for name in by_name_sum}
+        mask = semantic_map.semantic_ids == sid
+        if mask.any():
+            out.setdefault(name, []).append(semantic_map.means[mask].astype(np.float64))
+    return {name: np.concatenate(parts).mean(axis=0) for name, parts in out.items()}
+
+
+# ---------------------------------------------------------------------------------------------
+# database
+
+
+def _tuple3(v: np.ndarray) -> tuple[float, float, float]:
+    return (float(v[0]), float(v[1]), float(v[2]))
+
+
+def _robust_centres(means: np.ndarray, point_instance: np.ndarray, counts: np.ndarray, config: DatabaseConfig
+                    ) -> np.ndarray:
+    """Median or trimmed-mean centre per instance ([I, 3]); sorts points by instance (O(N log N))."""
+    sel = np.flatnonzero(point_instance >= 0)
+    order = sel[np.argsort(point_instance[sel], kind="stable")]
+    bounds = np.concatenate([[0], np.cumsum(counts)])
+    out = np.empty((len(counts), 3))
+    for i in range(len(counts)):
+        pts = means[order[bounds[i]:bounds[i + 1]]].astype(np.float64)  # [n_i, 3]
+        if config.centre_method == "median":
+            out[i] = np.median(pts, axis=0)
+        else:
+            centre = pts.mean(axis=0)
+            dist = np.linalg.norm(pts - centre, axis=1)
+            keep = max(1, int(math.ceil(len(pts) * (1.0 - config.trim_fraction))))
+            nearest = np.argpartition(dist, keep - 1)[:keep] if keep < len(pts) else slice(None)
+            out[i] = pts[nearest].mean(axis=0)
+    return out
+
+
+@dataclass(frozen=True)
+class MapStats:
+    """Counts of what a build used and skipped."""
+
+    points: int = 0
+    used: int = 0
+    non_finite: int = 0
+    transparent: int = 0
+    unlabelled: int = 0
+    noise: int = 0
+    build_s: float = 0.0
 
 
 class ObjectDatabase:
-    """Object name → centre, queried case-insensitively."""
+    """Object name → instances and a query position; immutable, safe to share between threads.
 
-    def __init__(self, centroids: dict[str, np.ndarray]) -> None:
-        self._centroids = {name.lower(): np.asarray(c, dtype=np.float64) for name, c in centroids.items()}
+    Build one with :meth:`from_files` / :meth:`from_map`; ``ObjectDatabase({"chair": (x, y, z)})``
+    makes a database of one instance per name (handy in tests of other packages).
+    """
+
+    def __init__(
+        self,
+        centroids: dict[str, np.ndarray | tuple[float, float, float]],
+        instances: dict[str, tuple[ObjectInstance, ...]] | None = None,
+        synonyms: Synonyms | None = None,
+        warnings: tuple[str, ...] = (),
+        stats: MapStats | None = None,
+    ) -> None:
+        self._positions = {normalise_name(n): _tuple3(np.asarray(c, dtype=np.float64)) for n, c in centroids.items()}
+        if instances is None:
+            instances = {n: (ObjectInstance(n, 1, p, p, p, 0),) for n, p in self._positions.items()}
+        self._instances = dict(instances)
+        self._synonyms = synonyms or Synonyms()
+        self.warnings = tuple(warnings)
+        self.stats = stats or MapStats()
+        self._names = sorted(self._positions)
 
     @classmethod
-    def from_files(cls, map_path: str, semantic_path: str) -> ObjectDatabase:
-        return cls(compute_centroids(load_semantic_map(map_path, semantic_path)))
+    def from_files(cls, map_path: str, semantic_path: str, config: DatabaseConfig | None = None,
+                   synonyms: Synonyms | None = None) -> ObjectDatabase:
+        """Load both files and build the database (see :meth:`from_map`).
+
+        Raises:
+            MapLoadError: a file is missing or malformed.
+        """
+        return cls.from_map(load_semantic_map(map_path, semantic_path), config, synonyms)
+
+    @classmethod
+    def from_map(cls, semantic_map: SemanticMap, config: DatabaseConfig | None = None,
+                 synonyms: Synonyms | None = None, timings: dict[str, float] | None = None) -> ObjectDatabase:
+        """Split every class into instances and compute their centres and boxes.
+
+        Points are skipped when their coordinates are not finite (counted in a warning), when
+        they are near-transparent (``config.min_opacity``), or when their id is not in the table
+        (warning); classes of the table without points get a warning. ``timings``, when given,
+        receives the seconds of each stage.
+        """
+        t0 = time.perf_counter()
+        tick = _Ticker(timings)
+        config = config or DatabaseConfig()
+        warnings = list(semantic_map.warnings)
+        means = semantic_map.means  # [N, 3]
+        if means.dtype not in (np.float32, np.float64):
+            means = means.astype(np.float64)
+        n = len(means)
+        labels, names = class_labels(semantic_map.semantic_ids, semantic_map.classes)  # [N]
+        k = len(names)
+
+        unlabelled = int(np.count_nonzero(labels == k))
+        if unlabelled:
+            ids = semantic_map.semantic_ids[labels == k]
+            uniq, cnt = np.unique(ids, return_counts=True)
+            listed = ", ".join(f"{int(u)} ({int(c)} pts)" for u, c in zip(uniq[:10], cnt[:10], strict=True))
+            more = f" and {len(uniq) - 10} more" if len(uniq) > 10 else ""
+            warnings.append(f"ignored {unlabelled} point(s) whose semantic id is not in the class table: "
+                            f"id {listed}{more}")
+        if means.dtype.kind != "f" or np.isfinite(means).all():  # one fast pass in the common case
+            non_finite = 0
+        else:
+            finite = np.isfinite(means).all(axis=1)  # [N]
+            non_finite = int(n - np.count_nonzero(finite))
+            warnings.append(f"skipped {non_finite} point(s) with NaN/inf coordinates")
+            means = np.where(finite[:, None], means, 0).astype(means.dtype)  # ignored below
+            labels = np.where(finite, labels, k)
+        transparent = 0
+        if semantic_map.logit_opacities is not None and config.min_opacity > 0:
+            logit_min = math.log(config.min_opacity / (1.0 - config.min_opacity))
+            transparent_mask = ~(semantic_map.logit_opacities >= logit_min)  # NaN opacity is transparent
+            transparent = int(np.count_nonzero(transparent_mask & (labels < k)))
+            labels = np.where(transparent_mask, k, labels)
+        tick("labels and validity")
+
+        try:
+            split = split_instances(means, labels, None, k, config.voxel_size, config.min_instance_points, timings)
+        except ValueError as exc:  # e.g. far-away points: a map this database cannot grid
+            raise MapLoadError(str(exc)) from exc
+        counts = split.instance_count
+        if config.centre_method == "mean" or len(counts) == 0:
+            centres = split.instance_sum / np.maximum(counts, 1)[:, None]
+        else:
+            centres = _robust_centres(means, split.point_instance, counts, config)
+
+        by_class: dict[str, list[ObjectInstance]] = {}
+        class_sum: dict[str, np.ndarray] = {}
+        for i in range(len(counts)):
+            name = names[int(split.instance_label[i])]
+            group = by_class.setdefault(name, [])
+            group.append(ObjectInstance(name, len(group) + 1, _tuple3(centres[i]), _tuple3(split.instance_min[i]),
+                                        _tuple3(split.instance_max[i]), int(counts[i])))
+            class_sum[name] = class_sum.get(name, 0.0) + split.instance_sum[i]
+
+        # a class whose points are all in tiny components still gets one instance (all its points)
+        valid_count = np.bincount(labels, minlength=k + 1)[:k]
+        for j in np.flatnonzero(valid_count > 0):
+            name = names[j]
+            if name in by_class:
+                continue
+            pts = means[labels == j].astype(np.float64)
+            inst = ObjectInstance(name, 1, _tuple3(pts.mean(axis=0)), _tuple3(pts.min(axis=0)),
+                                  _tuple3(pts.max(axis=0)), len(pts))
+            by_class[name] = [inst]
+            class_sum[name] = pts.sum(axis=0)
+            warnings.append(f"class {name!r} has only {len(pts)} scattered point(s) (no component of "
+                            f"{config.min_instance_points}+ points); using all of them as one instance")
+        empty = [nm for nm in names if nm not in by_class]
+        if empty:
+            warnings.append(f"class(es) in the table without (usable) points in the map: {', '.join(empty)}")
+
+        positions: dict[str, tuple[float, float, float]] = {}
+        for name, group in by_class.items():
+            if config.query_position == "class":
+                total = sum(g.point_count for g in group)
+                positions[name] = _tuple3(class_sum[name] / max(total, 1))
+            else:
+                positions[name] = group[0].centre
+        if timings is not None:
+            timings["centres and tables"] = time.perf_counter() - t0 - sum(timings.values())
+        stats = MapStats(points=n, used=int(counts.sum()), non_finite=non_finite, transparent=transparent,
+                         unlabelled=unlabelled, noise=split.noise_points, build_s=time.perf_counter() - t0)
+        instances = {name: tuple(group) for name, group in by_class.items()}
+        return cls(positions, instances, synonyms, tuple(warnings), stats)
+
+    # -- queries ---------------------------------------------------------------------------------
 
     def names(self) -> list[str]:
-        return sorted(self._centroids)
+        """Known class names, sorted."""
+        return list(self._names)
+
+    def instance_count(self) -> int:
+        """Number of instances over all classes."""
+        return sum(len(g) for g in self._instances.values())
+
+    def all_instances(self) -> list[ObjectInstance]:
+        """Every instance, by class name then index."""
+        return [inst for name in self._names for inst in self._instances[name]]
+
+    def resolve(self, name: str) -> tuple[str | None, str]:
+        """Which class a spoken name means.
+
+        Returns:
+            ``(class_name, note)`` when known (note says how: synonym, plural), else
+            ``(None, reason)`` with "did you mean" suggestions.
+        """
+        key = normalise_name(name)
+        if not key:
+            return None, "empty object name"
+        if len(key) > MAX_NAME_LENGTH:
+            return None, f"object name too long ({len(key)} characters, at most {MAX_NAME_LENGTH})"
+        if key in self._positions:
+            return key, ""
+        found = self._resolve_exact(key)
+        if found is not None:
+            return found
+        # "the red coffee mug": try the head noun phrase (the last two words, then the last word)
+        words = key.split(" ")
+        for tail in (" ".join(words[-2:]), words[-1]) if 1 < len(words) <= 8 else ():
+            found = self._resolve_exact(tail)
+            if found is not None:
+                return found[0], f"{shorten(key)!r} read as {found[0]!r}"
+        aliases = [s for s in self._synonyms.all_names() if self.resolve_known(s)]
+        suggestions = closest_names(key, self._names + aliases)
+        hint = f"; did you mean: {', '.join(suggestions)}?" if suggestions else ""
+        known = ", ".join(self._names[:_MAX_LISTED_NAMES]) + (" ..." if len(self._names) > _MAX_LISTED_NAMES else "")
+        return None, f"unknown object {shorten(key)!r}{hint} (known: {known or 'none, the map is empty'})"
+
+    def _resolve_exact(self, key: str) -> tuple[str, str] | None:
+        """``key`` (normalised) as a class, a plural of one, or a synonym of one; else None."""
+        for candidate in [key, *singular_forms(key)]:
+            if candidate in self._positions:
+                return candidate, "" if candidate == key else f"{shorten(key)!r} read as {candidate!r}"
+            for alt in self._synonyms.alternatives(candidate):
+                if alt in self._positions:
+                    return alt, f"{shorten(key)!r} is a synonym of {alt!r}"
+        return None
+
+    def resolve_known(self, alias: str) -> bool:
+        """True when the synonym ``alias`` (normalised) leads to a class of this map."""
+        return alias in self._positions or any(a in self._positions for a in self._synonyms.alternatives(alias))
 
     def query(self, name: str) -> QueryResult:
-        key = " ".join(str(name).split()).lower()
-        if not key:
-            return QueryResult(False, (0.0, 0.0, 0.0), "empty object name")
-        centre = self._centroids.get(key)
-        if centre is None:
-            shown = key if len(key) <= 64 else key[:61] + "..."
-            return QueryResult(False, (0.0, 0.0, 0.0), f"unknown object {shown!r}; known: {', '.join(self.names())}")
-        x, y, z = (float(v) for v in centre)
-        return QueryResult(True, (x, y, z), f"{key} at ({x:.3f}, {y:.3f}, {z:.3f})")
+        """Where is ``name``? (the ``/object_query`` answer).
+
+        ``name`` may address one instance by its label, ``chair#2`` (as listed by
+        :meth:`instances`); otherwise the answer is the class's query position.
+        """
+        label = _INSTANCE_LABEL.match(normalise_name(name)[: MAX_NAME_LENGTH + 1])
+        if label is not None:
+            key, note = self.resolve(label.group(1))
+            index = int(label.group(2))
+            group = self._instances.get(key, ()) if key is not None else ()
+            if key is not None and 1 <= index <= len(group):
+                inst = group[index - 1]
+                x, y, z = inst.centre
+                msg = f"{inst.label} at ({x:.3f}, {y:.3f}, {z:.3f}); {inst.point_count} points"
+                return QueryResult(True, (x, y, z), msg + (f" ({note})" if note else ""))
+            if key is not None:
+                return QueryResult(False, (0.0, 0.0, 0.0), f"no {key}#{index}: there are {len(group)} instance(s) "
+                                                            f"of {key} ({key}#1..{key}#{len(group)})")
+        key, note = self.resolve(name)
+        if key is None:
+            return QueryResult(False, (0.0, 0.0, 0.0), note)
+        x, y, z = self._positions[key]
+        msg = f"{key} at ({x:.3f}, {y:.3f}, {z:.3f})"
+        group = self._instances.get(key, ())
+        if len(group) > 1:
+            what = (f"the largest ({group[0].label}, {group[0].point_count} points)"
+                    if self._positions[key] == group[0].centre else "the centre of all of them")
+            msg += f"; {len(group)} instances of {key}, this is {what}; see /object_instances"
+        if note:
+            msg += f" ({note})"
+        return QueryResult(True, (x, y, z), msg)
+
+    def instances(self, name: str, reference: tuple[float, float, float] | None = None) -> InstancesResult:
+        """All instances of ``name``; nearest to ``reference`` first when given, else largest first."""
+        key, note = self.resolve(name)
+        if key is None:
+            return InstancesResult(False, "", note)
+        group = self._instances.get(key, ())
+        if reference is None or not all(math.isfinite(float(v)) for v in reference):
+            dists = [-1.0] * len(group)
+            ordered = list(group)
+            where = ""
+        else:
+            ref = np.asarray(reference, dtype=np.float64)
+            dists_all = [float(np.linalg.norm(np.asarray(g.centre) - ref)) for g in group]
+            order = sorted(range(len(group)), key=lambda i: (dists_all[i], i))
+            ordered = [group[i] for i in order]
+            dists = [dists_all[i] for i in order]
+            where = f", nearest first from ({ref[0]:.2f}, {ref[1]:.2f}, {ref[2]:.2f})"
+        msg = f"{len(group)} instance(s) of {key}{where}"
+        if note:
+            msg += f" ({note})"
+        return InstancesResult(True, key, msg, tuple(ordered), tuple(dists))
 
     def to_json(self) -> str:
-        """``{"chair": [x, y, z], ...}`` with finite floats rounded to mm."""
-        items = sorted(self._centroids.items())
-        return json.dumps({n: [round(float(v), 4) if math.isfinite(v) else None for v in c] for n, c in items})
+        """``{"chair": [x, y, z], ...}``: each name's query position, rounded to 0.1 mm."""
+        return json.dumps(
+            {n: [round(v, 4) if math.isfinite(v) else None for v in self._positions[n]] for n in self._names}
+        )
+
+    def summary(self) -> str:
+        """One line for logs: names with instance counts and what was skipped."""
+        s = self.stats
+        parts = [f"{n}x{len(self._instances.get(n, ()))}" if len(self._instances.get(n, ())) > 1 else n
+                 for n in self._names]
+        return (f"{len(self._names)} objects, {self.instance_count()} instances ({', '.join(parts)}); "
+                f"{s.used}/{s.points} points used, skipped {s.transparent} transparent, {s.non_finite} non-finite, "
+                f"{s.unlabelled} unlabelled, {s.noise} noise; built in {s.build_s:.2f} s")
+
+
+@dataclass(frozen=True)
+class FileSignature:
+    """What identifies a version of the map files on disk (for change polling)."""
+
+    entries: tuple[tuple[str, int, int], ...] = field(default_factory=tuple)  # (path, mtime_ns, size)
+
+    @classmethod
+    def of(cls, *paths: str) -> FileSignature:
+        """Signature of ``paths``; a missing file has mtime and size -1."""
+        out = []
+        for p in paths:
+            try:
+                st = os.stat(p)
+                out.append((p, st.st_mtime_ns, st.st_size))
+            except OSError:
+                out.append((p, -1, -1))
+        return cls(tuple(out))

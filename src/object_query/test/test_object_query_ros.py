@@ -62,3 +62,20 @@ def test_missing_map_file_is_a_clear_error(launch_nodes, tmp_path):
         launch_nodes(nodeset="object_query", set=[f"object_query_server.map_path={tmp_path}/nope.npz"],
                      ready_timeout=30)
     assert "map_path" in str(err.value) and "nope.npz" in str(err.value)
+
+
+def test_bad_start_up_files_are_clear_errors(launch_nodes, tmp_path):
+    from home_robot_bringup.errors import NodeNotReady
+
+    with pytest.raises(NodeNotReady) as err:
+        launch_nodes(nodeset="object_query", set=[f"object_query_server.synonyms_path={tmp_path}/nope.yaml"],
+                     ready_timeout=30)
+    assert "synonyms_path" in str(err.value) and "nope.yaml" in str(err.value)
+    bad_json = tmp_path / "semantic.json"
+    bad_json.write_text("{not json")
+    with pytest.raises(NodeNotReady) as err:
+        launch_nodes(nodeset="object_query", set=[f"object_query_server.semantic_path={bad_json}"], ready_timeout=30)
+    assert "not valid JSON" in str(err.value)
+    with pytest.raises(NodeNotReady) as err:
+        launch_nodes(nodeset="object_query", set=["object_query_server.voxel_size=0.0"], ready_timeout=30)
+    assert "voxel_size must be > 0" in str(err.value)
