@@ -24,6 +24,7 @@ import numpy as np
 
 from object_query.errors import MapLoadError
 from object_query.instances import _Ticker, split_instances
+from object_query.kernels import bin_sums
 from object_query.names import (
     MAX_NAME_LENGTH,
     Synonyms,
@@ -262,12 +263,14 @@ def class_labels(ids: np.ndarray, classes: dict[int, str]) -> tuple[np.ndarray, 
     return np.where(hit, lab[np.minimum(pos, len(known))], k), names
 
 
-def compute_centroids(semantic_map: SemanticMap, valid: np.ndarray | None = None) -> dict[str, np.ndarray]:
-    """Mean position of each class's points, in one O(N) pass (``np.bincount``).
+def compute_centroids(semantic_map: SemanticMap, valid: np.ndarray | None = None,
+                      fast: bool | None = None) -> dict[str, np.ndarray]:
+    """Mean position of each class's points, in one O(N) pass (:func:`kernels.bin_sums`).
 
     Args:
         semantic_map: the map.
         valid: [N] bool, points to use; None uses all.
+        fast: the compiled kernel (True), the numpy reference (False), or automatic (None).
 
     Returns:
         ``{name: [3] float64}`` for classes with at least one (valid) point; several ids with one
@@ -291,8 +294,7 @@ def compute_centroids(semantic_map: SemanticMap, valid: np.ndarray | None = None
             bin_names.setdefault(sid - lo, []).append(name)
     if valid is not None:
         bins = np.where(valid, bins, size)
-    counts = np.bincount(bins, minlength=size)[:size]  # [B]
-    sums = np.stack([np.bincount(bins, weights=semantic_map.means[:, a], minlength=size)[:size] for a in range(3)], 1)
+    counts, sums = bin_sums(bins, semantic_map.means, size, fast)  # [B], [B, 3]
     total: dict[str, list] = {}
     for b, names_of_bin in bin_names.items():
         if 0 <= b < size and counts[b] > 0:
