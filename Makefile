@@ -4,7 +4,7 @@ SHELL := /bin/bash
 ENV := source scripts/env.sh >/dev/null &&
 PYTEST_ARGS ?= -n 2
 
-.PHONY: setup demo test lint bench clean
+.PHONY: setup demo test lint clean bench bench-object-query bench-decision-maker bench-voice
 
 setup:
 	@bash scripts/setup.sh
@@ -17,6 +17,18 @@ test: setup
 
 lint: setup
 	@$(ENV) ruff check .
+
+# Benchmarks print figures (and the ratio to the seed's method where there is one); minutes each.
+bench: bench-object-query bench-decision-maker bench-voice
+
+bench-object-query: setup
+	@$(ENV) python bench/object_query_bench.py
+
+bench-decision-maker: setup
+	@$(ENV) python bench/decision_maker_cancel.py --trials 200
+
+bench-voice: setup
+	@$(ENV) python bench/voice_latency.py
 
 clean:
 	rm -rf build install log
