@@ -64,8 +64,11 @@ class TrackingConfig:
     icp_iters: int = 12  # Gauss-Newton iterations per pyramid level
     icp_levels: int = 2  # image pyramid levels (stride 2**level), coarse to fine
     icp_max_dist: float = 0.10  # metres; associations farther apart are rejected
-    icp_max_normal_angle_deg: float = 30.0  # reject pairs whose normals differ more than this
-    min_silhouette: float = 0.99  # model pixels used only where the map is this opaque
+    icp_sigma_geo: float = 0.005  # metres; scale (and Huber threshold) of point-to-plane residuals
+    icp_sigma_col: float = 0.05  # intensity units; scale (and Huber threshold) of photometric residuals
+    geometric_weight: float = 1.0  # weight of the point-to-plane term
+    photometric_weight: float = 1.0  # weight of the photometric term inside the Gauss-Newton (0: geometry only)
+    min_silhouette: float = 0.5  # model pixels used only where the map is this opaque (depth normalised by it)
     min_correspondences: int = 200  # fewer raises TrackingError (then the constant-velocity guess is kept)
     photometric_iters: int = 0  # optional Adam steps on colour + depth L1 after ICP
     photometric_lr_rot: float = 4e-4
@@ -88,7 +91,8 @@ class MappingConfig:
     pixel_stride: int = 2  # new Gaussians seeded at every k-th pixel of the empty/occluding region
     densify_silhouette: float = 0.5  # pixels below this silhouette get new Gaussians
     densify_depth_factor: float = 50.0  # ... or where the model is behind depth by > factor * median error
-    scale_factor: float = 1.0  # new Gaussian radius = depth / f * pixel_stride * scale_factor / 2 ... (see map.py)
+    radius_factor: float = 0.3  # new Gaussian std dev = radius_factor * pixel_stride * depth / f
+    init_logit_opacity: float = 3.0
     lr_means: float = 1e-4
     lr_rgb: float = 2.5e-3
     lr_semantic: float = 2.5e-3
