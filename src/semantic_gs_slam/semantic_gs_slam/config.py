@@ -68,8 +68,12 @@ class TrackingConfig:
     icp_sigma_col: float = 0.05  # intensity units; scale (and Huber threshold) of photometric residuals
     geometric_weight: float = 1.0  # weight of the point-to-plane term
     photometric_weight: float = 1.0  # weight of the photometric term inside the Gauss-Newton (0: geometry only)
+    prior_sigma_trans: float = 0.05  # metres; weak Gaussian prior of the pose toward the constant-velocity guess
+    prior_sigma_rot: float = 0.05  # radians
+    render_scale_shrink: float = 0.5  # the model is rendered for tracking with Gaussian radii x this:
+    # blending overlapping full-size footprints biases depth toward the camera on oblique surfaces
     min_silhouette: float = 0.5  # model pixels used only where the map is this opaque (depth normalised by it)
-    min_correspondences: int = 200  # fewer raises TrackingError (then the constant-velocity guess is kept)
+    min_correspondences: int = 100  # fewer raises TrackingError (the frame keeps the previous pose, is not mapped)
     photometric_iters: int = 0  # optional Adam steps on colour + depth L1 after ICP
     photometric_lr_rot: float = 4e-4
     photometric_lr_trans: float = 2e-3
@@ -91,13 +95,13 @@ class MappingConfig:
     pixel_stride: int = 2  # new Gaussians seeded at every k-th pixel of the empty/occluding region
     densify_silhouette: float = 0.5  # pixels below this silhouette get new Gaussians
     densify_depth_factor: float = 50.0  # ... or where the model is behind depth by > factor * median error
-    radius_factor: float = 0.3  # new Gaussian std dev = radius_factor * pixel_stride * depth / f
+    radius_factor: float = 0.6  # new Gaussian std dev = radius_factor * pixel_stride * depth / f
     init_logit_opacity: float = 3.0
     lr_means: float = 1e-4
     lr_rgb: float = 2.5e-3
     lr_semantic: float = 2.5e-3
     lr_opacity: float = 5e-2
-    lr_scales: float = 1e-3
+    lr_scales: float = 5e-3
     lr_rotations: float = 1e-3
     w_colour: float = 0.5
     w_depth: float = 1.0

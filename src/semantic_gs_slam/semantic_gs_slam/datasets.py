@@ -156,7 +156,8 @@ def _read_cam(root: str, default: Intrinsics) -> tuple[Intrinsics, float | None]
     with open(p) as fh:
         c = json.load(fh)
     try:
-        k = Intrinsics(int(c["width"]), int(c["height"]), float(c["fx"]), float(c["fy"]), float(c["cx"]), float(c["cy"]))
+        k = Intrinsics(int(c["width"]), int(c["height"]), float(c["fx"]), float(c["fy"]),
+                       float(c["cx"]), float(c["cy"]))
     except KeyError as exc:
         raise DatasetError(f"{p}: missing key {exc}") from exc
     return k, c.get("depth_scale")
@@ -214,8 +215,9 @@ def _read_tum_list(path: str) -> list[tuple[float, list[str]]]:
 
 
 def _quat_pose(v: list[str]) -> np.ndarray:
-    from semantic_gs_slam.geometry import quat_to_rotmat
     import torch
+
+    from semantic_gs_slam.geometry import quat_to_rotmat
 
     tx, ty, tz, qx, qy, qz, qw = (float(x) for x in v[:7])
     m = np.eye(4)

@@ -160,7 +160,8 @@ class GaussianMap:
         defaults = {"rgb_colors": np.full((n, 3), 0.5), "unnorm_rotations": np.tile([1.0, 0, 0, 0], (n, 1)),
                     "logit_opacities": np.full((n, 1), 3.0), "log_scales": np.full((n, 1), np.log(0.01)),
                     "semantic_colors": None}
-        ids = np.asarray(a["semantic_ids"]).reshape(-1).astype(np.int64) if "semantic_ids" in a else np.zeros(n, np.int64)
+        ids = np.asarray(a["semantic_ids"]).reshape(-1).astype(np.int64) if "semantic_ids" in a \
+            else np.zeros(n, np.int64)
         if defaults["semantic_colors"] is None:
             defaults["semantic_colors"] = palette(ids)
         params = {}

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import time
 from dataclasses import asdict, dataclass
@@ -19,10 +20,17 @@ from torch import Tensor
 
 from semantic_gs_slam.config import Intrinsics, SlamConfig
 from semantic_gs_slam.errors import FrameError, MapFormatError, TrackingError
-from semantic_gs_slam.gaussian_map import (GaussianMap, export_ply, load_params, load_semantic_json, palette,
-                                           save_params, save_semantic_json)
+from semantic_gs_slam.gaussian_map import (
+    GaussianMap,
+    export_ply,
+    load_params,
+    load_semantic_json,
+    palette,
+    save_params,
+    save_semantic_json,
+)
 from semantic_gs_slam.metrics import ssim
-from semantic_gs_slam.render import RenderOutput, render
+from semantic_gs_slam.render import Gaussians, RenderOutput, render
 from semantic_gs_slam.tracking import icp, photometric_refine
 
 log = logging.getLogger("semantic_gs_slam")
@@ -147,7 +155,7 @@ class SLAM:
         self.gt_poses.append(gt)
         self.timestamps.append(float(idx if timestamp is None else timestamp))
         t1 = time.perf_counter()
-        is_kf = idx % self.cfg.mapping.keyframe_every == 0
+        is_kf = idx % self.cfg.mapping.keyframe_every == 0 and not failed
         added = pruned = 0
         loss = float("nan")
         if is_kf:
@@ -165,29 +173,29 @@ class SLAM:
         prev = self.poses[-1]
         guess = prev @ (np.linalg.inv(self.poses[-2]) @ prev) if len(self.poses) >= 2 else prev
         g = torch.as_tensor(guess)
-        with torch.no_grad():
-            out = self.render_view(guess)
+        out = self.render_view(guess, scale_shrink=self.cfg.tracking.render_scale_shrink)
         sil = out.silhouette
         valid = sil > self.cfg.tracking.min_silhouette
         model_depth = torch.where(valid, out.depth / sil.clamp_min(1e-6), torch.zeros_like(out.depth))
         try:
             res = icp(model_depth, valid, g, depth, self.k, self.cfg.tracking, out.rgb, rgb)
         except TrackingError as exc:
-            log.warning("frame %d: %s; keeping the constant-velocity guess", len(self.poses), exc)
-            return guess, float("nan"), 0, True
+            log.warning("frame %d: %s; keeping the previous pose, not mapping this frame", len(self.poses), exc)
+            return prev, float("nan"), 0, True
         c2w = res.c2w
         if self.cfg.tracking.photometric_iters > 0:
             c2w = photometric_refine(self.map.gaussians(), c2w, rgb, depth, self.k, self.cfg.renderer,
                                      self.cfg.tracking)
         return c2w.numpy(), res.residual, res.inliers, False
 
-    def render_view(self, c2w: np.ndarray) -> RenderOutput:
-        """Render the map at a camera-to-world pose (gradients off)."""
+    def render_view(self, c2w: np.ndarray, scale_shrink: float = 1.0) -> RenderOutput:
+        """Render the map at a camera-to-world pose (gradients off); ``scale_shrink`` multiplies all radii."""
         w2c = torch.as_tensor(np.linalg.inv(c2w), dtype=torch.float32)
         with torch.no_grad():
             g = self.map.gaussians()
-            g = type(g)(*(x.detach() if x is not None else None for x in
-                          (g.means, g.quats, g.log_scales, g.logit_opacities, g.rgb, g.semantic)))
+            ls = g.log_scales.detach() + math.log(scale_shrink)
+            g = Gaussians(g.means.detach(), g.quats.detach(), ls, g.logit_opacities.detach(), g.rgb.detach(),
+                          None if g.semantic is None else g.semantic.detach())
             return render(g, w2c, self.k, self.cfg.renderer)
 
     # ------------------------------------------------------------------ mapping
@@ -345,7 +353,8 @@ class SLAM:
         eng.map = GaussianMap.from_arrays(arr, cfg.device)
         eng.map.semantic_ids = torch.as_tensor(st["map_semantic_ids_raw"].astype(np.int64))
         if len(st["poses"]) != meta["frames"]:
-            raise MapFormatError(f"{ckpt_dir}: state has {len(st['poses'])} poses, checkpoint.json says {meta['frames']}")
+            raise MapFormatError(f"{ckpt_dir}: state has {len(st['poses'])} poses, "
+                                 f"checkpoint.json says {meta['frames']}")
         eng.poses = [p for p in st["poses"]]
         eng.timestamps = [float(t) for t in st["timestamps"]]
         eng.gt_poses = [None if np.isnan(g).any() else g for g in st["gt_poses"]]

@@ -117,7 +117,8 @@ class _Noise:
         for dx in (0, 1):
             for dy in (0, 1):
                 for dz in (0, 1):
-                    w = (f[:, 0] if dx else 1 - f[:, 0]) * (f[:, 1] if dy else 1 - f[:, 1]) * (f[:, 2] if dz else 1 - f[:, 2])
+                    w = (f[:, 0] if dx else 1 - f[:, 0]) * (f[:, 1] if dy else 1 - f[:, 1]) \
+                        * (f[:, 2] if dz else 1 - f[:, 2])
                     idx = (i + np.array([dx, dy, dz])) % self.size
                     out += w * self.table[idx[:, 0], idx[:, 1], idx[:, 2]]
         return out
@@ -196,7 +197,8 @@ class HomeRenderer:
         p = o + t_best[:, None] * d
         base = np.stack([self.colour[int(c)] for c in range(12) if c in self.colour])
         base = np.concatenate([np.zeros((1, 3)), base])[cls]
-        tex = 0.55 * self.noise(p * 6.0) + 0.3 * self.noise(p * 23.0 + 17.0) + 0.15 * (np.sin(p.sum(1) * 40) * 0.5 + 0.5)
+        tex = 0.55 * self.noise(p * 6.0) + 0.3 * self.noise(p * 23.0 + 17.0) \
+            + 0.15 * (np.sin(p.sum(1) * 40) * 0.5 + 0.5)
         shade = 0.55 + 0.45 * np.abs(normal @ self.light)
         rgb = np.clip(base * (0.55 + 0.75 * tex)[:, None] * shade[:, None], 0, 1)
         depth = t_best  # direction has unit camera-z, so t is the z depth
@@ -205,15 +207,19 @@ class HomeRenderer:
 
 
 def trajectory(n: int, span_deg: float = 120.0) -> list[np.ndarray]:
-    """A smooth camera path: along an ellipse around the table at 1.2-1.4 m, looking outwards, tilted down."""
+    """A smooth camera path: an orbit around the dining table (1.8 m x 1.5 m ellipse, 1.3-1.5 m high),
+    looking at the table with a slow pan, so every view has furniture at several depths and
+    orientations (views of only a wall and the floor leave ICP a free direction)."""
     poses = []
-    centre = np.array([3.0, 2.5])
+    centre = np.array([2.7, 2.5])
     for i in range(n):
         s = i / max(n - 1, 1)
-        th = np.radians(-100.0 + span_deg * s)
-        pos = np.array([centre[0] + 1.3 * np.cos(th), centre[1] + 0.9 * np.sin(th), 1.3 + 0.1 * np.sin(2 * np.pi * s)])
-        yaw = th + 0.35 * np.sin(np.pi * s)
-        target = np.array([pos[0] + 2.0 * np.cos(yaw), pos[1] + 2.0 * np.sin(yaw), 0.6])
+        th = np.radians(-90.0 + span_deg * s)
+        pos = np.array([centre[0] + 1.8 * np.cos(th), centre[1] + 1.5 * np.sin(th), 1.4 + 0.1 * np.sin(3 * th)])
+        pan = 0.25 * np.sin(2 * th)  # a function of the orbit angle: motion per frame stays small
+        look = np.array([centre[0] - pos[0], centre[1] - pos[1]])
+        yaw = np.arctan2(look[1], look[0]) + pan
+        target = np.array([pos[0] + 2.0 * np.cos(yaw), pos[1] + 2.0 * np.sin(yaw), 0.45])
         poses.append(look_at(pos, target))
     return poses
 

@@ -56,6 +56,15 @@ def normal_map(v: Tensor, valid: Tensor) -> tuple[Tensor, Tensor]:
     return n / norm.clamp_min(1e-12), ok
 
 
+def _so3_log(r: Tensor) -> Tensor:
+    """Axis-angle [3] of a rotation [3, 3] (small-angle safe)."""
+    c = ((r.diagonal().sum() - 1) / 2).clamp(-1.0, 1.0)
+    th = torch.arccos(c)
+    v = torch.stack([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
+    s = torch.where(th < 1e-6, torch.ones_like(th) * 0.5, th / (2 * torch.sin(th).clamp_min(1e-12)))
+    return v * s
+
+
 def _bilinear(img: Tensor, u: Tensor, v: Tensor) -> Tensor:
     """Sample [H, W, C] at float pixel coordinates u, v [M] (caller keeps them inside [0, W-1) x [0, H-1))."""
     u0, v0 = torch.floor(u).long(), torch.floor(v).long()
@@ -116,8 +125,10 @@ def icp(model_depth: Tensor, model_valid: Tensor, guess_c2w: Tensor, live_depth:
     res_rms, n_in = float("nan"), 0
     sg, sc = cfg.icp_sigma_geo, cfg.icp_sigma_col
     wg = cfg.geometric_weight
+    p_w = torch.diag(torch.tensor([1 / cfg.prior_sigma_rot**2] * 3 + [1 / cfg.prior_sigma_trans**2] * 3, dtype=dt))
+    base = max(1, round(k.width / 160))  # about 160 live points per row at the finest level
     for level in reversed(range(cfg.icp_levels)):
-        stride = 2 ** (level + 1)
+        stride = base * 2**level
         lp = live_all[::stride, ::stride].reshape(-1, 3)
         keep = lp[:, 2] > 0
         lp = lp[keep]
@@ -162,7 +173,12 @@ def icp(model_depth: Tensor, model_valid: Tensor, guess_c2w: Tensor, live_depth:
                 wc = torch.where(rc.abs() < sc, torch.ones_like(rc), sc / rc.abs()) * cfg.photometric_weight / (sc * sc)
                 a += (jc * wc[:, None]).T @ jc
                 b += -(jc * wc[:, None]).T @ rc
-            a += 1e-6 * torch.eye(6, dtype=dt) * a.diagonal().mean()
+            # weak prior toward the guess: keeps directions the data leave free from drifting
+            d = est @ w2c_g
+            prior = torch.cat([_so3_log(d[:3, :3]), d[:3, 3]])
+            a += p_w
+            b += -(p_w @ prior)
+            a += 1e-9 * torch.eye(6, dtype=dt) * a.diagonal().mean()
             xi = torch.linalg.solve(a, b)
             est = se3_exp(xi) @ est
             res_rms = float(torch.sqrt((r * r).mean()))
