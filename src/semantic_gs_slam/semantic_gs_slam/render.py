@@ -102,14 +102,14 @@ def project(g: Gaussians, w2c: Tensor, k: Intrinsics, near: float) -> dict[str, 
     """
     pc = g.means @ w2c[:3, :3].T + w2c[:3, 3]  # [N, 3]
     idx = torch.nonzero(pc[:, 2].detach() > near).squeeze(1)
-    pc = pc[idx]
+    pc = pc.index_select(0, idx)
     x, y, z = pc.unbind(-1)
     # clamp the Jacobian's x/z, y/z to 1.3x the field of view (as 3DGS), else near off-screen Gaussians blow up
     tx = (x / z).clamp(-1.3 * (k.cx + 0.5) / k.fx, 1.3 * (k.width - k.cx - 0.5) / k.fx) * z
     ty = (y / z).clamp(-1.3 * (k.cy + 0.5) / k.fy, 1.3 * (k.height - k.cy - 0.5) / k.fy) * z
     zero = torch.zeros_like(z)
     j = torch.stack([k.fx / z, zero, -k.fx * tx / (z * z), zero, k.fy / z, -k.fy * ty / (z * z)], -1).reshape(-1, 2, 3)
-    ls = g.log_scales[idx]
+    ls = g.log_scales.index_select(0, idx)
     if ls.shape[1] == 1:
         s2 = torch.exp(2 * ls[:, 0])  # isotropic: covariance s^2 I in every frame
         jj = j @ j.transpose(1, 2)  # [M, 2, 2]
@@ -124,7 +124,7 @@ def project(g: Gaussians, w2c: Tensor, k: Intrinsics, near: float) -> dict[str, 
     det = (cxx * cyy - cxy * cxy).clamp_min(1e-12)
     conic = torch.stack([cyy / det, -cxy / det, cxx / det], -1)
     uv = torch.stack([k.fx * x / z + k.cx, k.fy * y / z + k.cy], -1)
-    log_o = math.log(OPACITY_CAP) + torch.nn.functional.logsigmoid(g.logit_opacities[idx, 0])
+    log_o = math.log(OPACITY_CAP) + torch.nn.functional.logsigmoid(g.logit_opacities.index_select(0, idx)[:, 0])
     return {"idx": idx, "uv": uv, "conic": conic, "cov": torch.stack([cxx, cxy, cyy], -1), "log_o": log_o, "z": z}
 
 
@@ -194,9 +194,9 @@ def _render_torch(g: Gaussians, w2c: Tensor, k: Intrinsics, cfg: RendererConfig)
     n_tiles = ntx * nty
     pr = project(g, w2c, k, cfg.near)
     idx, uv, conic, cov, log_o, z = pr["idx"], pr["uv"], pr["conic"], pr["cov"], pr["log_o"], pr["z"]
-    feats = [g.rgb[idx], z[:, None]]
+    feats = [g.rgb.index_select(0, idx), z[:, None]]
     if g.semantic is not None:
-        feats.append(g.semantic[idx])
+        feats.append(g.semantic.index_select(0, idx))
     feats_all = torch.cat(feats, -1)  # [M, C]
     c_out = feats_all.shape[1]
     with torch.no_grad():
@@ -236,11 +236,13 @@ def _render_torch(g: Gaussians, w2c: Tensor, k: Intrinsics, cfg: RendererConfig)
     # exponent coefficients for every pair (one vectorised computation)
     tx0 = (ptile % ntx).to(dt) * ts
     ty0 = (ptile // ntx).to(dt) * ts
-    a_, b_, c_ = conic[pg].unbind(-1)
-    du = uv[pg, 0] - tx0
-    dv = uv[pg, 1] - ty0
+    # index_select (backward: index_add) rather than advanced indexing (backward: slow index_put)
+    a_, b_, c_ = conic.index_select(0, pg).unbind(-1)
+    uvp = uv.index_select(0, pg)
+    du = uvp[:, 0] - tx0
+    dv = uvp[:, 1] - ty0
     coef_pairs = torch.stack([
-        -0.5 * a_ * du * du - b_ * du * dv - 0.5 * c_ * dv * dv + log_o[pg],
+        -0.5 * a_ * du * du - b_ * du * dv - 0.5 * c_ * dv * dv + log_o.index_select(0, pg),
         a_ * du + b_ * dv, b_ * du + c_ * dv, -0.5 * a_, -b_, -0.5 * c_], -1)  # [pairs, 6]
     pad_row = torch.tensor([-30.0, 0, 0, 0, 0, 0], dtype=dt, device=dev)
     p = ts * ts
@@ -256,8 +258,9 @@ def _render_torch(g: Gaussians, w2c: Tensor, k: Intrinsics, cfg: RendererConfig)
             kr = torch.arange(kb, device=dev)
             mask = kr[None, :] < tcount[bt][:, None]  # [B, K]
             pidx = (tstart[bt][:, None] + kr[None, :]).clamp(max=max(total - 1, 0))
-        cf = torch.where(mask[..., None], coef_pairs[pidx], pad_row)
-        ft = feats_all[pg[pidx]] * mask[..., None]
+        flat = pidx.reshape(-1)
+        cf = torch.where(mask[..., None], coef_pairs.index_select(0, flat).reshape(*pidx.shape, 6), pad_row)
+        ft = feats_all.index_select(0, pg[flat]).reshape(*pidx.shape, c_out) * mask[..., None]
         outs.append(_Composite.apply(cf, ft, mono, cfg.chunk, cfg.stop_transmittance))
         out_tiles.append(bt)
         i0 += nb
