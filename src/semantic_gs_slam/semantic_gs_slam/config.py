@@ -97,6 +97,7 @@ class MappingConfig:
     densify_depth_factor: float = 50.0  # ... or where the model is behind depth by > factor * median error
     radius_factor: float = 0.6  # new Gaussian std dev = radius_factor * pixel_stride * depth / f
     init_logit_opacity: float = 3.0
+    rare_label_fraction: float = 0.02  # labels on < 2 % of a keyframe's new pixels are seeded at every pixel
     lr_means: float = 1e-4
     lr_rgb: float = 2.5e-3
     lr_semantic: float = 2.5e-3
@@ -130,7 +131,7 @@ class SlamConfig:
     depth_max: float = 10.0  # metres; larger depths are treated as missing
     checkpoint_every: int = 0  # frames between checkpoints (0: none), needs checkpoint_dir
     checkpoint_dir: str = ""
-    threads: int = 2  # torch.set_num_threads
+    threads: int = 0  # torch.set_num_threads when > 0 (the CLI and benchmark use 2); 0 leaves torch's setting
     seed: int = 0
     device: str = "cpu"
 
@@ -144,8 +145,8 @@ class SlamConfig:
             raise ConfigError(f"need 0 < depth_min < depth_max, got {self.depth_min}, {self.depth_max}")
         if self.checkpoint_every < 0 or (self.checkpoint_every > 0 and not self.checkpoint_dir):
             raise ConfigError("checkpoint_every > 0 needs checkpoint_dir")
-        if self.threads < 1:
-            raise ConfigError("threads must be >= 1")
+        if self.threads < 0:
+            raise ConfigError("threads must be >= 0")
 
     def to_dict(self) -> dict[str, Any]:
         """Plain dict (JSON-serialisable)."""

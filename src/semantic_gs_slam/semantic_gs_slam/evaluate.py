@@ -48,7 +48,8 @@ def evaluate(eng, ds: Dataset, frame_idx: list[int], every: int = 1) -> dict:
         dl.append(depth_l1(out.depth, torch.as_tensor(f.depth)))
         if f.semantics is not None and out.semantic is not None and class_ids:
             have_sem = True
-            pred = semantic_labels(out.semantic, class_ids)
+            sem = out.semantic / out.silhouette.clamp_min(1e-6)[..., None]  # colour, not colour x coverage
+            pred = semantic_labels(sem, class_ids)
             conf += confusion(pred.clip(0, 255), f.semantics.clip(0, 255), 256)
     res.update(psnr=float(np.mean(ps)), ssim=float(np.mean(ss)), depth_l1_cm=100 * float(np.nanmean(dl)))
     if have_sem:

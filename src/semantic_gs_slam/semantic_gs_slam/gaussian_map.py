@@ -96,25 +96,36 @@ class GaussianMap:
 
     def add_from_frame(self, rgb: Tensor, depth: Tensor, sem: Tensor | None, c2w: Tensor, k: Intrinsics,
                        mask: Tensor, stride: int, frame: int, radius_factor: float = 0.6,
-                       logit_opacity: float = 3.0) -> int:
+                       logit_opacity: float = 3.0, rare_fraction: float = 0.0) -> int:
         """Seed Gaussians at every ``stride``-th pixel where ``mask`` holds.
 
         Args:
             rgb: [H, W, 3]; depth: [H, W] metres; sem: [H, W] ids or None; c2w: [4, 4];
             mask: [H, W] bool (valid depth and empty/occluding model).
+            rare_fraction: labels covering less than this fraction of the masked pixels are seeded at
+                every pixel (small objects), with a one-pixel radius.
 
         Returns:
             Number of Gaussians added.
         """
         sel = torch.zeros_like(mask)
         sel[stride // 2::stride, stride // 2::stride] = True
-        sel &= mask
+        fine = torch.zeros_like(mask)
+        if sem is not None and rare_fraction > 0 and stride > 1:
+            # small objects (labels on few pixels of this frame) are seeded at every pixel
+            counts = torch.bincount(sem[mask].reshape(-1).clamp_min(0), minlength=1)
+            rare = torch.nonzero((counts > 0) & (counts < rare_fraction * max(int(mask.sum()), 1))).squeeze(1)
+            rare = rare[rare > 0]
+            if rare.numel():
+                fine = torch.isin(sem, rare)
+        sel = (sel | fine) & mask
+        small = fine[sel]  # these get the one-pixel radius
         if not bool(sel.any()):
             return 0
         pts = backproject(depth, k.fx, k.fy, k.cx, k.cy)[sel]  # [M, 3] camera
         world = pts @ c2w[:3, :3].T + c2w[:3, 3]
         f = 0.5 * (k.fx + k.fy)
-        radius = depth[sel] / f * stride * radius_factor
+        radius = depth[sel] / f * radius_factor * torch.where(small, 1.0, float(stride))
         ids = sem[sel] if sem is not None else torch.zeros(world.shape[0], dtype=torch.int64)
         return self.add(world, rgb[sel], ids, radius, frame, logit_opacity)
 

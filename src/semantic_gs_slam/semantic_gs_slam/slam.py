@@ -79,7 +79,8 @@ class SLAM:
         self.k: Intrinsics = config.intrinsics
         self.classes = dict(classes or {})
         self.initial_c2w = None if initial_c2w is None else np.asarray(initial_c2w, np.float64)
-        torch.set_num_threads(config.threads)
+        if config.threads > 0:
+            torch.set_num_threads(config.threads)
         torch.manual_seed(config.seed)
         self.map = GaussianMap(config.device)
         self.poses: list[np.ndarray] = []  # estimated c2w per frame
@@ -211,7 +212,8 @@ class SLAM:
             behind = (out.depth > depth) & (err > mc.densify_depth_factor * med)
             mask = valid & ((out.silhouette < mc.densify_silhouette) | behind)
         return self.map.add_from_frame(rgb, depth, sem, torch.as_tensor(c2w, dtype=torch.float32), self.k, mask,
-                                       mc.pixel_stride, idx, mc.radius_factor, mc.init_logit_opacity)
+                                       mc.pixel_stride, idx, mc.radius_factor, mc.init_logit_opacity,
+                                       mc.rare_label_fraction)
 
     def _window(self, current: Keyframe) -> list[Keyframe]:
         n = self.cfg.mapping.window - 1
