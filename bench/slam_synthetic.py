@@ -93,13 +93,20 @@ def main() -> int:
     wall = time.perf_counter() - t0
     res = evaluate(eng, ds, list(range(n)), every=max(1, n // 20))
     res["fps"] = (n - 1) / wall
-    track = statistics.mean(lg.track_s for lg in eng.logs[1:])
+    track = [lg.track_s for lg in eng.logs[1:]]
     kf_map = [lg.map_s for lg in eng.logs[1:] if lg.keyframe]
+    other = [lg.map_s for lg in eng.logs[1:] if not lg.keyframe]
     print(f"sequence {a.width}x{a.height}, {n} frames, keyframe every {a.keyframe_every}, "
           f"{a.mapping_iters} mapping iterations, {a.threads} threads")
     print(format_table(res))
-    print(f"mean tracking {1000 * track:.0f} ms/frame; mean mapping {1000 * statistics.mean(kf_map):.0f} ms/keyframe "
-          f"(FPS excludes frame 0's {cfg.mapping.first_frame_iters}-iteration initial mapping)")
+    print(f"tracking ms/frame: median {1000 * statistics.median(track):.0f}, mean {1000 * statistics.mean(track):.0f}; "
+          f"mapping ms/keyframe: median {1000 * statistics.median(kf_map):.0f}, "
+          f"mean {1000 * statistics.mean(kf_map):.0f}; "
+          f"densify ms/other frame: median {1000 * statistics.median(other or [0]):.0f}")
+    med = statistics.median(track) + statistics.median(other or [0]) * (1 - 1 / a.keyframe_every) \
+        + statistics.median(kf_map) / a.keyframe_every
+    print(f"FPS from the medians (less sensitive to other load on the machine): {1 / med:.2f}; "
+          f"FPS excludes frame 0's {cfg.mapping.first_frame_iters}-iteration initial mapping")
     out = a.out or os.path.join(tmp, "map")
     eng.save(out)
     print(f"map written to {out}")

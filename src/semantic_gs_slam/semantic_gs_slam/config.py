@@ -89,6 +89,7 @@ class MappingConfig:
     """Keyframe mapping: densification, window optimisation, pruning."""
 
     keyframe_every: int = 5  # map on every k-th frame (and the first)
+    densify_every_frame: bool = True  # also add Gaussians (without optimising) on non-keyframes
     iters: int = 15  # Adam iterations per keyframe
     first_frame_iters: int = 60  # iterations on the first frame
     window: int = 4  # keyframes optimised together (current + the most overlapping earlier ones)

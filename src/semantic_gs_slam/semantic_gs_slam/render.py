@@ -144,7 +144,7 @@ class _Composite(torch.autograd.Function):
         fx = torch.cat([feats, ones], -1)  # [B, K, C+1]
         out = torch.zeros(b, c + 1, p, dtype=feats.dtype, device=feats.device)
         t_run = torch.ones(b, 1, p, dtype=feats.dtype, device=feats.device)
-        alphas, trans = [], []
+        alphas, weights = [], []
         done = 0
         for s in range(0, kk, chunk):
             e = min(kk, s + chunk)
@@ -153,31 +153,31 @@ class _Composite(torch.autograd.Function):
             a = a.masked_fill_(a < ALPHA_MIN, 0.0)
             tc = torch.cumprod(1 - a, dim=1)
             t_ex = torch.cat([t_run, t_run * tc[:, :-1]], 1)  # transmittance in front of each Gaussian
-            w = a * t_ex
+            w = t_ex.mul_(a)  # blending weights (t_ex is not needed afterwards)
             out += fx[:, s:e].transpose(1, 2) @ w
             t_run = t_run * tc[:, -1:]
             alphas.append(a)
-            trans.append(t_ex)
+            weights.append(w)
             done = e
             if float(t_run.max()) < stop:
                 break
-        ctx.save_for_backward(fx, mono, torch.cat(alphas, 1), torch.cat(trans, 1))
+        cat = (lambda xs: xs[0]) if len(alphas) == 1 else (lambda xs: torch.cat(xs, 1))
+        ctx.save_for_backward(fx, mono, cat(alphas), cat(weights))
         ctx.done = done
         ctx.kk = kk
         return out
 
     @staticmethod
     def backward(ctx, gout: Tensor):  # noqa: D102
-        fx, mono, a, t_ex = ctx.saved_tensors
+        fx, mono, a, w = ctx.saved_tensors  # alphas and blending weights w = alpha * T, [B, k, P]
         done = ctx.done
         fxd = fx[:, :done]
-        w = a * t_ex  # [B, k, P]
         h = fxd @ gout  # [B, k, P]: g . f_i per pixel
         wh = w * h
-        suffix = wh.sum(1, keepdim=True) - torch.cumsum(wh, 1)  # sum over the Gaussians behind (k > i)
+        suffix = torch.cumsum(wh, 1).neg_().add_(wh.sum(1, keepdim=True))  # sum over the Gaussians behind (k > i)
         # dL/dalpha_i = T_i h_i - suffix_i / (1 - alpha_i); alpha = exp(power) where kept, so
         # dL/dpower = alpha dL/dalpha = w h - alpha / (1 - alpha) suffix  (0 where alpha was dropped)
-        d_pw = wh - a / (1 - a) * suffix
+        d_pw = wh.sub_(suffix.mul_(a).div_(1 - a))
         g_coef = d_pw @ mono.T  # [B, k, 6]
         g_feat = (w @ gout.transpose(1, 2))[..., :-1]  # [B, k, C]
         if done < ctx.kk:

@@ -161,6 +161,8 @@ class SLAM:
         loss = float("nan")
         if is_kf:
             added, pruned, loss = self._map_keyframe(idx, rgb_t, depth_t, sem_t)
+        elif self.cfg.mapping.densify_every_frame and not failed:
+            added = self._densify(idx, rgb_t, depth_t, sem_t, self.poses[-1])
         t2 = time.perf_counter()
         entry = FrameLog(idx, self.timestamps[-1], is_kf, len(self.map), added, pruned, residual, inliers, failed,
                          loss, t1 - t0, t2 - t1)

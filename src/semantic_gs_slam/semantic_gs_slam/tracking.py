@@ -182,7 +182,7 @@ def icp(model_depth: Tensor, model_valid: Tensor, guess_c2w: Tensor, live_depth:
             xi = torch.linalg.solve(a, b)
             est = se3_exp(xi) @ est
             res_rms = float(torch.sqrt((r * r).mean()))
-            if float(xi.abs().max()) < 1e-7:
+            if float(xi.abs().max()) < 1e-6:
                 break
     return TrackResult(est, res_rms, n_in)
 
