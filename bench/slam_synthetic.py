@@ -61,6 +61,8 @@ def main() -> int:
     ap.add_argument("--data", help="existing dataset folder (default: generate into a temp folder)")
     ap.add_argument("--out", help="where to save the map (default: temp folder)")
     ap.add_argument("--renderer-only", action="store_true")
+    ap.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE",
+                    help="config override, e.g. --set mapping.radius_factor=0.45 (repeatable)")
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
     tmp = tempfile.mkdtemp(prefix="slam_bench_")
@@ -72,6 +74,12 @@ def main() -> int:
     ds = load_dataset(data)
     cfg = SlamConfig(intrinsics=ds.intrinsics, mapping=MappingConfig(keyframe_every=a.keyframe_every,
                                                                      iters=a.mapping_iters), threads=a.threads)
+    d = cfg.to_dict()
+    for item in a.set:
+        key, val = item.split("=", 1)
+        sec, field = key.split(".", 1)
+        d[sec][field] = type(d[sec][field])(val) if not isinstance(d[sec][field], bool) else val.lower() == "true"
+    cfg = SlamConfig.from_dict(d)
     eng = SLAM(cfg, ds.classes)
     n = min(a.frames, len(ds))
     frames = [ds[i] for i in range(n)]  # decode up front: FPS counts the engine only

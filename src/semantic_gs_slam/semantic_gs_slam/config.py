@@ -70,7 +70,7 @@ class TrackingConfig:
     photometric_weight: float = 1.0  # weight of the photometric term inside the Gauss-Newton (0: geometry only)
     prior_sigma_trans: float = 0.05  # metres; weak Gaussian prior of the pose toward the constant-velocity guess
     prior_sigma_rot: float = 0.05  # radians
-    render_scale_shrink: float = 0.5  # the model is rendered for tracking with Gaussian radii x this:
+    render_scale_shrink: float = 0.35  # the model is rendered for tracking with Gaussian radii x this:
     # blending overlapping full-size footprints biases depth toward the camera on oblique surfaces
     min_silhouette: float = 0.5  # model pixels used only where the map is this opaque (depth normalised by it)
     min_correspondences: int = 100  # fewer raises TrackingError (the frame keeps the previous pose, is not mapped)

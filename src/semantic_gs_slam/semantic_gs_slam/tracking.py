@@ -193,16 +193,33 @@ def _quat_from_rot(r: Tensor) -> Tensor:
     return torch.as_tensor(rotmat_to_quat(r.detach().cpu().numpy()))
 
 
+def photometric_loss(g: Gaussians, w2c: Tensor, rgb: Tensor, depth: Tensor, k: Intrinsics, rcfg: RendererConfig,
+                     min_silhouette: float) -> Tensor | None:
+    """Sum of L1 depth + 0.5 L1 colour (both normalised by the silhouette) over pixels with valid depth and
+    silhouette > ``min_silhouette``; None when no pixel qualifies."""
+    out = render(g, w2c, k, rcfg)
+    m = (out.silhouette.detach() > min_silhouette) & (depth > 0)
+    if not bool(m.any()):
+        return None
+    sil = out.silhouette.clamp_min(1e-6)
+    return (out.depth / sil - depth).abs()[m].sum() + 0.5 * (out.rgb / sil[..., None] - rgb).abs().sum(-1)[m].sum()
+
+
+def _w2c_from(q: Tensor, t: Tensor) -> Tensor:
+    bottom = torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=q.dtype)
+    return torch.cat([torch.cat([quat_to_rotmat(q), t[:, None]], 1), bottom], 0)
+
+
 def photometric_refine(g: Gaussians, c2w: Tensor, rgb: Tensor, depth: Tensor, k: Intrinsics,
                        rcfg: RendererConfig, cfg: TrackingConfig) -> Tensor:
-    """Refine a pose with Adam on L1 colour + depth over well-observed pixels (silhouette > min).
+    """Refine a pose with Adam (SplaTAM-style) on :func:`photometric_loss`.
 
     Args:
         g: the map (detached parameters are fine).
         c2w: [4, 4] start pose. rgb: [H, W, 3]. depth: [H, W].
 
     Returns:
-        [4, 4] float64 refined camera-to-world pose.
+        [4, 4] float64 refined camera-to-world pose (the iterate with the lowest loss).
     """
     w2c0 = torch.linalg.inv(c2w.double())
     q = _quat_from_rot(w2c0[:3, :3]).float().requires_grad_(True)
@@ -210,20 +227,16 @@ def photometric_refine(g: Gaussians, c2w: Tensor, rgb: Tensor, depth: Tensor, k:
     opt = torch.optim.Adam([{"params": [q], "lr": cfg.photometric_lr_rot},
                             {"params": [t], "lr": cfg.photometric_lr_trans}])
     gd = Gaussians(*(x.detach() for x in (g.means, g.quats, g.log_scales, g.logit_opacities, g.rgb)), None)
-    valid = depth > 0
+    best = (float("inf"), q.detach().clone(), t.detach().clone())
     for _ in range(cfg.photometric_iters):
-        w2c = torch.eye(4)
-        w2c = torch.cat([torch.cat([quat_to_rotmat(q), t[:, None]], 1), w2c[3:]], 0)
-        out = render(gd, w2c, k, rcfg)
-        m = (out.silhouette.detach() > cfg.min_silhouette) & valid
-        if int(m.sum()) < cfg.min_correspondences:
+        loss = photometric_loss(gd, _w2c_from(q, t), rgb, depth, k, rcfg, cfg.min_silhouette)
+        if loss is None:
             break
-        loss = (out.depth - depth).abs()[m].sum() + 0.5 * (out.rgb - rgb).abs().sum(-1)[m].sum()
+        if float(loss.detach()) < best[0]:
+            best = (float(loss.detach()), q.detach().clone(), t.detach().clone())
         opt.zero_grad()
         loss.backward()
         opt.step()
     with torch.no_grad():
-        w2c = torch.eye(4, dtype=torch.float64)
-        w2c[:3, :3] = quat_to_rotmat(q.double())
-        w2c[:3, 3] = t.double()
+        w2c = _w2c_from(best[1].double(), best[2].double())
     return torch.linalg.inv(w2c)
