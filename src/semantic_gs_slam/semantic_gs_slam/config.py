@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field, fields, is_dataclass
+from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
 from semantic_gs_slam.errors import ConfigError
@@ -90,7 +90,7 @@ class MappingConfig:
 
     keyframe_every: int = 5  # map on every k-th frame (and the first)
     densify_every_frame: bool = True  # also add Gaussians (without optimising) on non-keyframes
-    iters: int = 15  # Adam iterations per keyframe
+    iters: int = 10  # Adam iterations per keyframe
     first_frame_iters: int = 60  # iterations on the first frame
     window: int = 4  # keyframes optimised together (current + the most overlapping earlier ones)
     pixel_stride: int = 2  # new Gaussians seeded at every k-th pixel of the empty/occluding region
@@ -171,6 +171,4 @@ def _build(cls: type, d: dict[str, Any]) -> Any:
             kw[k] = _build(sub[k], v)
         else:
             kw[k] = v
-    obj = cls(**kw)
-    assert is_dataclass(obj)
-    return obj
+    return cls(**kw)

@@ -40,7 +40,7 @@ def palette(ids: np.ndarray | Tensor | int) -> np.ndarray:
 class GaussianMap:
     """Semantic Gaussian map with parameters as torch leaf tensors."""
 
-    def __init__(self, device: str = "cpu", n_classes_max: int = 256) -> None:
+    def __init__(self, device: str = "cpu") -> None:
         self.device = torch.device(device)
         z = torch.zeros
         self.params: dict[str, Tensor] = {
@@ -48,7 +48,6 @@ class GaussianMap:
             "logit_opacities": z(0, 1), "log_scales": z(0, 1), "semantic_colors": z(0, 3)}
         self.semantic_ids = torch.zeros(0, dtype=torch.int64)
         self.timestep = torch.zeros(0, dtype=torch.int64)
-        self.palette_ids = np.arange(n_classes_max)
         for v in self.params.values():
             v.requires_grad_(True)
 
@@ -168,13 +167,11 @@ class GaussianMap:
             raise MapFormatError(f"params are missing 'means3D' (have {sorted(a)})")
         n = len(a["means3D"])
         m = GaussianMap(device)
-        defaults = {"rgb_colors": np.full((n, 3), 0.5), "unnorm_rotations": np.tile([1.0, 0, 0, 0], (n, 1)),
-                    "logit_opacities": np.full((n, 1), 3.0), "log_scales": np.full((n, 1), np.log(0.01)),
-                    "semantic_colors": None}
         ids = np.asarray(a["semantic_ids"]).reshape(-1).astype(np.int64) if "semantic_ids" in a \
             else np.zeros(n, np.int64)
-        if defaults["semantic_colors"] is None:
-            defaults["semantic_colors"] = palette(ids)
+        defaults = {"rgb_colors": np.full((n, 3), 0.5), "unnorm_rotations": np.tile([1.0, 0, 0, 0], (n, 1)),
+                    "logit_opacities": np.full((n, 1), 3.0), "log_scales": np.full((n, 1), np.log(0.01)),
+                    "semantic_colors": palette(ids) if len(ids) == n else np.zeros((n, 3))}
         params = {}
         for k in PARAM_KEYS:
             v = np.asarray(a[k]) if k in a else defaults[k]

@@ -70,6 +70,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--mapping-iters", type=int)
     ap.add_argument("--backend", default="torch", choices=["torch", "gsplat"])
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--refine-iters", type=int, default=0,
+                    help="after the run, refine the map over all keyframes for N iterations (not counted in FPS)")
     ap.add_argument("--eval", action="store_true", help="print the evaluation table at the end")
     ap.add_argument("--quiet", action="store_true", help="no per-frame log lines")
     args = ap.parse_args(argv)
@@ -102,6 +104,11 @@ def main(argv: list[str] | None = None) -> int:
                       f"loss {lg.map_loss:6.4f} track {lg.track_s:5.2f} s map {lg.map_s:5.2f} s{err}"
                       f"{' TRACKING LOST' if lg.tracking_failed else ''}", file=sys.stderr, flush=True)
         wall = time.perf_counter() - t0
+        if args.refine_iters > 0:
+            t1 = time.perf_counter()
+            eng.refine(args.refine_iters)
+            print(f"refined the map over {len(eng.keyframes)} keyframes for {args.refine_iters} iterations in "
+                  f"{time.perf_counter() - t1:.1f} s", file=sys.stderr)
         paths = eng.save(args.out)
         done = len(eng.poses) - start
         print(f"saved {', '.join(paths.values())}; {len(eng.map)} Gaussians; {done} frames in {wall:.1f} s "

@@ -119,7 +119,8 @@ class SLAM:
                 raise FrameError(f"semantics must be [{k.height}, {k.width}] ids, got {list(sem.shape)}")
             s = torch.as_tensor(sem.astype(np.int64))
             for i in np.unique(sem):
-                self.classes.setdefault(int(i), f"class_{int(i)}") if i > 0 else None
+                if i > 0:  # unknown labels get a placeholder name in semantic.json
+                    self.classes.setdefault(int(i), f"class_{int(i)}")
         return torch.as_tensor(rgb, dtype=torch.float32), torch.as_tensor(d, dtype=torch.float32), s
 
     # ------------------------------------------------------------------ main step
@@ -287,6 +288,18 @@ class SLAM:
             opt.step()
             loss_v = float(loss.detach())
         return loss_v
+
+    def refine(self, iters: int) -> float:
+        """Offline map refinement after the run: ``iters`` Adam steps cycling over all keyframes (poses fixed).
+
+        Returns:
+            The last loss (NaN when there is nothing to do).
+        """
+        if not self.keyframes:
+            return float("nan")
+        loss = self.optimise(self.keyframes, iters)
+        self.map.prune(self.cfg.mapping.prune_opacity, self.cfg.mapping.prune_max_scale)
+        return loss
 
     # ------------------------------------------------------------------ output
     def semantic_ids(self) -> np.ndarray:
