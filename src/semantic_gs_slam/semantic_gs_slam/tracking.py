@@ -56,6 +56,24 @@ def normal_map(v: Tensor, valid: Tensor) -> tuple[Tensor, Tensor]:
     return n / norm.clamp_min(1e-12), ok
 
 
+def smooth_depth(depth: Tensor, valid: Tensor, size: int) -> tuple[Tensor, Tensor]:
+    """Box-filter a depth image over its valid pixels (size x size window).
+
+    Args:
+        depth: [H, W] metres. valid: [H, W] bool. size: odd window edge.
+
+    Returns:
+        smoothed depth [H, W] and the pixels that stay valid (valid and with >= half the window valid).
+    """
+    import torch.nn.functional as F
+
+    v = valid.to(depth.dtype)[None, None]
+    num = F.avg_pool2d((depth * valid)[None, None], size, 1, size // 2, count_include_pad=False)
+    den = F.avg_pool2d(v, size, 1, size // 2, count_include_pad=False)
+    ok = valid & (den[0, 0] > 0.5)
+    return torch.where(ok, num[0, 0] / den[0, 0].clamp_min(1e-6), torch.zeros_like(depth)), ok
+
+
 def _so3_log(r: Tensor) -> Tensor:
     """Axis-angle [3] of a rotation [3, 3] (small-angle safe)."""
     c = ((r.diagonal().sum() - 1) / 2).clamp(-1.0, 1.0)
@@ -102,6 +120,8 @@ def icp(model_depth: Tensor, model_valid: Tensor, guess_c2w: Tensor, live_depth:
     """
     dt = torch.float64
     g = guess_c2w.to(dt)
+    if cfg.normal_smoothing > 1:
+        model_depth, model_valid = smooth_depth(model_depth, model_valid, cfg.normal_smoothing)
     vm_c = backproject(model_depth.to(dt), k.fx, k.fy, k.cx, k.cy)
     vm = vm_c @ g[:3, :3].T + g[:3, 3]  # world vertex map [H, W, 3]
     nm, nvalid = normal_map(vm, model_valid)
