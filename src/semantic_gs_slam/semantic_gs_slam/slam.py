@@ -11,6 +11,7 @@ import json
 import logging
 import math
 import os
+import shutil
 import time
 from dataclasses import asdict, dataclass
 
@@ -321,9 +322,16 @@ class SLAM:
         return paths
 
     def checkpoint(self, ckpt_dir: str) -> None:
-        """Write everything needed to :meth:`resume` (map, poses, keyframes, config) atomically enough:
-        files are written under temporary names and renamed."""
-        os.makedirs(ckpt_dir, exist_ok=True)
+        """Write everything needed to :meth:`resume` (map, poses, keyframes, config).
+
+        The files are written into ``<ckpt_dir>.tmp`` which then replaces ``ckpt_dir`` (the previous
+        checkpoint is kept as ``<ckpt_dir>.old`` until the swap is done), so a crash mid-write leaves
+        a complete checkpoint behind; :meth:`resume` falls back to ``.old`` when needed.
+        """
+        final = ckpt_dir.rstrip("/")
+        ckpt_dir = final + ".tmp"
+        shutil.rmtree(ckpt_dir, ignore_errors=True)
+        os.makedirs(ckpt_dir)
         self.save(ckpt_dir, ply=False)
         kfs = self.keyframes
         state = {
@@ -337,15 +345,18 @@ class SLAM:
             if kfs else np.zeros(0),
             "map_semantic_ids_raw": self.map.semantic_ids.numpy(),
             "since_prune": np.array(self._since_prune)}
-        tmp = os.path.join(ckpt_dir, "state.tmp.npz")
-        np.savez_compressed(tmp, **state)
-        os.replace(tmp, os.path.join(ckpt_dir, "state.npz"))
+        np.savez_compressed(os.path.join(ckpt_dir, "state.npz"), **state)
         meta = {"config": self.cfg.to_dict(), "classes": {str(k): v for k, v in self.classes.items()},
                 "frames": len(self.poses), "initial_c2w": None if self.initial_c2w is None else
                 self.initial_c2w.tolist()}
-        with open(os.path.join(ckpt_dir, "checkpoint.tmp.json"), "w") as fh:
+        with open(os.path.join(ckpt_dir, "checkpoint.json"), "w") as fh:
             json.dump(meta, fh)
-        os.replace(os.path.join(ckpt_dir, "checkpoint.tmp.json"), os.path.join(ckpt_dir, "checkpoint.json"))
+        old = final + ".old"
+        shutil.rmtree(old, ignore_errors=True)
+        if os.path.isdir(final):
+            os.replace(final, old)
+        os.replace(ckpt_dir, final)
+        shutil.rmtree(old, ignore_errors=True)
 
     @classmethod
     def resume(cls, ckpt_dir: str, config: SlamConfig | None = None) -> SLAM:
@@ -358,6 +369,10 @@ class SLAM:
         Raises:
             MapFormatError: missing or inconsistent checkpoint files.
         """
+        ckpt_dir = ckpt_dir.rstrip("/")
+        if not os.path.isfile(os.path.join(ckpt_dir, "checkpoint.json")) and \
+                os.path.isfile(os.path.join(ckpt_dir + ".old", "checkpoint.json")):
+            ckpt_dir += ".old"  # a crash between the two renames of checkpoint()
         meta_p = os.path.join(ckpt_dir, "checkpoint.json")
         if not os.path.isfile(meta_p):
             raise MapFormatError(f"no checkpoint in {ckpt_dir} (checkpoint.json missing)")
