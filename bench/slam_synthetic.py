@@ -24,6 +24,7 @@ import time
 
 import numpy as np
 import torch
+
 from semantic_gs_slam.config import MappingConfig, SlamConfig
 from semantic_gs_slam.datasets import load_dataset
 from semantic_gs_slam.evaluate import evaluate, format_table

@@ -8,6 +8,7 @@ import os
 import numpy as np
 import pytest
 from PIL import Image
+
 from semantic_gs_slam.datasets import associate, load_dataset, load_replica, load_sgs, load_tum
 from semantic_gs_slam.errors import DatasetError
 from semantic_gs_slam.synthetic import CLASSES, HomeRenderer, default_intrinsics, trajectory

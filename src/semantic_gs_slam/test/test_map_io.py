@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 import torch
+
 from semantic_gs_slam.config import Intrinsics
 from semantic_gs_slam.errors import MapFormatError
 from semantic_gs_slam.gaussian_map import (

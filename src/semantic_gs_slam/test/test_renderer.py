@@ -6,6 +6,7 @@ import math
 
 import pytest
 import torch
+
 from semantic_gs_slam.config import Intrinsics, RendererConfig
 from semantic_gs_slam.errors import BackendUnavailableError
 from semantic_gs_slam.render import Gaussians, _Composite, render, render_reference

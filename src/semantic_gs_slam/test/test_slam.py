@@ -7,6 +7,7 @@ import os
 
 import numpy as np
 import pytest
+
 from semantic_gs_slam.config import Intrinsics, MappingConfig, SlamConfig
 from semantic_gs_slam.datasets import load_dataset
 from semantic_gs_slam.errors import ConfigError, FrameError, MapFormatError

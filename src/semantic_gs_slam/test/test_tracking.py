@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+
 from semantic_gs_slam.config import MappingConfig, SlamConfig, TrackingConfig
 from semantic_gs_slam.errors import TrackingError
 from semantic_gs_slam.geometry import pose_error, se3_exp
