@@ -109,6 +109,7 @@ class MappingConfig:
     w_colour: float = 0.5
     w_depth: float = 1.0
     w_semantic: float = 0.3
+    semantic_balance: float = 0.5  # semantic L1 weighted by class frequency^-this per keyframe (0: off)
     w_ssim: float = 0.2  # share of (1 - SSIM) in the colour term
     prune_opacity: float = 0.005
     prune_max_scale: float = 0.3  # metres; bigger Gaussians are removed

@@ -48,6 +48,15 @@ class Keyframe:
     sem: Tensor | None  # [H, W] int64
 
 
+def _class_balance(sem: Tensor, power: float, cap: float = 20.0) -> Tensor:
+    """Per-pixel weights [H, W] proportional to (class pixel frequency)^-power, mean 1, capped."""
+    counts = torch.bincount(sem.reshape(-1).clamp_min(0)).double()
+    w = (counts.clamp_min(1) / sem.numel()) ** (-power)
+    pix = w[sem.clamp_min(0)]
+    pix = (pix / pix.mean()).clamp(max=cap)
+    return (pix / pix.mean()).float()
+
+
 @dataclass
 class FrameLog:
     """What happened to one frame (printed per frame by the CLI)."""
@@ -272,6 +281,8 @@ class SLAM:
         w2cs = [torch.linalg.inv(kf.c2w).float() for kf in window]
         sem_imgs = [None if kf.sem is None else torch.as_tensor(palette(kf.sem.numpy()), dtype=torch.float32)
                     for kf in window]
+        sem_w = [None if (kf.sem is None or mc.semantic_balance <= 0) else _class_balance(kf.sem, mc.semantic_balance)
+                 for kf in window]
         loss_v = float("nan")
         for it in range(iters):
             j = it % len(window)
@@ -283,7 +294,10 @@ class SLAM:
             l_col = (1 - mc.w_ssim) * l1 + mc.w_ssim * (1 - ssim(out.rgb, kf.rgb)) if mc.w_ssim > 0 else l1
             loss = mc.w_depth * l_depth + mc.w_colour * l_col
             if sem_imgs[j] is not None and out.semantic is not None and mc.w_semantic > 0:
-                loss = loss + mc.w_semantic * (out.semantic - sem_imgs[j]).abs().mean()
+                err = (out.semantic - sem_imgs[j]).abs().sum(-1)  # [H, W]
+                if sem_w[j] is not None:
+                    err = err * sem_w[j]
+                loss = loss + mc.w_semantic * err.mean() / 3
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
