@@ -16,5 +16,8 @@ setup(
     maintainer_email="maintainers@home-robot.dev",
     description="Semantic Gaussian-splatting RGB-D SLAM engine (pure Python/PyTorch library, no ROS).",
     license="Apache-2.0",
-    entry_points={"console_scripts": []},
+    entry_points={"console_scripts": [
+        "semantic_gs_slam_run = semantic_gs_slam.run:main",
+        "semantic_gs_slam_synth = semantic_gs_slam.synthetic:main",
+    ]},
 )

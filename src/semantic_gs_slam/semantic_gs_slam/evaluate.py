@@ -1,0 +1,69 @@
+"""Evaluation of a SLAM run: ATE RMSE (aligned), PSNR / SSIM / depth L1 of renders at the input views,
+semantic mIoU, FPS and Gaussian count, printed as a table."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from semantic_gs_slam.datasets import Dataset
+from semantic_gs_slam.gaussian_map import palette
+from semantic_gs_slam.metrics import ate_rmse, confusion, depth_l1, miou, psnr, ssim
+
+
+def semantic_labels(sem_rgb: torch.Tensor, class_ids: list[int]) -> np.ndarray:
+    """Class id per pixel [H, W] = nearest palette colour of a rendered semantic image [H, W, 3]."""
+    pal = torch.as_tensor(palette(np.array([0] + class_ids)), dtype=sem_rgb.dtype)
+    d = torch.cdist(sem_rgb.reshape(-1, 3), pal)
+    return np.array([0] + class_ids)[d.argmin(1).numpy()].reshape(sem_rgb.shape[:2])
+
+
+def evaluate(eng, ds: Dataset, frame_idx: list[int], every: int = 1) -> dict:
+    """Metrics of ``eng`` (a :class:`~semantic_gs_slam.slam.SLAM` after the run) against ``ds``.
+
+    Args:
+        eng: the engine.
+        ds: the dataset it was fed.
+        frame_idx: dataset index of each engine frame.
+        every: render-evaluate every k-th frame.
+
+    Returns:
+        dict with ate_rmse_cm, psnr, ssim, depth_l1_cm, miou, gaussians, frames.
+    """
+    res = {"frames": len(eng.poses), "gaussians": len(eng.map)}
+    gts = [ds[i].gt_c2w for i in frame_idx]
+    if all(g is not None for g in gts):
+        res["ate_rmse_cm"] = 100 * ate_rmse(eng.poses, gts)
+    ps, ss, dl = [], [], []
+    class_ids = sorted(i for i in eng.classes if i > 0)
+    conf = np.zeros((256, 256), np.int64)
+    have_sem = False
+    for n in range(0, len(frame_idx), every):
+        f = ds[frame_idx[n]]
+        out = eng.render_view(eng.poses[n])
+        rgb = torch.as_tensor(f.rgb)
+        img = out.rgb.clamp(0, 1)
+        ps.append(psnr(img, rgb))
+        ss.append(float(ssim(img, rgb)))
+        dl.append(depth_l1(out.depth, torch.as_tensor(f.depth)))
+        if f.semantics is not None and out.semantic is not None and class_ids:
+            have_sem = True
+            sem = out.semantic / out.silhouette.clamp_min(1e-6)[..., None]  # colour, not colour x coverage
+            pred = semantic_labels(sem, class_ids)
+            conf += confusion(pred.clip(0, 255), f.semantics.clip(0, 255), 256)
+    res.update(psnr=float(np.mean(ps)), ssim=float(np.mean(ss)), depth_l1_cm=100 * float(np.nanmean(dl)))
+    if have_sem:
+        res["miou"] = miou(conf)
+    return res
+
+
+def format_table(res: dict) -> str:
+    """Two-column text table of :func:`evaluate` results."""
+    rows = [("frames", "frames", "{:d}"), ("ate_rmse_cm", "ATE RMSE (cm, aligned)", "{:.2f}"),
+            ("psnr", "PSNR (dB)", "{:.2f}"), ("ssim", "SSIM", "{:.3f}"), ("depth_l1_cm", "depth L1 (cm)", "{:.2f}"),
+            ("miou", "semantic mIoU", "{:.3f}"), ("fps", "FPS", "{:.2f}"), ("gaussians", "Gaussians", "{:d}")]
+    lines = ["| metric | value |", "|---|---|"]
+    for key, name, fmt in rows:
+        if key in res:
+            lines.append(f"| {name} | {fmt.format(res[key])} |")
+    return "\n".join(lines)

@@ -1,0 +1,117 @@
+"""Synthetic generator and dataset readers (Replica / SGS-SLAM / TUM layouts), including bad input."""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from semantic_gs_slam.datasets import associate, load_dataset, load_replica, load_sgs, load_tum
+from semantic_gs_slam.errors import DatasetError
+from semantic_gs_slam.synthetic import CLASSES, HomeRenderer, default_intrinsics, trajectory
+
+ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", "..", ".."))
+
+
+def test_classes_match_the_sample_map_script():
+    path = os.path.join(ROOT, "scripts", "make_sample_map.py")
+    spec = importlib.util.spec_from_file_location("make_sample_map", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    assert [(i, c) for i, c, _ in mod.CLASSES] == [(i, c) for i, c, _ in CLASSES]
+
+
+def test_generator_writes_replica_layout_and_reader_round_trips(tiny_home):
+    for f in ("traj.txt", "cam.json", "semantic.json", "results/frame000000.jpg", "results/depth000009.png",
+              "semantic/semantic000009.png"):
+        assert os.path.isfile(tiny_home / f), f
+    d16 = np.array(Image.open(tiny_home / "results" / "depth000000.png"))
+    assert d16.dtype == np.uint16
+    ds = load_dataset(str(tiny_home))
+    assert len(ds) == 10 and ds.intrinsics.width == 120 and ds.classes[5] == "chair"
+    f = ds[3]
+    k = default_intrinsics(120, 68)
+    rgb, depth, sem = HomeRenderer(0).render(trajectory(10, 20.0)[3], k)
+    assert np.abs(f.depth - depth).max() <= 1.0 / 6553.5  # 16-bit quantisation only
+    assert (f.semantics == sem).all()
+    assert np.abs(f.rgb - rgb).mean() < 0.03  # JPEG
+    np.testing.assert_allclose(f.gt_c2w, trajectory(10, 20.0)[3], atol=1e-9)
+    labels = set(np.unique(np.concatenate([ds[i].semantics.ravel() for i in range(0, 10, 3)])))
+    assert {1, 2, 4, 5}.issubset(labels)  # floor, wall, table, chair in view
+
+
+def _png(path, arr):
+    os.makedirs(os.path.dirname(path), exist_ok=True)
+    Image.fromarray(arr).save(path)
+
+
+def _pose_line(t):
+    m = np.eye(4)
+    m[0, 3] = t
+    return " ".join(str(x) for x in m.ravel())
+
+
+def test_sgs_layout(tmp_path):
+    for i in range(3):
+        _png(str(tmp_path / "rgb" / f"rgb_{i}.png"), np.full((6, 8, 3), 40 * i, np.uint8))
+        _png(str(tmp_path / "depth" / f"depth_{i}.png"), np.full((6, 8), 1500, np.uint16))
+        _png(str(tmp_path / "semantic_class" / f"semantic_class_{i}.png"), np.full((6, 8), 3, np.uint8))
+    (tmp_path / "traj_w_c.txt").write_text("\n".join(_pose_line(0.1 * i) for i in range(3)) + "\n")
+    (tmp_path / "cam.json").write_text('{"width": 8, "height": 6, "fx": 4, "fy": 4, "cx": 3.5, "cy": 2.5}')
+    ds = load_sgs(str(tmp_path))
+    assert len(ds) == 3
+    f = ds[2]
+    assert f.depth[0, 0] == pytest.approx(1.5) and f.semantics[0, 0] == 3 and f.gt_c2w[0, 3] == pytest.approx(0.2)
+    assert load_dataset(str(tmp_path)).sem_paths is not None  # auto-detected
+
+
+def test_tum_layout_and_association(tmp_path):
+    (tmp_path / "rgb").mkdir()
+    (tmp_path / "depth").mkdir()
+    rgb_t = [1.00, 1.033, 1.066, 1.50]
+    depth_t = [1.01, 1.04, 1.07, 1.30]
+    for t in rgb_t:
+        _png(str(tmp_path / "rgb" / f"{t:.3f}.png"), np.zeros((4, 6, 3), np.uint8))
+    for t in depth_t:
+        _png(str(tmp_path / "depth" / f"{t:.3f}.png"), np.full((4, 6), 5000, np.uint16))
+    (tmp_path / "rgb.txt").write_text("# rgb\n" + "".join(f"{t:.3f} rgb/{t:.3f}.png\n" for t in rgb_t))
+    (tmp_path / "depth.txt").write_text("# depth\n" + "".join(f"{t:.3f} depth/{t:.3f}.png\n" for t in depth_t))
+    gt_lines = "".join(f"{t:.3f} {t} 0 0 0 0 0 1\n" for t in (1.0, 1.05, 1.49))
+    (tmp_path / "groundtruth.txt").write_text("# gt\n" + gt_lines)
+    from semantic_gs_slam.config import Intrinsics
+
+    ds = load_tum(str(tmp_path), Intrinsics(6, 4, 5.0, 5.0, 2.5, 1.5))
+    # 1.50 has no depth within 0.08 s (1.30 is 0.2 s away): 3 frames
+    assert len(ds) == 3
+    f = ds[0]
+    assert f.depth[0, 0] == pytest.approx(1.0) and f.gt_c2w[0, 3] == pytest.approx(1.0)
+    assert associate([0.0, 1.0], [0.05, 2.0], 0.08) == [(0, 0)]
+
+
+def test_bad_input_gives_clear_errors(tmp_path, tiny_home):
+    with pytest.raises(DatasetError, match="not found"):
+        load_dataset(str(tmp_path / "nope"))
+    with pytest.raises(DatasetError, match="cannot tell the layout"):
+        load_dataset(str(tmp_path))
+    # missing trajectory
+    (tmp_path / "results").mkdir()
+    with pytest.raises(DatasetError, match="traj.txt"):
+        load_replica(str(tmp_path))
+    # bad trajectory line
+    (tmp_path / "traj.txt").write_text("1 2 3\n")
+    _png(str(tmp_path / "results" / "frame000000.jpg"), np.zeros((6, 8, 3), np.uint8))
+    _png(str(tmp_path / "results" / "depth000000.png"), np.zeros((5, 8), np.uint16))
+    with pytest.raises(DatasetError, match="expected 16 numbers"):
+        load_replica(str(tmp_path))
+    (tmp_path / "traj.txt").write_text(_pose_line(0) + "\n")
+    (tmp_path / "cam.json").write_text('{"width": 8, "height": 6, "fx": 4, "fy": 4, "cx": 3.5, "cy": 2.5}')
+    ds = load_replica(str(tmp_path))
+    with pytest.raises(DatasetError, match="sizes differ"):
+        ds[0]
+    # fewer depth images than colour images
+    _png(str(tmp_path / "results" / "frame000001.jpg"), np.zeros((6, 8, 3), np.uint8))
+    with pytest.raises(DatasetError, match="2 colour images but 1 depth"):
+        load_replica(str(tmp_path))
