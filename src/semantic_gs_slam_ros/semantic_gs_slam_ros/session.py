@@ -42,7 +42,8 @@ class SlamEngine(Protocol):
     def save_map(self, out_dir: str) -> tuple[str, str]:
         """Write ``params.npz`` + ``semantic.json`` into ``out_dir``; returns their paths."""
 
-    def save_checkpoint(self, path: str) -> None: ...
+    def save_checkpoint(self, ckpt_dir: str) -> None:
+        """Write everything needed to resume into ``ckpt_dir``."""
 
     @property
     def num_gaussians(self) -> int: ...
@@ -91,6 +92,8 @@ class Progress:
     dropped: dict[str, int] = field(default_factory=dict)
     written: int = 0
     processed: int = 0
+    skipped: int = 0  # already processed before a resume
+    refused: int = 0  # the writer could not take them (queue full or failed)
     backlog: int = 0
     subscribed: bool = True
     pauses: int = 0
@@ -130,11 +133,13 @@ class StreamingSession:
         on_map: called (on the SLAM thread) with (params.npz, semantic.json) after each export,
             e.g. to ask the object-query server to reload.
         log: called with human-readable log lines.
+        skip_until_stamp: after a resume, frames stamped at or before this were already processed
+            (the client streams the sequence again from its start) and are skipped.
     """
 
     def __init__(self, config: SessionConfig, engine: SlamEngine,
                  on_map: Callable[[str, str], None] | None = None,
-                 log: Callable[[str], None] | None = None) -> None:
+                 log: Callable[[str], None] | None = None, skip_until_stamp: float | None = None) -> None:
         self.cfg = config
         self.engine = engine
         self._on_map = on_map or (lambda _m, _s: None)
@@ -148,6 +153,7 @@ class StreamingSession:
         self._cancelled = False
         self._ready: collections.deque[WrittenFrame] = collections.deque()  # written, not yet processed
         self._wake = threading.Event()  # set when a frame is written, or on done/cancel
+        self._skip_until = skip_until_stamp
         self._writer = AsyncFrameWriter(config.work_dir, self._on_written)
 
     # ---------------------------------------------------------------- producer side (callbacks)
@@ -163,7 +169,13 @@ class StreamingSession:
             self._progress.matched = self._matcher.stats.matched
             self._progress.dropped = dict(self._matcher.stats.dropped)
         for frame in frames:
-            self._writer.submit(frame)
+            if self._skip_until is not None and frame.stamp <= self._skip_until + 1e-6:
+                with self._lock:
+                    self._progress.skipped += 1
+                continue
+            if not self._writer.submit(frame):
+                with self._lock:
+                    self._progress.refused += 1
 
     def _prepare(self, stream: str, image: np.ndarray) -> np.ndarray:
         w, h = self.cfg.width, self.cfg.height
@@ -202,7 +214,7 @@ class StreamingSession:
     def progress(self) -> Progress:
         with self._lock:
             p = Progress(**{k: (dict(v) if isinstance(v, dict) else v) for k, v in vars(self._progress).items()})
-        p.backlog = p.matched - p.processed
+        p.backlog = p.matched - p.skipped - p.refused - p.processed
         return p
 
     def lag_action(self) -> LagAction:
@@ -228,7 +240,8 @@ class StreamingSession:
                 frame = self._ready.popleft() if self._ready else None
                 cancelled = self._cancelled
                 finished = self._done_sending and not self._ready and self._writer.pending() == 0 \
-                    and self._progress.written >= self._progress.matched
+                    and self._progress.written >= self._progress.matched - self._progress.skipped \
+                    - self._progress.refused
             if self._writer.error is not None:
                 message = str(self._writer.error)
                 break
@@ -274,7 +287,7 @@ class StreamingSession:
     def _checkpoint(self, ckpt_dir: str, frame: WrittenFrame) -> None:
         tmp = ckpt_dir + ".incoming"
         os.makedirs(tmp, exist_ok=True)
-        self.engine.save_checkpoint(os.path.join(tmp, "engine.pt"))
+        self.engine.save_checkpoint(os.path.join(tmp, "engine"))
         with open(os.path.join(tmp, "session.json"), "w") as fh:
             json.dump({"last_index": frame.index, "last_stamp": frame.stamp,
                        "processed": self.progress().processed}, fh)
