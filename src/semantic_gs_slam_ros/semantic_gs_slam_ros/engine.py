@@ -37,6 +37,7 @@ class EngineAdapter:
 def load_slam_config(path: str, intrinsics: tuple[float, float, float, float, int, int]) -> Any:
     """SlamConfig from a YAML file (any subset of its fields; "" = defaults) and the camera."""
     import yaml
+
     from semantic_gs_slam.config import Intrinsics, SlamConfig
     from semantic_gs_slam.errors import ConfigError
 

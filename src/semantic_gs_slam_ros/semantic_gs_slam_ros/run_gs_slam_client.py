@@ -25,10 +25,10 @@ from rclpy.action import ActionClient
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from semantic_gs_slam_interfaces.action import RunSlam
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String
 
-from semantic_gs_slam_interfaces.action import RunSlam
 from semantic_gs_slam_ros.images import array_to_image_fields
 
 IMAGE_QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)

@@ -25,10 +25,10 @@ from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallb
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from semantic_gs_slam_interfaces.action import RunSlam
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String
 
-from semantic_gs_slam_interfaces.action import RunSlam
 from semantic_gs_slam_ros.engine import make_engine
 from semantic_gs_slam_ros.errors import ImageFormatError, StreamingError
 from semantic_gs_slam_ros.images import image_to_array
@@ -118,7 +118,8 @@ class SlamServer(Node):
         try:
             expected = int(json.loads(msg.data).get("frames_sent", 0))
         except (ValueError, AttributeError, TypeError):
-            self.get_logger().warning(f"malformed data_transfer_done {msg.data[:80]!r}; expected {{\"frames_sent\": N}}")
+            self.get_logger().warning(
+                f"malformed data_transfer_done {msg.data[:80]!r}; expected {{\"frames_sent\": N}}")
             expected = 0
         self._done_deadline = time.monotonic() + self.get_parameter("done_wait").value
         self._done_expected = expected

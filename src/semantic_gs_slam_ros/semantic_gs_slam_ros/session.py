@@ -28,7 +28,7 @@ import numpy as np
 from semantic_gs_slam_ros.errors import OutputError, StreamingError
 from semantic_gs_slam_ros.images import depth_to_mm, resize_nearest, resize_rgb, rgb_of
 from semantic_gs_slam_ros.lag import LagAction, LagController
-from semantic_gs_slam_ros.sync import FrameMatcher, MatchedFrame
+from semantic_gs_slam_ros.sync import FrameMatcher
 from semantic_gs_slam_ros.writer import AsyncFrameWriter, WrittenFrame, prepare_output_dir
 
 

@@ -10,7 +10,13 @@ import pytest
 
 from semantic_gs_slam_ros.errors import ImageFormatError, OutputError
 from semantic_gs_slam_ros.images import (
-    array_to_image_fields, depth_to_mm, image_to_array, resize_nearest, resize_rgb, rgb_of)
+    array_to_image_fields,
+    depth_to_mm,
+    image_to_array,
+    resize_nearest,
+    resize_rgb,
+    rgb_of,
+)
 from semantic_gs_slam_ros.lag import LagAction, LagController
 from semantic_gs_slam_ros.sync import FrameMatcher
 from semantic_gs_slam_ros.writer import AsyncFrameWriter, prepare_output_dir
