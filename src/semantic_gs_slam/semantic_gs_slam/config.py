@@ -1,0 +1,170 @@
+"""Dataclass configurations of the SLAM engine; every field documented, validated by ``check()``."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field, fields, is_dataclass
+from typing import Any
+
+from semantic_gs_slam.errors import ConfigError
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole camera (OpenCV convention: x right, y down, z forward), pixels."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+    def check(self) -> None:
+        """Raise :class:`ConfigError` when the values are not a usable camera."""
+        if self.width <= 0 or self.height <= 0:
+            raise ConfigError(f"image size must be positive, got {self.width}x{self.height}")
+        if self.fx <= 0 or self.fy <= 0:
+            raise ConfigError(f"focal lengths must be positive, got fx={self.fx} fy={self.fy}")
+
+    def scaled(self, factor: float) -> Intrinsics:
+        """The same camera for an image resized by ``factor`` (pixel-centre convention)."""
+        w, h = round(self.width * factor), round(self.height * factor)
+        return Intrinsics(w, h, self.fx * factor, self.fy * factor,
+                          (self.cx + 0.5) * factor - 0.5, (self.cy + 0.5) * factor - 0.5)
+
+    def as_matrix(self) -> list[list[float]]:
+        """3x3 K matrix as nested lists."""
+        return [[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]]
+
+
+@dataclass
+class RendererConfig:
+    """Pure-PyTorch tile renderer settings."""
+
+    tile: int = 8  # tile edge in pixels
+    near: float = 0.05  # metres; Gaussians closer to the camera are culled
+    chunk: int = 128  # Gaussians composited per step (early stop between chunks)
+    stop_transmittance: float = 1e-4  # a tile stops once every pixel's transmittance is below this
+    batch_elements: int = 1_000_000  # bound on tiles x pixels x Gaussians per batch (memory)
+    backend: str = "torch"  # "torch" (CPU/any) or "gsplat" (CUDA only)
+
+    def check(self) -> None:
+        if self.tile not in (4, 8, 16, 32):
+            raise ConfigError(f"renderer.tile must be 4, 8, 16 or 32, got {self.tile}")
+        if self.backend not in ("torch", "gsplat"):
+            raise ConfigError(f"renderer.backend must be 'torch' or 'gsplat', got {self.backend!r}")
+        if self.chunk <= 0 or self.batch_elements <= 0:
+            raise ConfigError("renderer.chunk and renderer.batch_elements must be positive")
+
+
+@dataclass
+class TrackingConfig:
+    """Per-frame camera tracking: point-to-plane ICP against the rendered model, then optional photometric steps."""
+
+    icp_iters: int = 12  # Gauss-Newton iterations per pyramid level
+    icp_levels: int = 2  # image pyramid levels (stride 2**level), coarse to fine
+    icp_max_dist: float = 0.10  # metres; associations farther apart are rejected
+    icp_sigma_geo: float = 0.005  # metres; scale (and Huber threshold) of point-to-plane residuals
+    icp_sigma_col: float = 0.05  # intensity units; scale (and Huber threshold) of photometric residuals
+    geometric_weight: float = 1.0  # weight of the point-to-plane term
+    photometric_weight: float = 1.0  # weight of the photometric term inside the Gauss-Newton (0: geometry only)
+    min_silhouette: float = 0.5  # model pixels used only where the map is this opaque (depth normalised by it)
+    min_correspondences: int = 200  # fewer raises TrackingError (then the constant-velocity guess is kept)
+    photometric_iters: int = 0  # optional Adam steps on colour + depth L1 after ICP
+    photometric_lr_rot: float = 4e-4
+    photometric_lr_trans: float = 2e-3
+    use_gt_pose: bool = False  # debugging / mapping-only runs: take the ground-truth pose given to add_frame
+
+    def check(self) -> None:
+        if self.icp_iters < 0 or self.icp_levels < 1 or self.photometric_iters < 0:
+            raise ConfigError("tracking iteration counts must be >= 0 and icp_levels >= 1")
+
+
+@dataclass
+class MappingConfig:
+    """Keyframe mapping: densification, window optimisation, pruning."""
+
+    keyframe_every: int = 5  # map on every k-th frame (and the first)
+    iters: int = 15  # Adam iterations per keyframe
+    first_frame_iters: int = 60  # iterations on the first frame
+    window: int = 4  # keyframes optimised together (current + the most overlapping earlier ones)
+    pixel_stride: int = 2  # new Gaussians seeded at every k-th pixel of the empty/occluding region
+    densify_silhouette: float = 0.5  # pixels below this silhouette get new Gaussians
+    densify_depth_factor: float = 50.0  # ... or where the model is behind depth by > factor * median error
+    radius_factor: float = 0.3  # new Gaussian std dev = radius_factor * pixel_stride * depth / f
+    init_logit_opacity: float = 3.0
+    lr_means: float = 1e-4
+    lr_rgb: float = 2.5e-3
+    lr_semantic: float = 2.5e-3
+    lr_opacity: float = 5e-2
+    lr_scales: float = 1e-3
+    lr_rotations: float = 1e-3
+    w_colour: float = 0.5
+    w_depth: float = 1.0
+    w_semantic: float = 0.3
+    w_ssim: float = 0.2  # share of (1 - SSIM) in the colour term
+    prune_opacity: float = 0.005
+    prune_max_scale: float = 0.3  # metres; bigger Gaussians are removed
+    prune_every: int = 5  # keyframes between pruning passes
+
+    def check(self) -> None:
+        if self.keyframe_every < 1 or self.window < 1 or self.pixel_stride < 1:
+            raise ConfigError("mapping.keyframe_every, window and pixel_stride must be >= 1")
+        if self.iters < 0 or self.first_frame_iters < 0:
+            raise ConfigError("mapping iteration counts must be >= 0")
+
+
+@dataclass
+class SlamConfig:
+    """Whole-engine configuration."""
+
+    intrinsics: Intrinsics
+    renderer: RendererConfig = field(default_factory=RendererConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    mapping: MappingConfig = field(default_factory=MappingConfig)
+    depth_min: float = 0.1  # metres; smaller depths are treated as missing
+    depth_max: float = 10.0  # metres; larger depths are treated as missing
+    checkpoint_every: int = 0  # frames between checkpoints (0: none), needs checkpoint_dir
+    checkpoint_dir: str = ""
+    threads: int = 2  # torch.set_num_threads
+    seed: int = 0
+    device: str = "cpu"
+
+    def check(self) -> None:
+        """Validate all parts; raise :class:`ConfigError` naming the bad field."""
+        self.intrinsics.check()
+        self.renderer.check()
+        self.tracking.check()
+        self.mapping.check()
+        if not 0 < self.depth_min < self.depth_max:
+            raise ConfigError(f"need 0 < depth_min < depth_max, got {self.depth_min}, {self.depth_max}")
+        if self.checkpoint_every < 0 or (self.checkpoint_every > 0 and not self.checkpoint_dir):
+            raise ConfigError("checkpoint_every > 0 needs checkpoint_dir")
+        if self.threads < 1:
+            raise ConfigError("threads must be >= 1")
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain dict (JSON-serialisable)."""
+        return asdict(self)
+
+    @staticmethod
+    def from_dict(d: dict[str, Any]) -> SlamConfig:
+        """Inverse of :meth:`to_dict`; unknown keys raise :class:`ConfigError`."""
+        return _build(SlamConfig, d)
+
+
+def _build(cls: type, d: dict[str, Any]) -> Any:
+    names = {f.name: f for f in fields(cls)}
+    unknown = set(d) - set(names)
+    if unknown:
+        raise ConfigError(f"unknown {cls.__name__} field(s): {sorted(unknown)}")
+    kw = {}
+    sub = {"intrinsics": Intrinsics, "renderer": RendererConfig, "tracking": TrackingConfig, "mapping": MappingConfig}
+    for k, v in d.items():
+        if k in sub and isinstance(v, dict):
+            kw[k] = _build(sub[k], v)
+        else:
+            kw[k] = v
+    obj = cls(**kw)
+    assert is_dataclass(obj)
+    return obj

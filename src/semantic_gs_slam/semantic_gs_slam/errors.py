@@ -1,0 +1,31 @@
+"""Typed errors of the SLAM engine (no error tuples, no ``None`` returns)."""
+
+from __future__ import annotations
+
+
+class SlamError(Exception):
+    """Base class of every error this package raises on purpose."""
+
+
+class ConfigError(SlamError, ValueError):
+    """A configuration value is out of range or inconsistent."""
+
+
+class DatasetError(SlamError):
+    """A dataset folder is missing files, has mismatched sizes or unreadable content."""
+
+
+class FrameError(SlamError, ValueError):
+    """A frame handed to :meth:`SLAM.add_frame` has the wrong shape, dtype or values (NaN, no depth)."""
+
+
+class MapFormatError(SlamError):
+    """A map file (``params.npz``, ``semantic.json``, checkpoint) is missing or malformed."""
+
+
+class TrackingError(SlamError):
+    """Tracking could not estimate a pose (e.g. too few valid depth correspondences)."""
+
+
+class BackendUnavailableError(SlamError):
+    """A renderer back-end was requested that cannot run here (``gsplat`` without CUDA)."""

@@ -1,0 +1,265 @@
+"""The Gaussian map: parameters, densification, pruning, and the SplaTAM / SGS-SLAM file formats.
+
+Parameters (torch leaf tensors in :attr:`GaussianMap.params`): ``means3D`` [N, 3], ``rgb_colors``
+[N, 3], ``unnorm_rotations`` [N, 4] (wxyz), ``logit_opacities`` [N, 1], ``log_scales`` [N, 1]
+(isotropic), ``semantic_colors`` [N, 3] (a class's palette colour, optimised through rendering).
+Non-optimised: ``semantic_ids`` [N] and ``timestep`` [N] (frame that created the Gaussian).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import zipfile
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from semantic_gs_slam.config import Intrinsics
+from semantic_gs_slam.errors import MapFormatError
+from semantic_gs_slam.geometry import backproject
+from semantic_gs_slam.render import Gaussians
+
+PARAM_KEYS = ("means3D", "rgb_colors", "unnorm_rotations", "logit_opacities", "log_scales", "semantic_colors")
+SH_C0 = 0.28209479177387814
+
+
+def palette(ids: np.ndarray | Tensor | int) -> np.ndarray:
+    """Distinct semantic colours in [0, 1] for class ids (PASCAL-VOC style bit interleaving); id 0 is black."""
+    ids = np.asarray(ids, dtype=np.int64)
+    c = np.zeros(ids.shape + (3,), dtype=np.float64)
+    v = ids.copy()
+    for j in range(8):
+        for ch in range(3):
+            c[..., ch] += ((v >> ch) & 1) * (1 << (7 - j))
+        v = v >> 3
+    return c / 255.0
+
+
+class GaussianMap:
+    """Semantic Gaussian map with parameters as torch leaf tensors."""
+
+    def __init__(self, device: str = "cpu", n_classes_max: int = 256) -> None:
+        self.device = torch.device(device)
+        z = torch.zeros
+        self.params: dict[str, Tensor] = {
+            "means3D": z(0, 3), "rgb_colors": z(0, 3), "unnorm_rotations": z(0, 4),
+            "logit_opacities": z(0, 1), "log_scales": z(0, 1), "semantic_colors": z(0, 3)}
+        self.semantic_ids = torch.zeros(0, dtype=torch.int64)
+        self.timestep = torch.zeros(0, dtype=torch.int64)
+        self.palette_ids = np.arange(n_classes_max)
+        for v in self.params.values():
+            v.requires_grad_(True)
+
+    def __len__(self) -> int:
+        return int(self.params["means3D"].shape[0])
+
+    def gaussians(self) -> Gaussians:
+        """View of the parameters for the renderer (keeps the autograd link to :attr:`params`)."""
+        p = self.params
+        return Gaussians(p["means3D"], p["unnorm_rotations"], p["log_scales"], p["logit_opacities"],
+                         p["rgb_colors"], p["semantic_colors"])
+
+    def _set(self, new: dict[str, Tensor], ids: Tensor, ts: Tensor) -> None:
+        self.params = {k: v.detach().contiguous().requires_grad_(True) for k, v in new.items()}
+        self.semantic_ids, self.timestep = ids, ts
+
+    def add(self, means: Tensor, rgb: Tensor, sem_ids: Tensor, radius: Tensor, frame: int,
+            logit_opacity: float = 3.0) -> int:
+        """Append Gaussians.
+
+        Args:
+            means: [M, 3] world centres.
+            rgb: [M, 3] colours in [0, 1].
+            sem_ids: [M] class ids.
+            radius: [M] isotropic standard deviation (metres).
+            frame: creating frame index.
+            logit_opacity: initial opacity logit.
+
+        Returns:
+            M.
+        """
+        m = means.shape[0]
+        if m == 0:
+            return 0
+        sem_col = torch.as_tensor(palette(sem_ids.cpu().numpy()), dtype=torch.float32)
+        new = {
+            "means3D": means.float(), "rgb_colors": rgb.float(),
+            "unnorm_rotations": torch.tensor([[1.0, 0, 0, 0]]).repeat(m, 1),
+            "logit_opacities": torch.full((m, 1), float(logit_opacity)),
+            "log_scales": torch.log(radius.float().clamp_min(1e-4))[:, None], "semantic_colors": sem_col}
+        cat = {k: torch.cat([self.params[k].detach(), new[k].to(self.device)]) for k in PARAM_KEYS}
+        self._set(cat, torch.cat([self.semantic_ids, sem_ids.long().cpu()]),
+                  torch.cat([self.timestep, torch.full((m,), frame, dtype=torch.int64)]))
+        return m
+
+    def add_from_frame(self, rgb: Tensor, depth: Tensor, sem: Tensor | None, c2w: Tensor, k: Intrinsics,
+                       mask: Tensor, stride: int, frame: int, radius_factor: float = 0.6,
+                       logit_opacity: float = 3.0) -> int:
+        """Seed Gaussians at every ``stride``-th pixel where ``mask`` holds.
+
+        Args:
+            rgb: [H, W, 3]; depth: [H, W] metres; sem: [H, W] ids or None; c2w: [4, 4];
+            mask: [H, W] bool (valid depth and empty/occluding model).
+
+        Returns:
+            Number of Gaussians added.
+        """
+        sel = torch.zeros_like(mask)
+        sel[stride // 2::stride, stride // 2::stride] = True
+        sel &= mask
+        if not bool(sel.any()):
+            return 0
+        pts = backproject(depth, k.fx, k.fy, k.cx, k.cy)[sel]  # [M, 3] camera
+        world = pts @ c2w[:3, :3].T + c2w[:3, 3]
+        f = 0.5 * (k.fx + k.fy)
+        radius = depth[sel] / f * stride * radius_factor
+        ids = sem[sel] if sem is not None else torch.zeros(world.shape[0], dtype=torch.int64)
+        return self.add(world, rgb[sel], ids, radius, frame, logit_opacity)
+
+    def prune(self, min_opacity: float, max_scale: float) -> int:
+        """Remove near-transparent or huge Gaussians; returns how many were removed."""
+        with torch.no_grad():
+            o = torch.sigmoid(self.params["logit_opacities"][:, 0])
+            s = torch.exp(self.params["log_scales"]).max(1).values
+            keep = (o >= min_opacity) & (s <= max_scale)
+        removed = int((~keep).sum())
+        if removed:
+            self._set({k: v[keep] for k, v in self.params.items()}, self.semantic_ids[keep], self.timestep[keep])
+        return removed
+
+    def ids_from_colours(self, class_ids: list[int]) -> np.ndarray:
+        """Semantic id of each Gaussian = the class whose palette colour is nearest its optimised colour [N]."""
+        if not class_ids or len(self) == 0:
+            return self.semantic_ids.numpy().copy()
+        pal = torch.as_tensor(palette(np.array(class_ids)), dtype=torch.float32)
+        d = torch.cdist(self.params["semantic_colors"].detach().float(), pal)
+        return np.asarray(class_ids)[d.argmin(1).numpy()]
+
+    # ------------------------------------------------------------------ files
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """Gaussian arrays in the SplaTAM / SGS-SLAM layout (float32; ids uint8 when they fit)."""
+        out = {k: v.detach().cpu().numpy().astype(np.float32) for k, v in self.params.items()}
+        ids = self.semantic_ids.numpy()
+        out["semantic_ids"] = ids.astype(np.uint8) if (ids.size == 0 or ids.max() < 256) else ids.astype(np.int64)
+        out["timestep"] = self.timestep.numpy().astype(np.float32)
+        return out
+
+    @staticmethod
+    def from_arrays(a: dict[str, np.ndarray], device: str = "cpu") -> GaussianMap:
+        """Build a map from arrays (our files or SplaTAM / SGS-SLAM ``params.npz``).
+
+        Raises:
+            MapFormatError: ``means3D`` missing or rows that do not agree.
+        """
+        if "means3D" not in a:
+            raise MapFormatError(f"params are missing 'means3D' (have {sorted(a)})")
+        n = len(a["means3D"])
+        m = GaussianMap(device)
+        defaults = {"rgb_colors": np.full((n, 3), 0.5), "unnorm_rotations": np.tile([1.0, 0, 0, 0], (n, 1)),
+                    "logit_opacities": np.full((n, 1), 3.0), "log_scales": np.full((n, 1), np.log(0.01)),
+                    "semantic_colors": None}
+        ids = np.asarray(a["semantic_ids"]).reshape(-1).astype(np.int64) if "semantic_ids" in a else np.zeros(n, np.int64)
+        if defaults["semantic_colors"] is None:
+            defaults["semantic_colors"] = palette(ids)
+        params = {}
+        for k in PARAM_KEYS:
+            v = np.asarray(a[k]) if k in a else defaults[k]
+            if v.shape[0] != n:
+                raise MapFormatError(f"'{k}' has {v.shape[0]} rows but means3D has {n}")
+            params[k] = torch.as_tensor(np.asarray(v, dtype=np.float32)).to(m.device)
+        if params["log_scales"].ndim == 1:
+            params["log_scales"] = params["log_scales"][:, None]
+        if len(ids) != n:
+            raise MapFormatError(f"'semantic_ids' has {len(ids)} rows but means3D has {n}")
+        ts = np.asarray(a["timestep"]).reshape(-1).astype(np.int64) if "timestep" in a else np.zeros(n, np.int64)
+        m._set(params, torch.as_tensor(ids), torch.as_tensor(ts))
+        return m
+
+
+def save_params(path: str, gmap: GaussianMap, k: Intrinsics, est_w2c: list[np.ndarray],
+                gt_w2c: list[np.ndarray | None], keyframes: list[int]) -> None:
+    """Write ``params.npz`` with the full SplaTAM / SGS-SLAM key set.
+
+    Args:
+        path: output file.
+        gmap: the map.
+        k: intrinsics.
+        est_w2c: estimated world-to-camera pose per frame (T of them).
+        gt_w2c: ground-truth world-to-camera per frame or None (stored as NaN).
+        keyframes: keyframe frame indices.
+    """
+    from semantic_gs_slam.geometry import rotmat_to_quat
+
+    a = gmap.to_arrays()
+    t = len(est_w2c)
+    rots = np.zeros((1, 4, t), np.float32)
+    trans = np.zeros((1, 3, t), np.float32)
+    for i, w in enumerate(est_w2c):
+        rots[0, :, i] = rotmat_to_quat(w[:3, :3])
+        trans[0, :, i] = w[:3, 3]
+    gt = np.stack([g if g is not None else np.full((4, 4), np.nan) for g in gt_w2c]) if gt_w2c else np.zeros((0, 4, 4))
+    a.update({
+        "cam_unnorm_rots": rots, "cam_trans": trans,
+        "intrinsics": np.array(k.as_matrix(), np.float32),
+        "w2c": (est_w2c[0] if est_w2c else np.eye(4)).astype(np.float32),
+        "org_width": np.array(k.width), "org_height": np.array(k.height),
+        "gt_w2c_all_frames": gt.astype(np.float32),
+        "keyframe_time_indices": np.array(keyframes, np.int64)})
+    os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
+    np.savez_compressed(path, **a)
+
+
+def load_params(path: str) -> dict[str, np.ndarray]:
+    """Read a ``params.npz`` (ours or SplaTAM / SGS-SLAM's) into a dict of arrays.
+
+    Raises:
+        MapFormatError: missing or unreadable file.
+    """
+    if not os.path.isfile(path):
+        raise MapFormatError(f"map file not found: {path}")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return {k: z[k] for k in z.files}
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError) as exc:
+        raise MapFormatError(f"{path}: not a readable .npz archive ({exc})") from exc
+
+
+def save_semantic_json(path: str, classes: dict[int, str]) -> None:
+    """``{"segmentation": [{"id": .., "class": ..}, ...]}`` (the seed's schema)."""
+    with open(path, "w") as fh:
+        json.dump({"segmentation": [{"id": int(i), "class": c} for i, c in sorted(classes.items())]}, fh, indent=1)
+        fh.write("\n")
+
+
+def load_semantic_json(path: str) -> dict[int, str]:
+    """Inverse of :func:`save_semantic_json`; raises :class:`MapFormatError` on a bad file."""
+    if not os.path.isfile(path):
+        raise MapFormatError(f"semantic file not found: {path}")
+    try:
+        with open(path) as fh:
+            return {int(e["id"]): str(e["class"]) for e in json.load(fh)["segmentation"]}
+    except (ValueError, KeyError, TypeError) as exc:
+        raise MapFormatError(f"{path}: not in the {{'segmentation': [{{'id', 'class'}}]}} schema ({exc})") from exc
+
+
+def export_ply(path: str, gmap: GaussianMap) -> None:
+    """Binary little-endian PLY in the standard 3DGS layout (x y z nx ny nz f_dc_0-2 f_rest_0-44 opacity
+    scale_0-2 rot_0-3); degree-0 colour only, isotropic scales repeated."""
+    a = gmap.to_arrays()
+    n = len(a["means3D"])
+    names = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(45)] + \
+        ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    data = np.zeros((n, len(names)), np.float32)
+    data[:, 0:3] = a["means3D"]
+    data[:, 6:9] = (a["rgb_colors"] - 0.5) / SH_C0
+    data[:, 54] = a["logit_opacities"][:, 0]
+    ls = a["log_scales"]
+    data[:, 55:58] = ls if ls.shape[1] == 3 else np.repeat(ls, 3, 1)
+    data[:, 58:62] = a["unnorm_rotations"]
+    header = "ply\nformat binary_little_endian 1.0\n" + f"element vertex {n}\n" + \
+        "".join(f"property float {p}\n" for p in names) + "end_header\n"
+    with open(path, "wb") as fh:
+        fh.write(header.encode("ascii"))
+        fh.write(data.astype("<f4").tobytes())

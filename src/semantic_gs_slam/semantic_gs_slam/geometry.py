@@ -1,0 +1,124 @@
+"""Rotations, poses and small Lie-group helpers (torch and numpy).
+
+Poses are 4x4 homogeneous matrices. ``c2w`` maps camera to world, ``w2c`` its inverse. Cameras use
+the OpenCV convention (x right, y down, z forward). Quaternions are (w, x, y, z).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor
+
+
+def quat_to_rotmat(q: Tensor) -> Tensor:
+    """Rotation matrices from (unnormalised) quaternions.
+
+    Args:
+        q: [..., 4] (w, x, y, z).
+
+    Returns:
+        [..., 3, 3] rotation matrices.
+    """
+    q = q / q.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    w, x, y, z = q.unbind(-1)
+    r = torch.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ], -1)
+    return r.reshape(q.shape[:-1] + (3, 3))
+
+
+def rotmat_to_quat(r: np.ndarray) -> np.ndarray:
+    """Quaternion (w, x, y, z), w >= 0, of a rotation matrix [3, 3] (numpy, float64)."""
+    r = np.asarray(r, dtype=np.float64)
+    t = np.trace(r)
+    if t > 0:
+        s = np.sqrt(t + 1.0) * 2
+        q = [0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s]
+    elif r[0, 0] > r[1, 1] and r[0, 0] > r[2, 2]:
+        s = np.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2]) * 2
+        q = [(r[2, 1] - r[1, 2]) / s, 0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s]
+    elif r[1, 1] > r[2, 2]:
+        s = np.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2]) * 2
+        q = [(r[0, 2] - r[2, 0]) / s, (r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s]
+    else:
+        s = np.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1]) * 2
+        q = [(r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s]
+    q = np.asarray(q)
+    q = q / np.linalg.norm(q)
+    return q if q[0] >= 0 else -q
+
+
+def skew(v: Tensor) -> Tensor:
+    """[..., 3] -> [..., 3, 3] cross-product matrices."""
+    z = torch.zeros_like(v[..., 0])
+    x, y, w = v.unbind(-1)
+    return torch.stack([z, -w, y, w, z, -x, -y, x, z], -1).reshape(v.shape[:-1] + (3, 3))
+
+
+def so3_exp(w: Tensor) -> Tensor:
+    """Rodrigues: axis-angle [3] -> rotation [3, 3] (differentiable, safe at 0)."""
+    theta2 = (w * w).sum()
+    theta = torch.sqrt(theta2 + 1e-24)
+    k = skew(w)
+    small = theta2 < 1e-10
+    a = torch.where(small, 1 - theta2 / 6, torch.sin(theta) / theta)
+    b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(theta)) / (theta2 + 1e-24))
+    eye = torch.eye(3, dtype=w.dtype, device=w.device)
+    return eye + a * k + b * (k @ k)
+
+
+def se3_exp(xi: Tensor) -> Tensor:
+    """Small-motion update: xi = (rx, ry, rz, tx, ty, tz) -> 4x4 [R t; 0 1] with R = exp(r), t as given."""
+    t = torch.eye(4, dtype=xi.dtype, device=xi.device)
+    t[:3, :3] = so3_exp(xi[:3])
+    t[:3, 3] = xi[3:]
+    return t
+
+
+def pose_error(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
+    """Translation (m) and rotation (deg) difference of two 4x4 poses."""
+    d = np.linalg.inv(a) @ b
+    ang = np.degrees(np.arccos(np.clip((np.trace(d[:3, :3]) - 1) / 2, -1, 1)))
+    return float(np.linalg.norm(a[:3, 3] - b[:3, 3])), float(ang)
+
+
+def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0, 0.0, 1.0])) -> np.ndarray:
+    """OpenCV camera-to-world pose at ``eye`` looking at ``target`` (world z up)."""
+    f = target - eye
+    f = f / np.linalg.norm(f)
+    r = np.cross(f, up)
+    r = r / np.linalg.norm(r)
+    d = np.cross(f, r)  # image-down direction
+    c2w = np.eye(4)
+    c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = r, d, f, eye
+    return c2w
+
+
+def backproject(depth: Tensor, fx: float, fy: float, cx: float, cy: float) -> Tensor:
+    """Camera-frame points of a depth image.
+
+    Args:
+        depth: [H, W] metres.
+
+    Returns:
+        [H, W, 3] points (x right, y down, z forward).
+    """
+    h, w = depth.shape
+    v, u = torch.meshgrid(torch.arange(h, dtype=depth.dtype, device=depth.device),
+                          torch.arange(w, dtype=depth.dtype, device=depth.device), indexing="ij")
+    return torch.stack([(u - cx) / fx * depth, (v - cy) / fy * depth, depth], -1)
+
+
+def umeyama_rigid(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Rigid transform (no scale) [4, 4] that best maps ``src`` [N, 3] onto ``dst`` [N, 3] (least squares)."""
+    ms, md = src.mean(0), dst.mean(0)
+    h = (src - ms).T @ (dst - md)
+    u, _, vt = np.linalg.svd(h)
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    r = vt.T @ np.diag([1, 1, d]) @ u.T
+    t = np.eye(4)
+    t[:3, :3], t[:3, 3] = r, md - r @ ms
+    return t

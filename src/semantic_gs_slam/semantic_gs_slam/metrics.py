@@ -1,0 +1,81 @@
+"""Image and trajectory metrics: PSNR, SSIM, depth L1, semantic mIoU, ATE RMSE (aligned)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from semantic_gs_slam.geometry import umeyama_rigid
+
+_WINDOWS: dict[tuple, Tensor] = {}
+
+
+def _window(size: int, sigma: float, dtype: torch.dtype, device: torch.device) -> Tensor:
+    key = (size, sigma, dtype, device)
+    if key not in _WINDOWS:
+        x = torch.arange(size, dtype=dtype, device=device) - (size - 1) / 2
+        g = torch.exp(-x * x / (2 * sigma * sigma))
+        _WINDOWS[key] = g / g.sum()
+    return _WINDOWS[key]
+
+
+def ssim(a: Tensor, b: Tensor, size: int = 11, sigma: float = 1.5) -> Tensor:
+    """Mean SSIM of two images [H, W, C] in [0, 1] (Gaussian window, separable, 'same' padding)."""
+    x = a.permute(2, 0, 1)[None]
+    y = b.permute(2, 0, 1)[None]
+    c = x.shape[1]
+    g = _window(size, sigma, a.dtype, a.device)
+    gx = g.view(1, 1, 1, -1).repeat(c, 1, 1, 1)
+    gy = g.view(1, 1, -1, 1).repeat(c, 1, 1, 1)
+
+    def blur(t: Tensor) -> Tensor:
+        return F.conv2d(F.conv2d(t, gx, padding=(0, size // 2), groups=c), gy, padding=(size // 2, 0), groups=c)
+
+    mx, my = blur(x), blur(y)
+    sxx = blur(x * x) - mx * mx
+    syy = blur(y * y) - my * my
+    sxy = blur(x * y) - mx * my
+    c1, c2 = 0.01**2, 0.03**2
+    s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
+    return s.mean()
+
+
+def psnr(a: Tensor, b: Tensor) -> float:
+    """PSNR in dB of images in [0, 1]."""
+    mse = float(((a - b) ** 2).mean())
+    return float("inf") if mse == 0 else 10 * math.log10(1.0 / mse)
+
+
+def depth_l1(pred: Tensor, gt: Tensor) -> float:
+    """Mean |pred - gt| in metres over pixels with gt > 0."""
+    m = gt > 0
+    return float((pred - gt).abs()[m].mean()) if bool(m.any()) else float("nan")
+
+
+def confusion(pred: np.ndarray, gt: np.ndarray, n: int) -> np.ndarray:
+    """Confusion matrix [n, n] (rows gt) of integer label images, ignoring gt label 0."""
+    m = gt > 0
+    return np.bincount(gt[m].astype(np.int64) * n + pred[m].astype(np.int64), minlength=n * n).reshape(n, n)
+
+
+def miou(conf: np.ndarray) -> float:
+    """Mean IoU over classes present in the ground truth."""
+    inter = np.diag(conf).astype(np.float64)
+    union = conf.sum(0) + conf.sum(1) - inter
+    present = conf.sum(1) > 0
+    return float((inter[present] / np.maximum(union[present], 1)).mean()) if present.any() else float("nan")
+
+
+def ate_rmse(est_c2w: list[np.ndarray], gt_c2w: list[np.ndarray]) -> float:
+    """Absolute trajectory error (m): RMSE of camera positions after the best rigid alignment."""
+    e = np.stack([p[:3, 3] for p in est_c2w])
+    g = np.stack([p[:3, 3] for p in gt_c2w])
+    if len(e) < 3:
+        return float(np.sqrt(((e - g) ** 2).sum(1).mean()))
+    t = umeyama_rigid(e, g)
+    ea = e @ t[:3, :3].T + t[:3, 3]
+    return float(np.sqrt(((ea - g) ** 2).sum(1).mean()))

@@ -1,0 +1,372 @@
+"""The incremental SLAM engine: ``SLAM(config)``, ``add_frame(...) -> pose``, ``save``, checkpoints.
+
+Per frame: tracking (constant-velocity guess, point-to-plane ICP against the depth rendered from
+the map, optional photometric refinement), then on keyframes mapping (densify where the map is
+empty or behind the measured depth, optimise a window of overlapping keyframes, prune).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from semantic_gs_slam.config import Intrinsics, SlamConfig
+from semantic_gs_slam.errors import FrameError, MapFormatError, TrackingError
+from semantic_gs_slam.gaussian_map import (GaussianMap, export_ply, load_params, load_semantic_json, palette,
+                                           save_params, save_semantic_json)
+from semantic_gs_slam.metrics import ssim
+from semantic_gs_slam.render import RenderOutput, render
+from semantic_gs_slam.tracking import icp, photometric_refine
+
+log = logging.getLogger("semantic_gs_slam")
+
+
+@dataclass
+class Keyframe:
+    """A mapped frame kept for window optimisation."""
+
+    index: int
+    c2w: Tensor  # [4, 4] float64
+    rgb: Tensor  # [H, W, 3]
+    depth: Tensor  # [H, W]
+    sem: Tensor | None  # [H, W] int64
+
+
+@dataclass
+class FrameLog:
+    """What happened to one frame (printed per frame by the CLI)."""
+
+    index: int
+    timestamp: float
+    keyframe: bool
+    n_gaussians: int
+    added: int
+    pruned: int
+    track_residual_m: float
+    track_inliers: int
+    tracking_failed: bool
+    map_loss: float
+    track_s: float
+    map_s: float
+
+
+class SLAM:
+    """Semantic Gaussian-splatting RGB-D SLAM, fed frame by frame.
+
+    The map frame is the first frame's pose: ``initial_c2w`` if given, else the ``gt_c2w`` passed with
+    the first frame, else the identity.
+    """
+
+    def __init__(self, config: SlamConfig, classes: dict[int, str] | None = None,
+                 initial_c2w: np.ndarray | None = None) -> None:
+        config.check()
+        self.cfg = config
+        self.k: Intrinsics = config.intrinsics
+        self.classes = dict(classes or {})
+        self.initial_c2w = None if initial_c2w is None else np.asarray(initial_c2w, np.float64)
+        torch.set_num_threads(config.threads)
+        torch.manual_seed(config.seed)
+        self.map = GaussianMap(config.device)
+        self.poses: list[np.ndarray] = []  # estimated c2w per frame
+        self.gt_poses: list[np.ndarray | None] = []
+        self.timestamps: list[float] = []
+        self.keyframes: list[Keyframe] = []
+        self.logs: list[FrameLog] = []
+        self._since_prune = 0
+
+    # ------------------------------------------------------------------ input
+    def _tensors(self, rgb: np.ndarray, depth: np.ndarray, sem: np.ndarray | None
+                 ) -> tuple[Tensor, Tensor, Tensor | None]:
+        k = self.k
+        rgb = np.asarray(rgb)
+        depth = np.asarray(depth)
+        if rgb.shape != (k.height, k.width, 3):
+            raise FrameError(f"rgb must be [{k.height}, {k.width}, 3] (intrinsics), got {list(rgb.shape)}")
+        if depth.shape != (k.height, k.width):
+            raise FrameError(f"depth must be [{k.height}, {k.width}] metres, got {list(depth.shape)}")
+        if rgb.dtype == np.uint8:
+            rgb = rgb.astype(np.float32) / 255.0
+        if not np.all(np.isfinite(rgb)):
+            raise FrameError("rgb contains NaN or inf")
+        if not np.all(np.isfinite(depth)):
+            raise FrameError(f"depth contains {int((~np.isfinite(depth)).sum())} NaN/inf values (use 0 for missing)")
+        if (depth < 0).any():
+            raise FrameError("depth has negative values")
+        d = np.where((depth >= self.cfg.depth_min) & (depth <= self.cfg.depth_max), depth, 0.0)
+        if (d > 0).mean() < 0.05:
+            raise FrameError(f"only {(d > 0).mean() * 100:.1f} % of depth pixels are valid "
+                             f"(in [{self.cfg.depth_min}, {self.cfg.depth_max}] m); is the depth in metres?")
+        s = None
+        if sem is not None:
+            sem = np.asarray(sem)
+            if sem.shape != (k.height, k.width):
+                raise FrameError(f"semantics must be [{k.height}, {k.width}] ids, got {list(sem.shape)}")
+            s = torch.as_tensor(sem.astype(np.int64))
+            for i in np.unique(sem):
+                self.classes.setdefault(int(i), f"class_{int(i)}") if i > 0 else None
+        return torch.as_tensor(rgb, dtype=torch.float32), torch.as_tensor(d, dtype=torch.float32), s
+
+    # ------------------------------------------------------------------ main step
+    def add_frame(self, rgb: np.ndarray, depth: np.ndarray, semantics: np.ndarray | None = None,
+                  timestamp: float | None = None, gt_c2w: np.ndarray | None = None) -> np.ndarray:
+        """Track one frame and (on keyframes) update the map.
+
+        Args:
+            rgb: [H, W, 3] uint8 or float in [0, 1].
+            depth: [H, W] metres, 0 = missing.
+            semantics: [H, W] integer class ids (0 = unlabelled) or None.
+            timestamp: seconds (defaults to the frame index).
+            gt_c2w: [4, 4] ground-truth pose, kept for evaluation (used for tracking only when
+                ``tracking.use_gt_pose``; fixes the map frame on the first frame).
+
+        Returns:
+            [4, 4] estimated camera-to-world pose (float64).
+
+        Raises:
+            FrameError: bad shapes, NaN depth, almost no valid depth.
+        """
+        t0 = time.perf_counter()
+        rgb_t, depth_t, sem_t = self._tensors(rgb, depth, semantics)
+        idx = len(self.poses)
+        gt = None if gt_c2w is None else np.asarray(gt_c2w, np.float64)
+        residual, inliers, failed = float("nan"), 0, False
+        if idx == 0:
+            c2w = self.initial_c2w if self.initial_c2w is not None else (gt if gt is not None else np.eye(4))
+        elif self.cfg.tracking.use_gt_pose and gt is not None:
+            c2w = gt
+        else:
+            c2w, residual, inliers, failed = self._track(rgb_t, depth_t)
+        self.poses.append(np.asarray(c2w, np.float64))
+        self.gt_poses.append(gt)
+        self.timestamps.append(float(idx if timestamp is None else timestamp))
+        t1 = time.perf_counter()
+        is_kf = idx % self.cfg.mapping.keyframe_every == 0
+        added = pruned = 0
+        loss = float("nan")
+        if is_kf:
+            added, pruned, loss = self._map_keyframe(idx, rgb_t, depth_t, sem_t)
+        t2 = time.perf_counter()
+        entry = FrameLog(idx, self.timestamps[-1], is_kf, len(self.map), added, pruned, residual, inliers, failed,
+                         loss, t1 - t0, t2 - t1)
+        self.logs.append(entry)
+        ce = self.cfg.checkpoint_every
+        if ce > 0 and (idx + 1) % ce == 0:
+            self.checkpoint(self.cfg.checkpoint_dir)
+        return self.poses[-1].copy()
+
+    def _track(self, rgb: Tensor, depth: Tensor) -> tuple[np.ndarray, float, int, bool]:
+        prev = self.poses[-1]
+        guess = prev @ (np.linalg.inv(self.poses[-2]) @ prev) if len(self.poses) >= 2 else prev
+        g = torch.as_tensor(guess)
+        with torch.no_grad():
+            out = self.render_view(guess)
+        sil = out.silhouette
+        valid = sil > self.cfg.tracking.min_silhouette
+        model_depth = torch.where(valid, out.depth / sil.clamp_min(1e-6), torch.zeros_like(out.depth))
+        try:
+            res = icp(model_depth, valid, g, depth, self.k, self.cfg.tracking, out.rgb, rgb)
+        except TrackingError as exc:
+            log.warning("frame %d: %s; keeping the constant-velocity guess", len(self.poses), exc)
+            return guess, float("nan"), 0, True
+        c2w = res.c2w
+        if self.cfg.tracking.photometric_iters > 0:
+            c2w = photometric_refine(self.map.gaussians(), c2w, rgb, depth, self.k, self.cfg.renderer,
+                                     self.cfg.tracking)
+        return c2w.numpy(), res.residual, res.inliers, False
+
+    def render_view(self, c2w: np.ndarray) -> RenderOutput:
+        """Render the map at a camera-to-world pose (gradients off)."""
+        w2c = torch.as_tensor(np.linalg.inv(c2w), dtype=torch.float32)
+        with torch.no_grad():
+            g = self.map.gaussians()
+            g = type(g)(*(x.detach() if x is not None else None for x in
+                          (g.means, g.quats, g.log_scales, g.logit_opacities, g.rgb, g.semantic)))
+            return render(g, w2c, self.k, self.cfg.renderer)
+
+    # ------------------------------------------------------------------ mapping
+    def _densify(self, idx: int, rgb: Tensor, depth: Tensor, sem: Tensor | None, c2w: np.ndarray) -> int:
+        mc = self.cfg.mapping
+        valid = depth > 0
+        if len(self.map) == 0:
+            mask = valid
+        else:
+            out = self.render_view(c2w)
+            err = (out.depth - depth).abs() * valid
+            med = float(err[valid].median()) if bool(valid.any()) else 0.0
+            behind = (out.depth > depth) & (err > mc.densify_depth_factor * med)
+            mask = valid & ((out.silhouette < mc.densify_silhouette) | behind)
+        return self.map.add_from_frame(rgb, depth, sem, torch.as_tensor(c2w, dtype=torch.float32), self.k, mask,
+                                       mc.pixel_stride, idx, mc.radius_factor, mc.init_logit_opacity)
+
+    def _window(self, current: Keyframe) -> list[Keyframe]:
+        n = self.cfg.mapping.window - 1
+        if n <= 0 or len(self.keyframes) <= 1:
+            return [current]
+        from semantic_gs_slam.geometry import backproject
+
+        k = self.k
+        pts = backproject(current.depth, k.fx, k.fy, k.cx, k.cy)[::8, ::8].reshape(-1, 3)
+        pts = pts[pts[:, 2] > 0].double()
+        world = pts @ current.c2w[:3, :3].T + current.c2w[:3, 3]
+        scores = []
+        for kf in self.keyframes[:-1]:
+            w2c = torch.linalg.inv(kf.c2w)
+            pc = world @ w2c[:3, :3].T + w2c[:3, 3]
+            z = pc[:, 2]
+            u = k.fx * pc[:, 0] / z + k.cx
+            v = k.fy * pc[:, 1] / z + k.cy
+            inside = (z > 0) & (u >= 0) & (u < k.width) & (v >= 0) & (v < k.height)
+            scores.append(float(inside.double().mean()))
+        order = np.argsort(scores)[::-1][:n]
+        return [current] + [self.keyframes[i] for i in order if scores[i] > 0]
+
+    def _map_keyframe(self, idx: int, rgb: Tensor, depth: Tensor, sem: Tensor | None) -> tuple[int, int, float]:
+        mc = self.cfg.mapping
+        c2w = self.poses[-1]
+        added = self._densify(idx, rgb, depth, sem, c2w)
+        kf = Keyframe(idx, torch.as_tensor(c2w), rgb, depth, sem)
+        self.keyframes.append(kf)
+        window = self._window(kf)
+        iters = mc.first_frame_iters if idx == 0 else mc.iters
+        loss_v = self.optimise(window, iters)
+        pruned = 0
+        self._since_prune += 1
+        if self._since_prune >= mc.prune_every:
+            pruned = self.map.prune(mc.prune_opacity, mc.prune_max_scale)
+            self._since_prune = 0
+        return added, pruned, loss_v
+
+    def optimise(self, window: list[Keyframe], iters: int) -> float:
+        """Adam over all Gaussian parameters on the keyframes of ``window`` (cycled). Returns the last loss."""
+        if iters <= 0 or len(self.map) == 0:
+            return float("nan")
+        mc = self.cfg.mapping
+        p = self.map.params
+        opt = torch.optim.Adam([
+            {"params": [p["means3D"]], "lr": mc.lr_means}, {"params": [p["rgb_colors"]], "lr": mc.lr_rgb},
+            {"params": [p["unnorm_rotations"]], "lr": mc.lr_rotations},
+            {"params": [p["logit_opacities"]], "lr": mc.lr_opacity},
+            {"params": [p["log_scales"]], "lr": mc.lr_scales},
+            {"params": [p["semantic_colors"]], "lr": mc.lr_semantic}])
+        w2cs = [torch.linalg.inv(kf.c2w).float() for kf in window]
+        sem_imgs = [None if kf.sem is None else torch.as_tensor(palette(kf.sem.numpy()), dtype=torch.float32)
+                    for kf in window]
+        loss_v = float("nan")
+        for it in range(iters):
+            j = it % len(window)
+            kf = window[j]
+            out = render(self.map.gaussians(), w2cs[j], self.k, self.cfg.renderer)
+            valid = kf.depth > 0
+            l_depth = (out.depth - kf.depth).abs()[valid].mean()
+            l1 = (out.rgb - kf.rgb).abs().mean()
+            l_col = (1 - mc.w_ssim) * l1 + mc.w_ssim * (1 - ssim(out.rgb, kf.rgb)) if mc.w_ssim > 0 else l1
+            loss = mc.w_depth * l_depth + mc.w_colour * l_col
+            if sem_imgs[j] is not None and out.semantic is not None and mc.w_semantic > 0:
+                loss = loss + mc.w_semantic * (out.semantic - sem_imgs[j]).abs().mean()
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            loss_v = float(loss.detach())
+        return loss_v
+
+    # ------------------------------------------------------------------ output
+    def semantic_ids(self) -> np.ndarray:
+        """Per-Gaussian class id from the optimised semantic colours (nearest class palette colour)."""
+        return self.map.ids_from_colours(sorted(i for i in self.classes if i > 0))
+
+    def save(self, out_dir: str, ply: bool = True) -> dict[str, str]:
+        """Write ``params.npz``, ``semantic.json`` (and ``map.ply``) into ``out_dir``; returns the paths."""
+        os.makedirs(out_dir, exist_ok=True)
+        self.map.semantic_ids = torch.as_tensor(self.semantic_ids())
+        paths = {"params": os.path.join(out_dir, "params.npz"), "semantic": os.path.join(out_dir, "semantic.json")}
+        w2c = [np.linalg.inv(p) for p in self.poses]
+        gt = [None if g is None else np.linalg.inv(g) for g in self.gt_poses]
+        save_params(paths["params"], self.map, self.k, w2c, gt, [kf.index for kf in self.keyframes])
+        save_semantic_json(paths["semantic"], {i: c for i, c in self.classes.items() if i > 0})
+        if ply:
+            paths["ply"] = os.path.join(out_dir, "map.ply")
+            export_ply(paths["ply"], self.map)
+        return paths
+
+    def checkpoint(self, ckpt_dir: str) -> None:
+        """Write everything needed to :meth:`resume` (map, poses, keyframes, config) atomically enough:
+        files are written under temporary names and renamed."""
+        os.makedirs(ckpt_dir, exist_ok=True)
+        self.save(ckpt_dir, ply=False)
+        kfs = self.keyframes
+        state = {
+            "poses": np.stack(self.poses), "timestamps": np.array(self.timestamps),
+            "gt_poses": np.stack([g if g is not None else np.full((4, 4), np.nan) for g in self.gt_poses]),
+            "kf_index": np.array([kf.index for kf in kfs], np.int64),
+            "kf_c2w": np.stack([kf.c2w.numpy() for kf in kfs]) if kfs else np.zeros((0, 4, 4)),
+            "kf_rgb": np.stack([(kf.rgb.numpy() * 255 + 0.5).astype(np.uint8) for kf in kfs]) if kfs else np.zeros(0),
+            "kf_depth": np.stack([kf.depth.numpy() for kf in kfs]) if kfs else np.zeros(0),
+            "kf_sem": np.stack([kf.sem.numpy() if kf.sem is not None else np.full(kf.depth.shape, -1) for kf in kfs])
+            if kfs else np.zeros(0),
+            "map_semantic_ids_raw": self.map.semantic_ids.numpy(),
+            "since_prune": np.array(self._since_prune)}
+        tmp = os.path.join(ckpt_dir, "state.tmp.npz")
+        np.savez_compressed(tmp, **state)
+        os.replace(tmp, os.path.join(ckpt_dir, "state.npz"))
+        meta = {"config": self.cfg.to_dict(), "classes": {str(k): v for k, v in self.classes.items()},
+                "frames": len(self.poses), "initial_c2w": None if self.initial_c2w is None else
+                self.initial_c2w.tolist()}
+        with open(os.path.join(ckpt_dir, "checkpoint.tmp.json"), "w") as fh:
+            json.dump(meta, fh)
+        os.replace(os.path.join(ckpt_dir, "checkpoint.tmp.json"), os.path.join(ckpt_dir, "checkpoint.json"))
+
+    @classmethod
+    def resume(cls, ckpt_dir: str, config: SlamConfig | None = None) -> SLAM:
+        """Rebuild an engine from :meth:`checkpoint` output; continue with the next frame.
+
+        Args:
+            ckpt_dir: the checkpoint folder.
+            config: overrides the stored configuration when given.
+
+        Raises:
+            MapFormatError: missing or inconsistent checkpoint files.
+        """
+        meta_p = os.path.join(ckpt_dir, "checkpoint.json")
+        if not os.path.isfile(meta_p):
+            raise MapFormatError(f"no checkpoint in {ckpt_dir} (checkpoint.json missing)")
+        with open(meta_p) as fh:
+            meta = json.load(fh)
+        cfg = config or SlamConfig.from_dict(meta["config"])
+        eng = cls(cfg, {int(k): v for k, v in meta["classes"].items()}, meta.get("initial_c2w"))
+        arr = load_params(os.path.join(ckpt_dir, "params.npz"))
+        st = load_params(os.path.join(ckpt_dir, "state.npz"))
+        eng.map = GaussianMap.from_arrays(arr, cfg.device)
+        eng.map.semantic_ids = torch.as_tensor(st["map_semantic_ids_raw"].astype(np.int64))
+        if len(st["poses"]) != meta["frames"]:
+            raise MapFormatError(f"{ckpt_dir}: state has {len(st['poses'])} poses, checkpoint.json says {meta['frames']}")
+        eng.poses = [p for p in st["poses"]]
+        eng.timestamps = [float(t) for t in st["timestamps"]]
+        eng.gt_poses = [None if np.isnan(g).any() else g for g in st["gt_poses"]]
+        for i in range(len(st["kf_index"])):
+            sem = st["kf_sem"][i]
+            eng.keyframes.append(Keyframe(int(st["kf_index"][i]), torch.as_tensor(st["kf_c2w"][i]),
+                                          torch.as_tensor(st["kf_rgb"][i].astype(np.float32) / 255.0),
+                                          torch.as_tensor(st["kf_depth"][i]),
+                                          None if (sem < 0).all() else torch.as_tensor(sem.astype(np.int64))))
+        eng._since_prune = int(st["since_prune"])
+        return eng
+
+    @staticmethod
+    def load_map(out_dir: str) -> tuple[GaussianMap, dict[int, str], dict[str, np.ndarray]]:
+        """Load a saved map (ours or SplaTAM / SGS-SLAM's ``params.npz`` + ``semantic.json``)."""
+        arr = load_params(os.path.join(out_dir, "params.npz"))
+        sp = os.path.join(out_dir, "semantic.json")
+        classes = load_semantic_json(sp) if os.path.isfile(sp) else {}
+        return GaussianMap.from_arrays(arr), classes, arr
+
+    def stats(self) -> dict:
+        """Summary for logs: frames, keyframes, Gaussians, last frame log."""
+        return {"frames": len(self.poses), "keyframes": len(self.keyframes), "gaussians": len(self.map),
+                "last": asdict(self.logs[-1]) if self.logs else None}
