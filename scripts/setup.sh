@@ -81,7 +81,7 @@ for extra in ${HOME_ROBOT_EXTRAS:-}; do
   [ -f "requirements/$extra.in" ] || die "unknown extra '$extra' (no requirements/$extra.in)"
   reqs+=("requirements/$extra.in")
 done
-want=$(cat "${reqs[@]}" requirements/ros-jazzy.lock | sha256sum | cut -d' ' -f1)
+want=$(cat "${reqs[@]}" requirements/torch.in requirements/ros-jazzy.lock | sha256sum | cut -d' ' -f1)
 if [ "$(cat "$VENV/.requirements-installed" 2>/dev/null || true)" != "$want" ]; then
   log "pip install: ${reqs[*]}"
   args=(); for r in "${reqs[@]}"; do args+=(-r "$r"); done
@@ -89,6 +89,10 @@ if [ "$(cat "$VENV/.requirements-installed" 2>/dev/null || true)" != "$want" ]; 
   # (grep drops the noise of pip configs that list absent local indexes)
   "$PY" -m pip install -q --disable-pip-version-check "${args[@]}" "${cons[@]}" \
     2> >(grep -v "is ignored: it is neither a file nor a directory" >&2)
+  # torch without its declared deps (see requirements/torch.in); its runtime deps came with slam.in
+  "$PY" -m pip install -q --disable-pip-version-check --no-deps -r requirements/torch.in \
+    2> >(grep -v "is ignored: it is neither a file nor a directory" >&2)
+  "$PY" -c 'import torch, setuptools; print(f"[setup] torch {torch.__version__}, setuptools {setuptools.__version__}")'
   echo "$want" > "$VENV/.requirements-installed"
 else
   log "Python packages up to date"
