@@ -67,6 +67,7 @@ class SlamClient(Node):
         self._fb_lock = threading.Lock()  # guards _feedback
         self._feedback: RunSlam.Feedback | None = None
         self._t_first = time.monotonic()
+        self._last_print = 0.0
 
     def _on_feedback(self, msg) -> None:
         with self._fb_lock:
@@ -134,7 +135,6 @@ class SlamClient(Node):
                 next_t += period
                 time.sleep(max(0.0, next_t - time.monotonic()))
             self._done_pub.publish(String(data=json.dumps({"frames_sent": n})))
-            print(file=sys.stderr)
             log.info(f"sent {n} frames; waiting for the map")
             while not result_future.done():
                 time.sleep(0.5)
@@ -145,7 +145,6 @@ class SlamClient(Node):
             _wait(result_future, 120.0)
             return 130
         res = result_future.result().result
-        print(file=sys.stderr)
         (log.info if res.success else log.error)(
             f"{'map ready' if res.success else 'run failed'}: {res.message}; map {res.map_path or '-'}")
         return 0 if res.success else 1
@@ -170,6 +169,12 @@ class SlamClient(Node):
         return True
 
     def _print_progress(self, sent: int, total: int) -> None:
+        """A progress line: rewritten in place on a terminal (at most 5 Hz), else every 5 s."""
+        now = time.monotonic()
+        tty = sys.stderr.isatty()
+        if now - self._last_print < (0.2 if tty else 5.0) and sent != total:
+            return
+        self._last_print = now
         with self._fb_lock:
             fb = self._feedback
         done = fb.frames_processed if fb else 0
@@ -177,8 +182,8 @@ class SlamClient(Node):
         paused = "" if (fb is None or fb.subscribed) else " (server paused intake)"
         rate = done / max(time.monotonic() - self._t_first, 1e-6)
         eta = (total - done) / rate if rate > 0 else float("nan")
-        print(f"\rsent {sent}/{total}  processed {done}  lag {lag}  ETA {eta:5.0f} s{paused}   ",
-              end="", file=sys.stderr, flush=True)
+        line = f"sent {sent}/{total}  processed {done}  lag {lag}  ETA {eta:5.0f} s{paused}"
+        print(f"\r{line}   " if tty else line, end="" if tty else "\n", file=sys.stderr, flush=True)
 
 
 def _wait(future, timeout: float):

@@ -4,11 +4,14 @@ A colour image is paired with the depth (and semantic) image whose stamp is near
 if that is within ``tolerance`` AND the colour image is also the nearest colour image to that
 depth stamp (mutual nearest neighbours), so frames are never mispaired — an ambiguous or
 unmatched image is dropped and counted instead. Images may arrive out of order; one that waited
-longer than ``max_wait`` (in stream time: newest stamp seen minus its stamp) is dropped.
+longer than ``max_wait`` seconds (wall clock, since it arrived) for its partner is dropped. Wall
+clock, not stream time: a recording may be streamed much faster than it was recorded.
 """
 
 from __future__ import annotations
 
+import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -36,18 +39,20 @@ class FrameMatcher:
     """Args:
         tolerance: largest |stamp difference| (s) of a pair; keep it below half the frame period.
         use_semantic: also require a semantic image per frame.
-        max_wait: stream-time (s) an image may wait for its partner before it is dropped.
+        max_wait: seconds (wall clock) an image may wait for its partner before it is dropped.
         max_pending: bound on waiting images per stream (oldest dropped first).
+        clock: monotonic clock in seconds (tests pass a fake one).
     """
 
-    def __init__(self, tolerance: float = 0.02, use_semantic: bool = False, max_wait: float = 0.5,
-                 max_pending: int = 64) -> None:
+    def __init__(self, tolerance: float = 0.02, use_semantic: bool = False, max_wait: float = 2.0,
+                 max_pending: int = 64, clock: Callable[[], float] = time.monotonic) -> None:
         if tolerance < 0 or max_wait <= 0 or max_pending <= 0:
             raise ValueError("tolerance must be >= 0, max_wait and max_pending > 0")
         self.tolerance, self.max_wait, self.max_pending = tolerance, max_wait, max_pending
         self.streams = STREAMS if use_semantic else STREAMS[:2]
         self._pending: dict[str, dict[float, Any]] = {s: {} for s in self.streams}
-        self._newest = float("-inf")
+        self._arrived: dict[str, dict[float, float]] = {s: {} for s in self.streams}  # stamp -> arrival time
+        self._clock = clock
         self.stats = MatchStats()
 
     def push(self, stream: str, stamp: float, image: Any) -> list[MatchedFrame]:
@@ -59,7 +64,7 @@ class FrameMatcher:
             self.stats.duplicates += 1  # same stamp twice on one stream: keep the first
             return []
         pending[stamp] = image
-        self._newest = max(self._newest, stamp)
+        self._arrived[stream][stamp] = self._clock()
         out = self._match()
         self._expire()
         return out
@@ -81,18 +86,25 @@ class FrameMatcher:
                     break
                 partners[s] = t
             else:
-                rgb = self._pending["rgb"].pop(t_rgb)
-                imgs = {s: self._pending[s].pop(t) for s, t in partners.items()}
+                rgb = self._take("rgb", t_rgb)
+                imgs = {s: self._take(s, t) for s, t in partners.items()}
                 out.append(MatchedFrame(t_rgb, rgb, imgs["depth"], imgs.get("semantic")))
                 self.stats.matched += 1
         return out
 
+    def _take(self, stream: str, stamp: float) -> Any:
+        self._arrived[stream].pop(stamp, None)
+        return self._pending[stream].pop(stamp)
+
     def _expire(self) -> None:
+        now = self._clock()
         for s, pending in self._pending.items():
-            old = [t for t in pending if self._newest - t > self.max_wait]
-            old += sorted(t for t in pending if t not in old)[: max(0, len(pending) - len(old) - self.max_pending)]
+            arrived = self._arrived[s]
+            old = {t for t in pending if now - arrived[t] > self.max_wait}
+            rest = sorted(t for t in pending if t not in old)
+            old.update(rest[: max(0, len(rest) - self.max_pending)])
             for t in old:
-                pending.pop(t, None)
+                self._take(s, t)
                 self.stats.dropped[s] += 1
 
     def flush(self) -> None:
@@ -100,6 +112,7 @@ class FrameMatcher:
         for s, pending in self._pending.items():
             self.stats.dropped[s] += len(pending)
             pending.clear()
+            self._arrived[s].clear()
 
     def pending(self) -> dict[str, int]:
         return {s: len(p) for s, p in self._pending.items()}

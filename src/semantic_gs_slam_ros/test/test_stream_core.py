@@ -97,17 +97,33 @@ def test_in_order_pairs():
 
 
 def test_out_of_order_and_missing_depth_never_mispair():
-    m = FrameMatcher(tolerance=0.01, max_wait=0.35)
+    now = [0.0]
+    m = FrameMatcher(tolerance=0.01, max_wait=0.35, clock=lambda: now[0])
     out = []
-    # depth of frame 1 is missing, depth of frame 3 arrives before its colour, frame 2's colour late
+    # depth of frame 1 is missing, depth of frame 3 arrives before its colour, frame 2's colour late;
+    # images arrive 0.1 s apart (wall clock)
     events = [("rgb", 0.0, "c0"), ("depth", 0.0, "d0"), ("rgb", 0.1, "c1"), ("depth", 0.3, "d3"),
               ("depth", 0.2, "d2"), ("rgb", 0.3, "c3"), ("rgb", 0.2, "c2"), ("rgb", 0.6, "c6"), ("depth", 0.6, "d6")]
     for s, t, v in events:
+        now[0] += 0.1
         out += m.push(s, t, v)
     pairs = [(f.rgb, f.depth) for f in out]
     assert sorted(pairs) == [("c0", "d0"), ("c2", "d2"), ("c3", "d3"), ("c6", "d6")]
     assert m.stats.dropped["rgb"] == 1  # c1 waited longer than max_wait
     assert all(p[0][1:] == p[1][1:] for p in pairs)
+
+
+def test_fast_replay_is_not_dropped():
+    """A recording sent much faster than real time (stamps 1 s apart, arriving at once) all matches,
+    whatever the interleaving of the topics."""
+    m = FrameMatcher(tolerance=0.01, use_semantic=True, clock=lambda: 0.0)
+    out = []
+    for i in range(10):
+        out += m.push("depth", float(i + 1), i)
+        out += m.push("semantic", float(i + 1), i)
+    for i in reversed(range(10)):
+        out += m.push("rgb", float(i + 1), i)
+    assert sorted((f.rgb, f.depth, f.semantic) for f in out) == [(i, i, i) for i in range(10)]
 
 
 def test_ambiguous_match_is_not_forced():
