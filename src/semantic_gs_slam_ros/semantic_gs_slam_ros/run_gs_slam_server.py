@@ -59,7 +59,7 @@ class SlamServer(Node):
         p("checkpoint_every", 20)
         p("export_every", 0)
         p("slam_config", "")  # YAML of the engine's SlamConfig ("" = defaults)
-        p("reload_service", "object_query/reload")
+        p("reload_service", "/object_query_server/reload")  # std_srvs/Trigger of object_query_server
         p("done_wait", 10.0)  # s to wait for images still in flight after data_transfer_done
         p("image_qos_depth", 50)
         self._busy = threading.Lock()  # held while a goal runs (one goal at a time)
