@@ -25,6 +25,7 @@ from rclpy.action import ActionClient
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
 from semantic_gs_slam_interfaces.action import RunSlam
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String
@@ -61,13 +62,24 @@ class SlamClient(Node):
         self._pubs = {s: self.create_publisher(Image, s, IMAGE_QOS) for s in ("rgb", "depth", "semantic")}
         self._info_pub = self.create_publisher(CameraInfo, "camera_info", IMAGE_QOS)
         self._done_pub = self.create_publisher(String, "data_transfer_done", LATCHED)
+        self._goal_id: str | None = None
+        self._start: dict | None = None  # the start signal of our goal
         self._started = threading.Event()
-        self.create_subscription(String, "slam_start_signal", lambda _m: self._started.set(), LATCHED)
+        self.create_subscription(String, "slam_start_signal", self._on_start, LATCHED)
         self._action = ActionClient(self, RunSlam, "run_gs_slam")
         self._fb_lock = threading.Lock()  # guards _feedback
         self._feedback: RunSlam.Feedback | None = None
         self._t_first = time.monotonic()
         self._last_print = 0.0
+
+    def _on_start(self, msg: String) -> None:
+        try:
+            doc = json.loads(msg.data)
+        except ValueError:
+            return
+        if isinstance(doc, dict) and self._goal_id is not None and doc.get("goal") == self._goal_id:
+            self._start = doc
+            self._started.set()
 
     def _on_feedback(self, msg) -> None:
         with self._fb_lock:
@@ -106,12 +118,24 @@ class SlamClient(Node):
         if handle is None or not handle.accepted:
             log.error("goal rejected (is another run in progress?)")
             return 2
+        self._goal_id = bytes(handle.goal_id.uuid).hex()
         result_future = handle.get_result_async()
         self._t_first = time.monotonic()
-        if not self._started.wait(g("server_timeout")):
-            log.error("no /slam_start_signal from the server")
-            handle.cancel_goal_async()
-            return 2
+        deadline = time.monotonic() + g("server_timeout")
+        while not self._started.wait(0.05):
+            if result_future.done():
+                log.error(f"run failed before it started: {result_future.result().result.message}")
+                return 1
+            if time.monotonic() > deadline:
+                log.error("no /slam_start_signal from the server")
+                handle.cancel_goal_async()
+                return 2
+        skip = int(self._start.get("frames_done", 0)) if g("resume") else 0
+        if skip:
+            log.info(f"the server resumes after {skip} frames: skipping them")
+            indices = indices[skip:]
+        if not indices:
+            indices = [len(data) - 1]  # nothing left: send the last frame again so the run can finish
         streams = ["rgb", "depth"] + (["semantic"] if data.sem_paths is not None else [])
         t0_wall, t0_data = time.time(), data.timestamps[indices[0]]
         period = 1.0 / g("rate") if g("rate") > 0 else 0.0
@@ -134,7 +158,7 @@ class SlamClient(Node):
                 self._print_progress(n, len(indices))
                 next_t += period
                 time.sleep(max(0.0, next_t - time.monotonic()))
-            self._done_pub.publish(String(data=json.dumps({"frames_sent": n})))
+            self._done_pub.publish(String(data=json.dumps({"goal": self._goal_id, "frames_sent": n})))
             log.info(f"sent {n} frames; waiting for the map")
             while not result_future.done():
                 time.sleep(0.5)
@@ -194,7 +218,9 @@ def _wait(future, timeout: float):
 
 
 def main(args: list[str] | None = None) -> int:
-    rclpy.init(args=args)
+    # Ctrl-C must reach run() as KeyboardInterrupt (to cancel the goal and wait for the saved
+    # map) while the executor keeps running: rclpy's own handler would shut the context down.
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = SlamClient()
     executor = MultiThreadedExecutor(num_threads=2)
     executor.add_node(node)

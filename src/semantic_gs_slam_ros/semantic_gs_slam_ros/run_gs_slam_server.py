@@ -8,8 +8,10 @@ reads it and asks that server to reload. Cancel stops after the current frame an
 
 Topics (relative names, remap as usual): ``rgb`` (sensor_msgs/Image), ``depth`` (32FC1 metres or
 16UC1), ``semantic`` (optional, integer ids), ``camera_info`` (sensor_msgs/CameraInfo),
-``slam_start_signal`` (std_msgs/String, out), ``data_transfer_done`` (std_msgs/String JSON
-``{"frames_sent": N}``, in).
+``slam_start_signal`` (std_msgs/String JSON ``{"goal": id, "frames_done": N}``, out; N > 0 after
+a resume: the client skips the first N frames of its sequence), ``data_transfer_done``
+(std_msgs/String JSON ``{"goal": id, "frames_sent": N}``, in). Both are latched (transient local);
+the goal id tells runs apart.
 """
 
 from __future__ import annotations
@@ -28,6 +30,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profi
 from semantic_gs_slam_interfaces.action import RunSlam
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String
+from std_srvs.srv import Trigger
 
 from semantic_gs_slam_ros.engine import make_engine
 from semantic_gs_slam_ros.errors import ImageFormatError, StreamingError
@@ -75,9 +78,11 @@ class SlamServer(Node):
                                  callback_group=self._images_group)
         self.create_subscription(CameraInfo, "camera_info", self._on_camera_info, qos_profile_sensor_data,
                                  callback_group=self._images_group)
+        self._goal_id: str | None = None  # hex uuid of the running goal
         self._done_expected: int | None = None  # frames the client announced as sent
         self._done_deadline = float("inf")
-        self._reload = None
+        name = self.get_parameter("reload_service").value
+        self._reload = self.create_client(Trigger, name, callback_group=self._images_group) if name else None
         self._action = ActionServer(self, RunSlam, "run_gs_slam", execute_callback=self._execute,
                                     goal_callback=self._on_goal, cancel_callback=self._on_cancel,
                                     callback_group=self._action_group)
@@ -116,7 +121,10 @@ class SlamServer(Node):
 
     def _on_done(self, msg: String) -> None:
         try:
-            expected = int(json.loads(msg.data).get("frames_sent", 0))
+            doc = json.loads(msg.data)
+            expected = int(doc.get("frames_sent", 0))
+            if doc.get("goal") != self._goal_id:
+                return  # another (earlier) run's signal
         except (ValueError, AttributeError, TypeError):
             self.get_logger().warning(
                 f"malformed data_transfer_done {msg.data[:80]!r}; expected {{\"frames_sent\": N}}")
@@ -191,12 +199,12 @@ class SlamServer(Node):
         self._done_deadline = float("inf")
         try:
             resume_state = checkpoint_state(cfg.work_dir) if goal.resume else None
+            cfg.frames_before = int(resume_state["processed"]) if resume_state else 0
             engine = make_engine(self.get_parameter("slam_config").value, self._wait_intrinsics, cfg,
                                  classes=parse_classes(goal.semantic_classes),
                                  resume_dir=os.path.join(cfg.work_dir, "checkpoint") if resume_state else None)
             session = StreamingSession(cfg, engine, on_map=self._request_reload,
-                                       log=lambda line: self.get_logger().info(line),
-                                       skip_until_stamp=(resume_state or {}).get("last_stamp"))
+                                       log=lambda line: self.get_logger().info(line))
         except StreamingError as exc:
             goal_handle.abort()
             result.message = str(exc)
@@ -205,8 +213,11 @@ class SlamServer(Node):
         with self._session_lock:
             self._session = session
             self._subscribe()
-        what = f"resuming after frame {resume_state['processed']}" if resume_state else "fresh start"
-        self._start_pub.publish(String(data=json.dumps({"dataset": goal.dataset_name, "mode": what})))
+        done_before = cfg.frames_before
+        what = f"resuming after frame {done_before}" if resume_state else "fresh start"
+        self._goal_id = bytes(goal_handle.goal_id.uuid).hex()
+        self._start_pub.publish(String(data=json.dumps({"goal": self._goal_id, "frames_done": done_before,
+                                                        "dataset": goal.dataset_name})))
         self.get_logger().info(f"run started ({what}); work_dir={cfg.work_dir}, map_dir={cfg.resolved_map_dir()}")
 
         def feedback(p: Progress) -> None:
@@ -234,19 +245,21 @@ class SlamServer(Node):
         return None
 
     def _request_reload(self, map_path: str, semantic_path: str) -> None:
-        name = self.get_parameter("reload_service").value
-        if not name:
-            return
-        from std_srvs.srv import Trigger
-
+        """Ask the object-query server to load the map just written (SLAM thread; bounded wait)."""
         if self._reload is None:
-            self._reload = self.create_client(Trigger, name, callback_group=self._images_group)
-        if not self._reload.service_is_ready():
-            self.get_logger().info(f"map written; no {name} service to ask for a reload")
+            return
+        if not self._reload.wait_for_service(timeout_sec=2.0):
+            self.get_logger().info(f"map written; no {self._reload.srv_name} service to ask for a reload")
             return
         future = self._reload.call_async(Trigger.Request())
-        future.add_done_callback(lambda f: self.get_logger().info(
-            f"object-query reload: {f.result().message if f.result() else f.exception()}"))
+        done = threading.Event()
+        future.add_done_callback(lambda _f: done.set())
+        if not done.wait(10.0):
+            self.get_logger().warning(f"{self._reload.srv_name} did not answer within 10 s")
+            return
+        res = future.result()
+        (self.get_logger().info if res.success else self.get_logger().warning)(
+            f"object-query reload: {res.message}")
 
 
 def parse_classes(text: str) -> dict[int, str]:

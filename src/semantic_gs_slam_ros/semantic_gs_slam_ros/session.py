@@ -65,6 +65,7 @@ class SessionConfig:
         map_dir: where the object-query server reads params.npz + semantic.json ("" = work_dir/map).
         max_frames: stop after this many processed frames (0 = until the client is done).
         clean_start: remove frames of an earlier run from work_dir at start.
+        frames_before: frames processed by the run this one resumes (checkpoint bookkeeping).
     """
 
     work_dir: str
@@ -80,6 +81,7 @@ class SessionConfig:
     map_dir: str = ""
     max_frames: int = 0
     clean_start: bool = True
+    frames_before: int = 0
 
     def resolved_map_dir(self) -> str:
         return self.map_dir or os.path.join(self.work_dir, "map")
@@ -92,7 +94,6 @@ class Progress:
     dropped: dict[str, int] = field(default_factory=dict)
     written: int = 0
     processed: int = 0
-    skipped: int = 0  # already processed before a resume
     refused: int = 0  # the writer could not take them (queue full or failed)
     backlog: int = 0
     subscribed: bool = True
@@ -133,13 +134,11 @@ class StreamingSession:
         on_map: called (on the SLAM thread) with (params.npz, semantic.json) after each export,
             e.g. to ask the object-query server to reload.
         log: called with human-readable log lines.
-        skip_until_stamp: after a resume, frames stamped at or before this were already processed
-            (the client streams the sequence again from its start) and are skipped.
     """
 
     def __init__(self, config: SessionConfig, engine: SlamEngine,
                  on_map: Callable[[str, str], None] | None = None,
-                 log: Callable[[str], None] | None = None, skip_until_stamp: float | None = None) -> None:
+                 log: Callable[[str], None] | None = None) -> None:
         self.cfg = config
         self.engine = engine
         self._on_map = on_map or (lambda _m, _s: None)
@@ -153,7 +152,6 @@ class StreamingSession:
         self._cancelled = False
         self._ready: collections.deque[WrittenFrame] = collections.deque()  # written, not yet processed
         self._wake = threading.Event()  # set when a frame is written, or on done/cancel
-        self._skip_until = skip_until_stamp
         self._writer = AsyncFrameWriter(config.work_dir, self._on_written)
 
     # ---------------------------------------------------------------- producer side (callbacks)
@@ -169,10 +167,6 @@ class StreamingSession:
             self._progress.matched = self._matcher.stats.matched
             self._progress.dropped = dict(self._matcher.stats.dropped)
         for frame in frames:
-            if self._skip_until is not None and frame.stamp <= self._skip_until + 1e-6:
-                with self._lock:
-                    self._progress.skipped += 1
-                continue
             if not self._writer.submit(frame):
                 with self._lock:
                     self._progress.refused += 1
@@ -214,7 +208,7 @@ class StreamingSession:
     def progress(self) -> Progress:
         with self._lock:
             p = Progress(**{k: (dict(v) if isinstance(v, dict) else v) for k, v in vars(self._progress).items()})
-        p.backlog = p.matched - p.skipped - p.refused - p.processed
+        p.backlog = p.matched - p.refused - p.processed
         return p
 
     def lag_action(self) -> LagAction:
@@ -240,8 +234,7 @@ class StreamingSession:
                 frame = self._ready.popleft() if self._ready else None
                 cancelled = self._cancelled
                 finished = self._done_sending and not self._ready and self._writer.pending() == 0 \
-                    and self._progress.written >= self._progress.matched - self._progress.skipped \
-                    - self._progress.refused
+                    and self._progress.written >= self._progress.matched - self._progress.refused
             if self._writer.error is not None:
                 message = str(self._writer.error)
                 break
@@ -290,7 +283,7 @@ class StreamingSession:
         self.engine.save_checkpoint(os.path.join(tmp, "engine"))
         with open(os.path.join(tmp, "session.json"), "w") as fh:
             json.dump({"last_index": frame.index, "last_stamp": frame.stamp,
-                       "processed": self.progress().processed}, fh)
+                       "processed": self.cfg.frames_before + self.progress().processed}, fh)
         if os.path.isdir(ckpt_dir):
             shutil.rmtree(ckpt_dir)
         os.replace(tmp, ckpt_dir)
