@@ -56,12 +56,14 @@ class SlamServer(Node):
         p("height", 680)
         p("depth_scale", 1000.0)
         p("sync_tolerance", 0.02)
+        p("sync_max_wait", 5.0)
         p("use_semantic", False)
         p("lag_high", 300)
         p("lag_low", 150)
         p("checkpoint_every", 20)
         p("export_every", 0)
         p("slam_config", "")  # YAML of the engine's SlamConfig ("" = defaults)
+        p("slam_enabled", True)  # false = record frames only (no map), e.g. for offline runs
         p("reload_service", "/object_query_server/reload")  # std_srvs/Trigger of object_query_server
         p("done_wait", 10.0)  # s to wait for images still in flight after data_transfer_done
         p("image_qos_depth", 50)
@@ -147,10 +149,15 @@ class SlamServer(Node):
                 self.get_logger().info("backlog drained: image topics subscribed again")
         expected = self._done_expected
         if expected is not None:
-            received = session.progress().received.get("rgb", 0)
+            # every image stream must have delivered the announced count: the topics are
+            # independent, so the last depth images may still be on their way after the colour ones
+            streams = session.matcher_streams()
+            counts = session.progress().received
+            received = min(counts.get(s, 0) for s in streams)
             if received >= expected or time.monotonic() > self._done_deadline:
                 if received < expected:
-                    self.get_logger().warning(f"data_transfer_done: {received} of {expected} colour images arrived")
+                    got = ", ".join(f"{counts.get(s, 0)} {s}" for s in streams)
+                    self.get_logger().warning(f"data_transfer_done: {expected} frames announced, {got} arrived")
                 self._done_expected = None
                 session.data_transfer_done()
 
@@ -173,7 +180,8 @@ class SlamServer(Node):
             work_dir=goal.output_dir or g("work_dir").value,
             map_dir=goal.map_dir or g("map_dir").value,
             width=g("width").value, height=g("height").value, depth_scale=g("depth_scale").value,
-            sync_tolerance=g("sync_tolerance").value, use_semantic=g("use_semantic").value,
+            sync_tolerance=g("sync_tolerance").value, sync_max_wait=g("sync_max_wait").value,
+            use_semantic=g("use_semantic").value,
             lag_high=g("lag_high").value, lag_low=g("lag_low").value,
             checkpoint_every=g("checkpoint_every").value, export_every=g("export_every").value,
             max_frames=goal.max_frames, clean_start=not goal.resume)
@@ -200,9 +208,11 @@ class SlamServer(Node):
         try:
             resume_state = checkpoint_state(cfg.work_dir) if goal.resume else None
             cfg.frames_before = int(resume_state["processed"]) if resume_state else 0
-            engine = make_engine(self.get_parameter("slam_config").value, self._wait_intrinsics, cfg,
-                                 classes=parse_classes(goal.semantic_classes),
-                                 resume_dir=os.path.join(cfg.work_dir, "checkpoint") if resume_state else None)
+            engine = None
+            if self.get_parameter("slam_enabled").value:
+                engine = make_engine(self.get_parameter("slam_config").value, self._wait_intrinsics, cfg,
+                                     classes=parse_classes(goal.semantic_classes),
+                                     resume_dir=os.path.join(cfg.work_dir, "checkpoint") if resume_state else None)
             session = StreamingSession(cfg, engine, on_map=self._request_reload,
                                        log=lambda line: self.get_logger().info(line))
         except StreamingError as exc:

@@ -58,6 +58,7 @@ class SessionConfig:
         width, height: images are resized to this (seed: 1200×680); 0 = keep the input size.
         depth_scale: units per metre of the depth PNGs (1000 → mm).
         sync_tolerance: largest colour/depth stamp difference of a frame (s).
+        sync_max_wait: seconds an image waits for its partner before it is dropped as unmatched.
         use_semantic: also wait for a semantic-id image per frame.
         lag_high, lag_low: unsubscribe above / resubscribe below this backlog (frames).
         checkpoint_every: save an engine checkpoint every N processed frames (0 = never).
@@ -73,6 +74,7 @@ class SessionConfig:
     height: int = 680
     depth_scale: float = 1000.0
     sync_tolerance: float = 0.02
+    sync_max_wait: float = 5.0
     use_semantic: bool = False
     lag_high: int = 300
     lag_low: int = 150
@@ -130,13 +132,14 @@ def atomic_publish_map(src_dir: str, map_dir: str) -> tuple[str, str]:
 class StreamingSession:
     """Args:
         config: the run's settings.
-        engine: the SLAM engine (kept in memory for the whole run).
+        engine: the SLAM engine (kept in memory for the whole run); None = record only (frames
+            are written to disk, no map is made).
         on_map: called (on the SLAM thread) with (params.npz, semantic.json) after each export,
             e.g. to ask the object-query server to reload.
         log: called with human-readable log lines.
     """
 
-    def __init__(self, config: SessionConfig, engine: SlamEngine,
+    def __init__(self, config: SessionConfig, engine: SlamEngine | None,
                  on_map: Callable[[str, str], None] | None = None,
                  log: Callable[[str], None] | None = None) -> None:
         self.cfg = config
@@ -145,7 +148,7 @@ class StreamingSession:
         self._log = log or (lambda _line: None)
         prepare_output_dir(config.work_dir, clean=config.clean_start)
         self._lock = threading.Lock()  # guards _matcher, _progress counters, _done_sending, _cancelled
-        self._matcher = FrameMatcher(config.sync_tolerance, config.use_semantic)
+        self._matcher = FrameMatcher(config.sync_tolerance, config.use_semantic, max_wait=config.sync_max_wait)
         self._lag = LagController(config.lag_high, config.lag_low)
         self._progress = Progress()
         self._done_sending = False
@@ -204,6 +207,10 @@ class StreamingSession:
             self._progress.written += 1
         self._wake.set()
 
+    def matcher_streams(self) -> tuple[str, ...]:
+        """The image streams a frame needs (rgb, depth, and semantic if enabled)."""
+        return self._matcher.streams
+
     # ---------------------------------------------------------------- status
     def progress(self) -> Progress:
         with self._lock:
@@ -248,6 +255,13 @@ class StreamingSession:
                 self._wake.clear()
                 continue
             f = frame.frame
+            if self.engine is None:
+                with self._lock:
+                    self._progress.processed += 1
+                    n = self._progress.processed
+                if on_progress is not None:
+                    on_progress(self.progress())
+                continue
             depth_m = f.depth.astype(np.float32) / np.float32(self.cfg.depth_scale)
             c2w = self.engine.add_frame(f.rgb, depth_m, f.semantic, f.stamp)
             with self._lock:
@@ -265,9 +279,17 @@ class StreamingSession:
                 message = f"reached max_frames={self.cfg.max_frames}"
                 break
         self._writer.close()
-        n = self.progress().processed
+        p = self.progress()
+        n = p.processed
+        dropped = {k: v for k, v in p.dropped.items() if v}
+        if dropped or p.refused:
+            self._log(f"unmatched images dropped: {dropped or 0}; frames refused by the writer: {p.refused}")
         if n == 0:
             return SessionResult(False, "", "", 0, message or "no frame was processed")
+        if self.engine is None:
+            ok = self._writer.error is None
+            return SessionResult(ok, "", "", n, f"{message + ': ' if message else ''}recorded {n} frames "
+                                                f"to {self.cfg.work_dir} (no SLAM)")
         try:
             map_path, sem_path = self._export()
         except OSError as exc:
