@@ -86,7 +86,7 @@ def part_a(frames: int, width: int, height: int, tmp: str) -> None:
         adds.append(json.loads(out.stdout.strip().splitlines()[-1])["add_frame_s"])
     # the seed writes the frames to disk too: its overhead = ours (intake + writing, same code) + the
     # per-frame process (start, imports, checkpoint load and save)
-    over_sub = over_in + statistics.mean(w - a for w, a in zip(walls, adds))
+    over_sub = over_in + statistics.mean(w - a for w, a in zip(walls, adds, strict=True))
     print(f"A. per-frame overhead, {len(data)} frames {width}x{height}, checkpoint every frame in both modes")
     print(f"   in-process (ours):        {over_in * 1000:8.1f} ms/frame   "
           f"(SLAM itself {statistics.mean(add_times) * 1000:.0f} ms/frame)")
