@@ -16,5 +16,10 @@ setup(
     maintainer_email="maintainers@home-robot.dev",
     description="ROS 2 streaming server and client around the semantic_gs_slam engine.",
     license="Apache-2.0",
-    entry_points={"console_scripts": []},
+    entry_points={
+        "console_scripts": [
+            "run_gs_slam_server = semantic_gs_slam_ros.run_gs_slam_server:main",
+            "run_gs_slam_client = semantic_gs_slam_ros.run_gs_slam_client:main",
+        ],
+    },
 )

@@ -1,0 +1,106 @@
+"""The SLAM engine as the streaming session uses it: :class:`semantic_gs_slam.slam.SLAM` kept in
+memory for the whole run (no rclpy here)."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from semantic_gs_slam_ros.errors import StreamingError
+
+
+class EngineAdapter:
+    """Wraps :class:`semantic_gs_slam.slam.SLAM` in the session's ``SlamEngine`` protocol."""
+
+    def __init__(self, slam: Any) -> None:
+        self.slam = slam
+
+    def add_frame(self, rgb: np.ndarray, depth: np.ndarray, semantics: np.ndarray | None,
+                  timestamp: float) -> np.ndarray:
+        return self.slam.add_frame(rgb, depth, semantics, timestamp)
+
+    def save_map(self, out_dir: str) -> tuple[str, str]:
+        paths = self.slam.save(out_dir, ply=False)
+        return paths["params"], paths["semantic"]
+
+    def save_checkpoint(self, ckpt_dir: str) -> None:
+        self.slam.checkpoint(ckpt_dir)
+
+    @property
+    def num_gaussians(self) -> int:
+        return len(self.slam.map)
+
+
+def load_slam_config(path: str, intrinsics: tuple[float, float, float, float, int, int]) -> Any:
+    """SlamConfig from a YAML file (any subset of its fields; "" = defaults) and the camera."""
+    import yaml
+
+    from semantic_gs_slam.config import Intrinsics, SlamConfig
+    from semantic_gs_slam.errors import ConfigError
+
+    doc: dict[str, Any] = {}
+    if path:
+        try:
+            with open(path, encoding="utf-8") as fh:
+                doc = yaml.safe_load(fh) or {}
+        except (OSError, yaml.YAMLError) as exc:
+            raise StreamingError(f"cannot read slam_config {path!r}: {exc}") from exc
+    fx, fy, cx, cy, w, h = intrinsics
+    doc = {**doc, "intrinsics": {"width": int(w), "height": int(h), "fx": fx, "fy": fy, "cx": cx, "cy": cy}}
+    try:
+        cfg = SlamConfig.from_dict(doc)
+        cfg.check()
+    except (ConfigError, TypeError) as exc:
+        raise StreamingError(f"bad slam_config {path!r}: {exc}") from exc
+    return cfg, Intrinsics
+
+
+def scaled_intrinsics(k: tuple[float, float, float, float, int, int], width: int, height: int
+                      ) -> tuple[float, float, float, float, int, int]:
+    """Camera of the streamed images (``k``) after the server resized them to width × height."""
+    fx, fy, cx, cy, w, h = k
+    if not width or not height or (w, h) == (width, height):
+        return k
+    sx, sy = width / w, height / h
+    return fx * sx, fy * sy, (cx + 0.5) * sx - 0.5, (cy + 0.5) * sy - 0.5, width, height
+
+
+def make_engine(slam_config: str, wait_intrinsics: Callable[[], Any], cfg: Any,
+                classes: dict[int, str] | None = None, resume_dir: str | None = None) -> EngineAdapter:
+    """Create (or resume) the engine for a run.
+
+    Args:
+        slam_config: YAML path of engine settings ("" = defaults).
+        wait_intrinsics: returns (fx, fy, cx, cy, width, height) of the streamed images, or None.
+        cfg: the session config (its width/height are the resize target).
+        classes: semantic id → class name.
+        resume_dir: checkpoint folder to resume from, or None.
+
+    Raises:
+        StreamingError: no camera intrinsics, bad settings, unusable checkpoint.
+    """
+    from semantic_gs_slam.errors import SlamError
+    from semantic_gs_slam.slam import SLAM
+
+    k = wait_intrinsics()
+    if k is None:
+        raise StreamingError("no camera_info received: publish sensor_msgs/CameraInfo on 'camera_info'")
+    config, _ = load_slam_config(slam_config, scaled_intrinsics(k, cfg.width, cfg.height))
+    try:
+        if resume_dir and os.path.isdir(resume_dir):
+            return EngineAdapter(SLAM.resume(os.path.join(resume_dir, "engine"), config))
+        return EngineAdapter(SLAM(config, classes))
+    except SlamError as exc:
+        raise StreamingError(f"cannot start the SLAM engine: {exc}") from exc
+
+
+def pose_msg_fields(c2w: list[list[float]]) -> tuple[float, float, float, float, float, float, float]:
+    """c2w [4,4] → (x, y, z, qw, qx, qy, qz)."""
+    from semantic_gs_slam.geometry import rotmat_to_quat
+
+    m = np.asarray(c2w, dtype=float)
+    qw, qx, qy, qz = (float(v) for v in rotmat_to_quat(m[:3, :3]))
+    return float(m[0, 3]), float(m[1, 3]), float(m[2, 3]), qw, qx, qy, qz

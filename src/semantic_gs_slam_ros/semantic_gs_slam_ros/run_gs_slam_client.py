@@ -1,0 +1,247 @@
+"""``run_gs_slam_client``: sends the ``run_gs_slam`` goal and streams a recorded RGB-D sequence.
+
+Any layout the SLAM core reads (Replica / NICE-SLAM, SGS-SLAM with semantics, TUM RGB-D)::
+
+    ros_run semantic_gs_slam_ros run_gs_slam_client --ros-args -p dataset:=/data/home_seq -p rate:=10
+
+It publishes ``rgb`` (rgb8), ``depth`` (32FC1, metres), ``semantic`` (16UC1 ids, when the
+dataset has them) and ``camera_info`` with the dataset's timestamps, starting on
+``/slam_start_signal``; a frame goes out only while the server is subscribed (the server
+unsubscribes when its backlog is too long), so a recording is never dropped. Then it publishes
+``/data_transfer_done`` and waits for the result. Ctrl-C cancels the run (the server still
+saves the map). Exit code: 0 success, 1 run failed, 2 bad input / no server, 130 cancelled.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import threading
+import time
+
+import numpy as np
+import rclpy
+from rclpy.action import ActionClient
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.signals import SignalHandlerOptions
+from semantic_gs_slam_interfaces.action import RunSlam
+from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import String
+
+from semantic_gs_slam_ros.images import array_to_image_fields
+
+IMAGE_QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def image_msg(array: np.ndarray, encoding: str, stamp: float, frame_id: str) -> Image:
+    msg = Image(**array_to_image_fields(array, encoding))
+    msg.header.stamp.sec = int(stamp)
+    msg.header.stamp.nanosec = int(round((stamp - int(stamp)) * 1e9)) % 1_000_000_000
+    msg.header.frame_id = frame_id
+    return msg
+
+
+class SlamClient(Node):
+    def __init__(self) -> None:
+        super().__init__("run_gs_slam_client")
+        p = self.declare_parameter
+        p("dataset", "")
+        p("layout", "auto")
+        p("max_frames", 0)
+        p("stride", 1)  # send every k-th frame
+        p("rate", 10.0)  # frames per second (0 = as fast as the server takes them)
+        p("output_dir", "")
+        p("map_dir", "")
+        p("resume", False)
+        p("server_timeout", 30.0)
+        p("pause_timeout", 600.0)  # longest wait for the server to take images again
+        p("frame_id", "camera")
+        self._pubs = {s: self.create_publisher(Image, s, IMAGE_QOS) for s in ("rgb", "depth", "semantic")}
+        self._info_pub = self.create_publisher(CameraInfo, "camera_info", IMAGE_QOS)
+        self._done_pub = self.create_publisher(String, "data_transfer_done", LATCHED)
+        self._goal_id: str | None = None
+        self._start: dict | None = None  # the start signal of our goal
+        self._started = threading.Event()
+        self.create_subscription(String, "slam_start_signal", self._on_start, LATCHED)
+        self._action = ActionClient(self, RunSlam, "run_gs_slam")
+        self._fb_lock = threading.Lock()  # guards _feedback
+        self._feedback: RunSlam.Feedback | None = None
+        self._t_first = time.monotonic()
+        self._last_print = 0.0
+
+    def _on_start(self, msg: String) -> None:
+        try:
+            doc = json.loads(msg.data)
+        except ValueError:
+            return
+        if isinstance(doc, dict) and self._goal_id is not None and doc.get("goal") == self._goal_id:
+            self._start = doc
+            self._started.set()
+
+    def _on_feedback(self, msg) -> None:
+        with self._fb_lock:
+            self._feedback = msg.feedback
+
+    def run(self) -> int:
+        from semantic_gs_slam.datasets import load_dataset
+        from semantic_gs_slam.errors import SlamError
+
+        g = lambda name: self.get_parameter(name).value  # noqa: E731
+        log = self.get_logger()
+        if not g("dataset"):
+            log.error("parameter 'dataset' is required (a Replica, SGS-SLAM or TUM RGB-D folder)")
+            return 2
+        try:
+            data = load_dataset(g("dataset"), g("layout"))
+        except (SlamError, OSError) as exc:
+            log.error(f"cannot read dataset {g('dataset')!r}: {exc}")
+            return 2
+        indices = list(range(0, len(data), max(1, g("stride"))))
+        if g("max_frames"):
+            indices = indices[: g("max_frames")]
+        if not indices:
+            log.error("no frames to send (check max_frames / stride)")
+            return 2
+        if not self._action.wait_for_server(timeout_sec=g("server_timeout")):
+            log.error(f"no run_gs_slam action server after {g('server_timeout'):.0f} s (is run_gs_slam_server up?)")
+            return 2
+        goal = RunSlam.Goal(output_dir=g("output_dir"), map_dir=g("map_dir"), dataset_name=g("dataset"),
+                            max_frames=0, resume=g("resume"),
+                            semantic_classes=json.dumps({str(k): v for k, v in data.classes.items()}))
+        k = data.intrinsics
+        self._publish_info(k, 0.0)  # the server needs the camera before the first frame
+        sent = self._action.send_goal_async(goal, feedback_callback=self._on_feedback)
+        handle = _wait(sent, g("server_timeout"))
+        if handle is None or not handle.accepted:
+            log.error("goal rejected (is another run in progress?)")
+            return 2
+        self._goal_id = bytes(handle.goal_id.uuid).hex()
+        result_future = handle.get_result_async()
+        self._t_first = time.monotonic()
+        deadline = time.monotonic() + g("server_timeout")
+        while not self._started.wait(0.05):
+            if result_future.done():
+                log.error(f"run failed before it started: {result_future.result().result.message}")
+                return 1
+            if time.monotonic() > deadline:
+                log.error("no /slam_start_signal from the server")
+                handle.cancel_goal_async()
+                return 2
+        skip = int(self._start.get("frames_done", 0)) if g("resume") else 0
+        if skip:
+            log.info(f"the server resumes after {skip} frames: skipping them")
+            indices = indices[skip:]
+        if not indices:
+            indices = [len(data) - 1]  # nothing left: send the last frame again so the run can finish
+        streams = ["rgb", "depth"] + (["semantic"] if data.sem_paths is not None else [])
+        t0_wall, t0_data = time.time(), data.timestamps[indices[0]]
+        period = 1.0 / g("rate") if g("rate") > 0 else 0.0
+        next_t = time.monotonic()
+        n = 0
+        try:
+            for n, i in enumerate(indices, 1):
+                if not self._wait_subscribed(streams, g("pause_timeout")):
+                    log.error("the server stopped taking images")
+                    break
+                frame = data[i]
+                stamp = t0_wall + (frame.timestamp - t0_data)
+                rgb = np.clip(frame.rgb * 255.0 + 0.5, 0, 255).astype(np.uint8)
+                self._publish_info(k, stamp)
+                self._pubs["depth"].publish(image_msg(frame.depth.astype(np.float32), "32FC1", stamp, g("frame_id")))
+                if frame.semantics is not None and "semantic" in streams:
+                    ids = frame.semantics.astype(np.uint16)
+                    self._pubs["semantic"].publish(image_msg(ids, "16UC1", stamp, g("frame_id")))
+                self._pubs["rgb"].publish(image_msg(rgb, "rgb8", stamp, g("frame_id")))
+                self._print_progress(n, len(indices))
+                next_t += period
+                time.sleep(max(0.0, next_t - time.monotonic()))
+            self._done_pub.publish(String(data=json.dumps({"goal": self._goal_id, "frames_sent": n})))
+            log.info(f"sent {n} frames; waiting for the map")
+            while not result_future.done():
+                time.sleep(0.5)
+                self._print_progress(n, len(indices))
+        except KeyboardInterrupt:
+            log.warning("cancelling the run (the server still saves the map)")
+            _wait(handle.cancel_goal_async(), 10.0)
+            _wait(result_future, 120.0)
+            return 130
+        res = result_future.result().result
+        (log.info if res.success else log.error)(
+            f"{'map ready' if res.success else 'run failed'}: {res.message}; map {res.map_path or '-'}")
+        return 0 if res.success else 1
+
+    def _publish_info(self, k, stamp: float) -> None:
+        info = CameraInfo()
+        info.header.stamp.sec = int(stamp)
+        info.header.stamp.nanosec = int(round((stamp - int(stamp)) * 1e9)) % 1_000_000_000
+        info.header.frame_id = self.get_parameter("frame_id").value
+        info.width, info.height = k.width, k.height
+        info.k = [k.fx, 0.0, k.cx, 0.0, k.fy, k.cy, 0.0, 0.0, 1.0]
+        info.distortion_model = "plumb_bob"
+        info.d = [0.0] * 5
+        self._info_pub.publish(info)
+
+    def _wait_subscribed(self, streams: list[str], timeout: float) -> bool:
+        deadline = time.monotonic() + timeout
+        while any(self._pubs[s].get_subscription_count() == 0 for s in streams):
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.02)
+        return True
+
+    def _print_progress(self, sent: int, total: int) -> None:
+        """A progress line: rewritten in place on a terminal (at most 5 Hz), else every 5 s."""
+        now = time.monotonic()
+        tty = sys.stderr.isatty()
+        if now - self._last_print < (0.2 if tty else 5.0) and sent != total:
+            return
+        self._last_print = now
+        with self._fb_lock:
+            fb = self._feedback
+        done = fb.frames_processed if fb else 0
+        lag = fb.lag if fb else 0
+        paused = "" if (fb is None or fb.subscribed) else " (server paused intake)"
+        rate = done / max(time.monotonic() - self._t_first, 1e-6)
+        eta = (total - done) / rate if rate > 0 else float("nan")
+        line = f"sent {sent}/{total}  processed {done}  lag {lag}  ETA {eta:5.0f} s{paused}"
+        print(f"\r{line}   " if tty else line, end="" if tty else "\n", file=sys.stderr, flush=True)
+
+
+def _wait(future, timeout: float):
+    deadline = time.monotonic() + timeout
+    while not future.done() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    return future.result() if future.done() else None
+
+
+def main(args: list[str] | None = None) -> int:
+    # Ctrl-C must reach run() as KeyboardInterrupt (to cancel the goal and wait for the saved
+    # map) while the executor keeps running: rclpy's own handler would shut the context down.
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    node = SlamClient()
+    executor = MultiThreadedExecutor(num_threads=2)
+    executor.add_node(node)
+    spinner = threading.Thread(target=_spin, args=(executor,), daemon=True)
+    spinner.start()
+    try:
+        return node.run()
+    except KeyboardInterrupt:
+        return 130
+    finally:
+        executor.shutdown(timeout_sec=2.0)
+        node.destroy_node()
+        rclpy.try_shutdown()
+
+
+def _spin(executor) -> None:
+    try:
+        executor.spin()
+    except ExternalShutdownException:
+        pass
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

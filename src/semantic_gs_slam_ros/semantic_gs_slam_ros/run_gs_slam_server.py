@@ -1,0 +1,328 @@
+"""``run_gs_slam_server``: streaming SLAM as a ROS 2 action server (thin shell over :mod:`.session`).
+
+Action ``run_gs_slam`` (``semantic_gs_slam_interfaces/action/RunSlam``). On a goal the server
+cleans its frame folders, subscribes the image topics, publishes ``/slam_start_signal``, feeds
+the frames to the SLAM engine kept in memory, and when the client signalled
+``/data_transfer_done`` and the backlog is empty, publishes the map where the object-query server
+reads it and asks that server to reload. Cancel stops after the current frame and still saves.
+
+Topics (relative names, remap as usual): ``rgb`` (sensor_msgs/Image), ``depth`` (32FC1 metres or
+16UC1), ``semantic`` (optional, integer ids), ``camera_info`` (sensor_msgs/CameraInfo),
+``slam_start_signal`` (std_msgs/String JSON ``{"goal": id, "frames_done": N}``, out; N > 0 after
+a resume: the client skips the first N frames of its sequence), ``data_transfer_done``
+(std_msgs/String JSON ``{"goal": id, "frames_sent": N}``, in). Both are latched (transient local);
+the goal id tells runs apart.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import threading
+import time
+
+import rclpy
+from rclpy.action import ActionServer, CancelResponse, GoalResponse
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from semantic_gs_slam_interfaces.action import RunSlam
+from sensor_msgs.msg import CameraInfo, Image
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+
+from semantic_gs_slam_ros.engine import make_engine
+from semantic_gs_slam_ros.errors import ImageFormatError, StreamingError
+from semantic_gs_slam_ros.images import image_to_array
+from semantic_gs_slam_ros.lag import LagAction
+from semantic_gs_slam_ros.session import Progress, SessionConfig, StreamingSession, checkpoint_state
+
+IMAGE_QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
+
+
+def stamp_seconds(msg: Image) -> float:
+    return msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+
+
+class SlamServer(Node):
+    def __init__(self) -> None:
+        super().__init__("run_gs_slam_server")
+        p = self.declare_parameter
+        p("work_dir", os.path.join(os.path.expanduser("~"), ".local", "share", "home_robot", "slam"))
+        p("map_dir", "")
+        p("width", 1200)
+        p("height", 680)
+        p("depth_scale", 1000.0)
+        p("sync_tolerance", 0.02)
+        p("sync_max_wait", 5.0)
+        p("use_semantic", False)
+        p("lag_high", 300)
+        p("lag_low", 150)
+        p("checkpoint_every", 20)
+        p("export_every", 0)
+        p("slam_config", "")  # YAML of the engine's SlamConfig ("" = defaults)
+        p("slam_enabled", True)  # false = record frames only (no map), e.g. for offline runs
+        p("reload_service", "/object_query_server/reload")  # std_srvs/Trigger of object_query_server
+        p("done_wait", 10.0)  # s to wait for images still in flight after data_transfer_done
+        p("image_qos_depth", 50)
+        self._busy = threading.Lock()  # held while a goal runs (one goal at a time)
+        self._session_lock = threading.Lock()  # guards _session, _subs, _intrinsics
+        self._session: StreamingSession | None = None
+        self._subs: list = []
+        self._intrinsics: tuple[float, float, float, float, int, int] | None = None  # fx fy cx cy w h
+        self._images_group = ReentrantCallbackGroup()
+        self._action_group = ReentrantCallbackGroup()
+        self._timer_group = MutuallyExclusiveCallbackGroup()
+        self._start_pub = self.create_publisher(String, "slam_start_signal", LATCHED)
+        self.create_subscription(String, "data_transfer_done", self._on_done, LATCHED,
+                                 callback_group=self._images_group)
+        self.create_subscription(CameraInfo, "camera_info", self._on_camera_info, qos_profile_sensor_data,
+                                 callback_group=self._images_group)
+        self._goal_id: str | None = None  # hex uuid of the running goal
+        self._done_expected: int | None = None  # frames the client announced as sent
+        self._done_deadline = float("inf")
+        name = self.get_parameter("reload_service").value
+        self._reload = self.create_client(Trigger, name, callback_group=self._images_group) if name else None
+        self._action = ActionServer(self, RunSlam, "run_gs_slam", execute_callback=self._execute,
+                                    goal_callback=self._on_goal, cancel_callback=self._on_cancel,
+                                    callback_group=self._action_group)
+        self.create_timer(0.2, self._tick, callback_group=self._timer_group)
+        self.get_logger().info("ready: waiting for a run_gs_slam goal")
+
+    # ------------------------------------------------------------------ images
+    def _subscribe(self) -> None:
+        depth = self.get_parameter("image_qos_depth").value
+        qos = QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)
+        streams = ["rgb", "depth"] + (["semantic"] if self.get_parameter("use_semantic").value else [])
+        self._subs = [self.create_subscription(Image, s, self._image_cb(s), qos, callback_group=self._images_group)
+                      for s in streams]
+
+    def _unsubscribe(self) -> None:
+        for sub in self._subs:
+            self.destroy_subscription(sub)
+        self._subs = []
+
+    def _image_cb(self, stream: str):
+        def cb(msg: Image) -> None:
+            session = self._session
+            if session is None:
+                return
+            try:
+                session.on_image(stream, stamp_seconds(msg), image_to_array(msg))
+            except (ImageFormatError, StreamingError, ValueError) as exc:
+                self.get_logger().warning(f"{stream} image dropped: {exc}", throttle_duration_sec=2.0)
+        return cb
+
+    def _on_camera_info(self, msg: CameraInfo) -> None:
+        k = msg.k
+        if k[0] > 0 and k[4] > 0:
+            with self._session_lock:
+                self._intrinsics = (k[0], k[4], k[2], k[5], msg.width, msg.height)
+
+    def _on_done(self, msg: String) -> None:
+        try:
+            doc = json.loads(msg.data)
+            expected = int(doc.get("frames_sent", 0))
+            if doc.get("goal") != self._goal_id:
+                return  # another (earlier) run's signal
+        except (ValueError, AttributeError, TypeError):
+            self.get_logger().warning(
+                f"malformed data_transfer_done {msg.data[:80]!r}; expected {{\"frames_sent\": N}}")
+            expected = 0
+        self._done_deadline = time.monotonic() + self.get_parameter("done_wait").value
+        self._done_expected = expected
+
+    def _tick(self) -> None:
+        """Every 0.2 s: lag control, and completion once the announced images have arrived."""
+        session = self._session
+        if session is None:
+            return
+        action = session.lag_action()
+        with self._session_lock:
+            if action is LagAction.UNSUBSCRIBE and self._subs:
+                self._unsubscribe()
+                self.get_logger().warning("backlog too long: image topics unsubscribed")
+            elif action is LagAction.RESUBSCRIBE and not self._subs:
+                self._subscribe()
+                self.get_logger().info("backlog drained: image topics subscribed again")
+        expected = self._done_expected
+        if expected is not None:
+            # every image stream must have delivered the announced count: the topics are
+            # independent, so the last depth images may still be on their way after the colour ones
+            streams = session.matcher_streams()
+            counts = session.progress().received
+            received = min(counts.get(s, 0) for s in streams)
+            if received >= expected or time.monotonic() > self._done_deadline:
+                if received < expected:
+                    got = ", ".join(f"{counts.get(s, 0)} {s}" for s in streams)
+                    self.get_logger().warning(f"data_transfer_done: {expected} frames announced, {got} arrived")
+                self._done_expected = None
+                session.data_transfer_done()
+
+    # ------------------------------------------------------------------ action
+    def _on_goal(self, goal: RunSlam.Goal) -> GoalResponse:
+        if self._busy.locked():
+            self.get_logger().warning("goal rejected: a SLAM run is already in progress")
+            return GoalResponse.REJECT
+        return GoalResponse.ACCEPT
+
+    def _on_cancel(self, _goal_handle) -> CancelResponse:
+        session = self._session
+        if session is not None:
+            session.cancel()
+        return CancelResponse.ACCEPT
+
+    def _config(self, goal: RunSlam.Goal) -> SessionConfig:
+        g = self.get_parameter
+        return SessionConfig(
+            work_dir=goal.output_dir or g("work_dir").value,
+            map_dir=goal.map_dir or g("map_dir").value,
+            width=g("width").value, height=g("height").value, depth_scale=g("depth_scale").value,
+            sync_tolerance=g("sync_tolerance").value, sync_max_wait=g("sync_max_wait").value,
+            use_semantic=g("use_semantic").value,
+            lag_high=g("lag_high").value, lag_low=g("lag_low").value,
+            checkpoint_every=g("checkpoint_every").value, export_every=g("export_every").value,
+            max_frames=goal.max_frames, clean_start=not goal.resume)
+
+    def _execute(self, goal_handle) -> RunSlam.Result:
+        result = RunSlam.Result()
+        if not self._busy.acquire(blocking=False):
+            goal_handle.abort()
+            result.message = "another run is in progress"
+            return result
+        try:
+            return self._run(goal_handle, result)
+        finally:
+            with self._session_lock:
+                self._unsubscribe()
+                self._session = None
+            self._busy.release()
+
+    def _run(self, goal_handle, result: RunSlam.Result) -> RunSlam.Result:
+        goal: RunSlam.Goal = goal_handle.request
+        cfg = self._config(goal)
+        self._done_expected = None
+        self._done_deadline = float("inf")
+        try:
+            resume_state = checkpoint_state(cfg.work_dir) if goal.resume else None
+            cfg.frames_before = int(resume_state["processed"]) if resume_state else 0
+            engine = None
+            if self.get_parameter("slam_enabled").value:
+                engine = make_engine(self.get_parameter("slam_config").value, self._wait_intrinsics, cfg,
+                                     classes=parse_classes(goal.semantic_classes),
+                                     resume_dir=os.path.join(cfg.work_dir, "checkpoint") if resume_state else None)
+            session = StreamingSession(cfg, engine, on_map=self._request_reload,
+                                       log=lambda line: self.get_logger().info(line))
+        except StreamingError as exc:
+            goal_handle.abort()
+            result.message = str(exc)
+            self.get_logger().error(f"run_gs_slam: {exc}")
+            return result
+        with self._session_lock:
+            self._session = session
+            self._subscribe()
+        done_before = cfg.frames_before
+        what = f"resuming after frame {done_before}" if resume_state else "fresh start"
+        self._goal_id = bytes(goal_handle.goal_id.uuid).hex()
+        self._start_pub.publish(String(data=json.dumps({"goal": self._goal_id, "frames_done": done_before,
+                                                        "dataset": goal.dataset_name})))
+        self.get_logger().info(f"run started ({what}); work_dir={cfg.work_dir}, map_dir={cfg.resolved_map_dir()}")
+
+        def feedback(p: Progress) -> None:
+            goal_handle.publish_feedback(to_feedback(p))
+
+        out = session.run(on_progress=feedback)
+        result.success, result.map_path, result.semantic_path = out.success, out.map_path, out.semantic_path
+        result.frames_processed, result.message = out.frames_processed, out.message
+        if goal_handle.is_cancel_requested:
+            goal_handle.canceled()
+        elif out.success:
+            goal_handle.succeed()
+        else:
+            goal_handle.abort()
+        self.get_logger().info(f"run finished: {out.message}")
+        return result
+
+    def _wait_intrinsics(self, timeout: float = 5.0) -> tuple[float, float, float, float, int, int] | None:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            with self._session_lock:
+                if self._intrinsics is not None:
+                    return self._intrinsics
+            time.sleep(0.05)
+        return None
+
+    def _request_reload(self, map_path: str, semantic_path: str) -> None:
+        """Ask the object-query server to load the map just written (SLAM thread; bounded wait)."""
+        if self._reload is None:
+            return
+        if not self._reload.wait_for_service(timeout_sec=2.0):
+            self.get_logger().info(f"map written; no {self._reload.srv_name} service to ask for a reload")
+            return
+        future = self._reload.call_async(Trigger.Request())
+        done = threading.Event()
+        future.add_done_callback(lambda _f: done.set())
+        if not done.wait(10.0):
+            self.get_logger().warning(f"{self._reload.srv_name} did not answer within 10 s")
+            return
+        res = future.result()
+        (self.get_logger().info if res.success else self.get_logger().warning)(
+            f"object-query reload: {res.message}")
+
+
+def parse_classes(text: str) -> dict[int, str]:
+    """Goal field ``semantic_classes``: JSON ``{"1": "chair", ...}`` ("" = none).
+
+    Raises:
+        StreamingError: not a JSON object of id → name.
+    """
+    if not text:
+        return {}
+    try:
+        doc = json.loads(text)
+        return {int(k): str(v) for k, v in doc.items()}
+    except (ValueError, AttributeError, TypeError) as exc:
+        raise StreamingError(f"semantic_classes must be JSON {{\"id\": \"name\"}}: {exc}") from exc
+
+
+def to_feedback(p: Progress) -> RunSlam.Feedback:
+    fb = RunSlam.Feedback()
+    fb.frames_received = p.received.get("rgb", 0)
+    fb.frames_written = p.written
+    fb.frames_processed = p.processed
+    fb.frames_dropped = sum(p.dropped.values())
+    fb.lag = max(p.backlog, 0)
+    fb.subscribed = p.subscribed
+    fb.num_gaussians = p.gaussians
+    if p.pose is not None:
+        from semantic_gs_slam_ros.engine import pose_msg_fields
+
+        (fb.current_pose.position.x, fb.current_pose.position.y, fb.current_pose.position.z,
+         fb.current_pose.orientation.w, fb.current_pose.orientation.x, fb.current_pose.orientation.y,
+         fb.current_pose.orientation.z) = pose_msg_fields(p.pose)
+    return fb
+
+
+def main(args: list[str] | None = None) -> int:
+    rclpy.init(args=args)
+    node = SlamServer()
+    executor = MultiThreadedExecutor(num_threads=4)
+    executor.add_node(node)
+    try:
+        executor.spin()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        session = node._session
+        if session is not None:
+            session.cancel()
+        executor.shutdown(timeout_sec=5.0)
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

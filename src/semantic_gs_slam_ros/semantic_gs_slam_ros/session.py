@@ -1,0 +1,333 @@
+"""One streaming SLAM run (pure; no rclpy): images in, frames on disk, map out.
+
+Threads (the ROS shell provides the first and the last):
+
+* image callbacks → :meth:`StreamingSession.on_image` — convert, resize, match by timestamp,
+  hand the frame to the disk writer; never blocks on disk or on SLAM;
+* the writer thread (:class:`~semantic_gs_slam_ros.writer.AsyncFrameWriter`) — writes the files
+  and queues the fully written frame for SLAM;
+* the caller of :meth:`StreamingSession.run` (the action's execute thread) — the SLAM loop: feeds
+  written frames to the engine kept in memory (never a process per frame), checkpoints every N
+  frames, exports the map every M frames and at the end, and returns the result.
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import os
+import shutil
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from semantic_gs_slam_ros.errors import OutputError, StreamingError
+from semantic_gs_slam_ros.images import depth_to_mm, resize_nearest, resize_rgb, rgb_of
+from semantic_gs_slam_ros.lag import LagAction, LagController
+from semantic_gs_slam_ros.sync import FrameMatcher
+from semantic_gs_slam_ros.writer import AsyncFrameWriter, WrittenFrame, prepare_output_dir
+
+
+class SlamEngine(Protocol):
+    """What the session needs of a SLAM engine (see :mod:`semantic_gs_slam_ros.engine`)."""
+
+    def add_frame(self, rgb: np.ndarray, depth: np.ndarray, semantics: np.ndarray | None,
+                  timestamp: float) -> np.ndarray:
+        """rgb uint8 [H,W,3], depth float32 metres [H,W], semantics int [H,W] or None → c2w [4,4]."""
+
+    def save_map(self, out_dir: str) -> tuple[str, str]:
+        """Write ``params.npz`` + ``semantic.json`` into ``out_dir``; returns their paths."""
+
+    def save_checkpoint(self, ckpt_dir: str) -> None:
+        """Write everything needed to resume into ``ckpt_dir``."""
+
+    @property
+    def num_gaussians(self) -> int: ...
+
+
+@dataclass
+class SessionConfig:
+    """Settings of one run (node parameters + goal fields).
+
+    Attributes:
+        work_dir: where frames/, depths/, semantics/, completed.jsonl and checkpoints go.
+        width, height: images are resized to this (seed: 1200×680); 0 = keep the input size.
+        depth_scale: units per metre of the depth PNGs (1000 → mm).
+        sync_tolerance: largest colour/depth stamp difference of a frame (s).
+        sync_max_wait: seconds an image waits for its partner before it is dropped as unmatched.
+        use_semantic: also wait for a semantic-id image per frame.
+        lag_high, lag_low: unsubscribe above / resubscribe below this backlog (frames).
+        checkpoint_every: save an engine checkpoint every N processed frames (0 = never).
+        export_every: write the map to ``map_dir`` every N processed frames (0 = only at the end).
+        map_dir: where the object-query server reads params.npz + semantic.json ("" = work_dir/map).
+        max_frames: stop after this many processed frames (0 = until the client is done).
+        clean_start: remove frames of an earlier run from work_dir at start.
+        frames_before: frames processed by the run this one resumes (checkpoint bookkeeping).
+    """
+
+    work_dir: str
+    width: int = 1200
+    height: int = 680
+    depth_scale: float = 1000.0
+    sync_tolerance: float = 0.02
+    sync_max_wait: float = 5.0
+    use_semantic: bool = False
+    lag_high: int = 300
+    lag_low: int = 150
+    checkpoint_every: int = 20
+    export_every: int = 0
+    map_dir: str = ""
+    max_frames: int = 0
+    clean_start: bool = True
+    frames_before: int = 0
+
+    def resolved_map_dir(self) -> str:
+        return self.map_dir or os.path.join(self.work_dir, "map")
+
+
+@dataclass
+class Progress:
+    received: dict[str, int] = field(default_factory=lambda: {"rgb": 0, "depth": 0, "semantic": 0})
+    matched: int = 0
+    dropped: dict[str, int] = field(default_factory=dict)
+    written: int = 0
+    processed: int = 0
+    refused: int = 0  # the writer could not take them (queue full or failed)
+    backlog: int = 0
+    subscribed: bool = True
+    pauses: int = 0
+    gaussians: int = 0
+    pose: list[list[float]] | None = None  # last c2w [4,4]
+
+
+@dataclass
+class SessionResult:
+    success: bool
+    map_path: str
+    semantic_path: str
+    frames_processed: int
+    message: str
+
+
+def atomic_publish_map(src_dir: str, map_dir: str) -> tuple[str, str]:
+    """Move a freshly saved map into ``map_dir`` so a reader never sees half a map.
+
+    ``semantic.json`` is replaced first, then ``params.npz``, each by ``os.replace`` (atomic on one
+    file system), so a reader that loads both after the ``params.npz`` change sees a matching pair.
+    """
+    os.makedirs(map_dir, exist_ok=True)
+    out = []
+    for name in ("semantic.json", "params.npz"):
+        tmp = os.path.join(map_dir, f".{name}.incoming")
+        shutil.copyfile(os.path.join(src_dir, name), tmp)
+        os.replace(tmp, os.path.join(map_dir, name))
+        out.append(os.path.join(map_dir, name))
+    return out[1], out[0]
+
+
+class StreamingSession:
+    """Args:
+        config: the run's settings.
+        engine: the SLAM engine (kept in memory for the whole run); None = record only (frames
+            are written to disk, no map is made).
+        on_map: called (on the SLAM thread) with (params.npz, semantic.json) after each export,
+            e.g. to ask the object-query server to reload.
+        log: called with human-readable log lines.
+    """
+
+    def __init__(self, config: SessionConfig, engine: SlamEngine | None,
+                 on_map: Callable[[str, str], None] | None = None,
+                 log: Callable[[str], None] | None = None) -> None:
+        self.cfg = config
+        self.engine = engine
+        self._on_map = on_map or (lambda _m, _s: None)
+        self._log = log or (lambda _line: None)
+        prepare_output_dir(config.work_dir, clean=config.clean_start)
+        self._lock = threading.Lock()  # guards _matcher, _progress counters, _done_sending, _cancelled
+        self._matcher = FrameMatcher(config.sync_tolerance, config.use_semantic, max_wait=config.sync_max_wait)
+        self._lag = LagController(config.lag_high, config.lag_low)
+        self._progress = Progress()
+        self._done_sending = False
+        self._cancelled = False
+        self._ready: collections.deque[WrittenFrame] = collections.deque()  # written, not yet processed
+        self._wake = threading.Event()  # set when a frame is written, or on done/cancel
+        self._writer = AsyncFrameWriter(config.work_dir, self._on_written)
+
+    # ---------------------------------------------------------------- producer side (callbacks)
+    def on_image(self, stream: str, stamp: float, image: np.ndarray) -> None:
+        """One decoded image (``rgb`` uint8 [H,W,3]; ``depth`` float metres or uint16 in
+        1/depth_scale m; ``semantic`` int ids) with its stamp in seconds. Never blocks."""
+        image = self._prepare(stream, image)
+        with self._lock:
+            self._progress.received[stream] = self._progress.received.get(stream, 0) + 1
+            if self._cancelled:
+                return
+            frames = self._matcher.push(stream, stamp, image)
+            self._progress.matched = self._matcher.stats.matched
+            self._progress.dropped = dict(self._matcher.stats.dropped)
+        for frame in frames:
+            if not self._writer.submit(frame):
+                with self._lock:
+                    self._progress.refused += 1
+
+    def _prepare(self, stream: str, image: np.ndarray) -> np.ndarray:
+        w, h = self.cfg.width, self.cfg.height
+        if stream == "rgb":
+            img = rgb_of(image)
+            return resize_rgb(img, w, h) if w and h else img
+        if stream == "depth":
+            mm = depth_to_mm(image, self.cfg.depth_scale)
+            return resize_nearest(mm, w, h) if w and h else mm
+        if stream == "semantic":
+            ids = np.asarray(image)
+            return resize_nearest(ids, w, h) if w and h else ids
+        raise StreamingError(f"unknown image stream {stream!r}")
+
+    def data_transfer_done(self) -> None:
+        """The client sent everything: finish once the backlog is empty."""
+        with self._lock:
+            self._done_sending = True
+            self._matcher.flush()
+            self._progress.dropped = dict(self._matcher.stats.dropped)
+        self._wake.set()
+
+    def cancel(self) -> None:
+        """Stop after the frame being processed; the map so far is still saved."""
+        with self._lock:
+            self._cancelled = True
+        self._wake.set()
+
+    def _on_written(self, frame: WrittenFrame) -> None:  # writer thread
+        with self._lock:
+            self._ready.append(frame)
+            self._progress.written += 1
+        self._wake.set()
+
+    def matcher_streams(self) -> tuple[str, ...]:
+        """The image streams a frame needs (rgb, depth, and semantic if enabled)."""
+        return self._matcher.streams
+
+    # ---------------------------------------------------------------- status
+    def progress(self) -> Progress:
+        with self._lock:
+            p = Progress(**{k: (dict(v) if isinstance(v, dict) else v) for k, v in vars(self._progress).items()})
+        p.backlog = p.matched - p.refused - p.processed
+        return p
+
+    def lag_action(self) -> LagAction:
+        """Poll periodically (e.g. from a timer): whether to unsubscribe / resubscribe the image topics."""
+        p = self.progress()
+        with self._lock:
+            action = self._lag.update(p.backlog)
+            self._progress.subscribed = self._lag.subscribed
+            self._progress.pauses = self._lag.pauses
+        if action is not LagAction.NONE:
+            self._log(f"backlog {p.backlog} frames: {action.value} image topics")
+        return action
+
+    # ---------------------------------------------------------------- SLAM loop
+    def run(self, on_progress: Callable[[Progress], None] | None = None, poll: float = 0.1) -> SessionResult:
+        """Process frames until the client is done and the backlog is empty, ``max_frames`` are
+        processed, or :meth:`cancel`; then export the map. Blocks the calling thread."""
+        ckpt_dir = os.path.join(self.cfg.work_dir, "checkpoint")
+        message = ""
+        t0 = time.monotonic()
+        while True:
+            with self._lock:
+                frame = self._ready.popleft() if self._ready else None
+                cancelled = self._cancelled
+                finished = self._done_sending and not self._ready and self._writer.pending() == 0 \
+                    and self._progress.written >= self._progress.matched - self._progress.refused
+            if self._writer.error is not None:
+                message = str(self._writer.error)
+                break
+            if cancelled:
+                message = "cancelled"
+                break
+            if frame is None:
+                if finished:
+                    break
+                self._wake.wait(poll)
+                self._wake.clear()
+                continue
+            f = frame.frame
+            if self.engine is None:
+                with self._lock:
+                    self._progress.processed += 1
+                    n = self._progress.processed
+                if on_progress is not None:
+                    on_progress(self.progress())
+                continue
+            depth_m = f.depth.astype(np.float32) / np.float32(self.cfg.depth_scale)
+            c2w = self.engine.add_frame(f.rgb, depth_m, f.semantic, f.stamp)
+            with self._lock:
+                self._progress.processed += 1
+                self._progress.gaussians = int(self.engine.num_gaussians)
+                self._progress.pose = np.asarray(c2w, dtype=float).tolist()
+                n = self._progress.processed
+            if self.cfg.checkpoint_every and n % self.cfg.checkpoint_every == 0:
+                self._checkpoint(ckpt_dir, frame)
+            if self.cfg.export_every and n % self.cfg.export_every == 0:
+                self._export()
+            if on_progress is not None:
+                on_progress(self.progress())
+            if self.cfg.max_frames and n >= self.cfg.max_frames:
+                message = f"reached max_frames={self.cfg.max_frames}"
+                break
+        self._writer.close()
+        p = self.progress()
+        n = p.processed
+        dropped = {k: v for k, v in p.dropped.items() if v}
+        if dropped or p.refused:
+            self._log(f"unmatched images dropped: {dropped or 0}; frames refused by the writer: {p.refused}")
+        if n == 0:
+            return SessionResult(False, "", "", 0, message or "no frame was processed")
+        if self.engine is None:
+            ok = self._writer.error is None
+            return SessionResult(ok, "", "", n, f"{message + ': ' if message else ''}recorded {n} frames "
+                                                f"to {self.cfg.work_dir} (no SLAM)")
+        try:
+            map_path, sem_path = self._export()
+        except OSError as exc:
+            return SessionResult(False, "", "", n, f"cannot write the map: {exc}")
+        rate = n / max(time.monotonic() - t0, 1e-9)
+        ok = self._writer.error is None
+        summary = f"{n} frames processed ({rate:.2f} frames/s), {self.progress().gaussians} Gaussians"
+        return SessionResult(ok, map_path, sem_path, n, f"{message + ': ' if message else ''}{summary}")
+
+    def _checkpoint(self, ckpt_dir: str, frame: WrittenFrame) -> None:
+        tmp = ckpt_dir + ".incoming"
+        os.makedirs(tmp, exist_ok=True)
+        self.engine.save_checkpoint(os.path.join(tmp, "engine"))
+        with open(os.path.join(tmp, "session.json"), "w") as fh:
+            json.dump({"last_index": frame.index, "last_stamp": frame.stamp,
+                       "processed": self.cfg.frames_before + self.progress().processed}, fh)
+        if os.path.isdir(ckpt_dir):
+            shutil.rmtree(ckpt_dir)
+        os.replace(tmp, ckpt_dir)
+
+    def _export(self) -> tuple[str, str]:
+        staging = os.path.join(self.cfg.work_dir, "map.staging")
+        os.makedirs(staging, exist_ok=True)
+        self.engine.save_map(staging)
+        try:
+            paths = atomic_publish_map(staging, self.cfg.resolved_map_dir())
+        except OSError as exc:
+            raise OutputError(f"cannot publish the map to {self.cfg.resolved_map_dir()!r}: {exc}") from exc
+        self._log(f"map written: {paths[0]}")
+        self._on_map(*paths)
+        return paths
+
+
+def checkpoint_state(work_dir: str) -> dict[str, Any] | None:
+    """The session state of the last checkpoint in ``work_dir``, or None."""
+    path = os.path.join(work_dir, "checkpoint", "session.json")
+    try:
+        with open(path) as fh:
+            return json.load(fh)
+    except (OSError, json.JSONDecodeError):
+        return None

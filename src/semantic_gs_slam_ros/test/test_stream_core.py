@@ -1,0 +1,219 @@
+"""Unit tests of the streaming core (no ROS): image conversion, timestamp matching, lag, disk writer."""
+
+import json
+import os
+import threading
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from semantic_gs_slam_ros.errors import ImageFormatError, OutputError
+from semantic_gs_slam_ros.images import (
+    array_to_image_fields,
+    depth_to_mm,
+    image_to_array,
+    resize_nearest,
+    resize_rgb,
+    rgb_of,
+)
+from semantic_gs_slam_ros.lag import LagAction, LagController
+from semantic_gs_slam_ros.sync import FrameMatcher
+from semantic_gs_slam_ros.writer import AsyncFrameWriter, prepare_output_dir
+
+
+def msg(array, encoding):
+    return SimpleNamespace(**array_to_image_fields(array, encoding))
+
+
+# --- images -------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("encoding, shape, dtype", [("rgb8", (4, 5, 3), np.uint8), ("rgba8", (4, 5, 4), np.uint8),
+                                                    ("32FC1", (4, 5), np.float32), ("16UC1", (4, 5), np.uint16),
+                                                    ("mono8", (4, 5), np.uint8)])
+def test_image_round_trip(encoding, shape, dtype):
+    a = (np.arange(np.prod(shape)) % 250).reshape(shape).astype(dtype)
+    assert np.array_equal(image_to_array(msg(a, encoding)), a)
+
+
+def test_bgr_is_converted_and_row_padding_removed():
+    rgb = np.random.default_rng(0).integers(0, 255, (3, 5, 3), dtype=np.uint8)
+    bgr = rgb[..., ::-1]
+    padded = np.zeros((3, 16 + 4), np.uint8)
+    padded[:, :15] = bgr.reshape(3, 15)
+    m = SimpleNamespace(height=3, width=5, encoding="bgr8", is_bigendian=0, step=20, data=padded.tobytes())
+    assert np.array_equal(image_to_array(m), rgb)
+
+
+def test_big_endian_depth():
+    d = np.array([[1.5, 2.0]], np.float32)
+    m = SimpleNamespace(height=1, width=2, encoding="32FC1", is_bigendian=1, step=8, data=d.astype(">f4").tobytes())
+    assert np.array_equal(image_to_array(m), d)
+
+
+@pytest.mark.parametrize("fields, message", [({"encoding": "yuv422"}, "unsupported image encoding"),
+                                             ({"data": b"\x00" * 10}, "expected"),
+                                             ({"step": 2}, "bad image geometry"),
+                                             ({"height": 0}, "bad image geometry")])
+def test_bad_images_are_clear_errors(fields, message):
+    m = msg(np.zeros((4, 5), np.float32), "32FC1")
+    for k, v in fields.items():
+        setattr(m, k, v)
+    with pytest.raises(ImageFormatError, match=message):
+        image_to_array(m)
+
+
+def test_depth_metres_to_millimetres_marks_invalid_as_zero():
+    d = np.array([[1.2345, np.nan, np.inf], [-1.0, 0.0, 70.0]], np.float32)
+    assert depth_to_mm(d).tolist() == [[1234, 0, 0], [0, 0, 0]] or depth_to_mm(d).tolist() == [[1235, 0, 0], [0, 0, 0]]
+    assert depth_to_mm(d).dtype == np.uint16
+    assert depth_to_mm(np.array([[1.0]]), scale=5000.0).tolist() == [[5000]]
+    already = np.array([[7]], np.uint16)
+    assert depth_to_mm(already) is already
+
+
+def test_resizes():
+    ids = np.array([[1, 2], [3, 4]], np.uint8)
+    assert resize_nearest(ids, 4, 4).tolist() == [[1, 1, 2, 2], [1, 1, 2, 2], [3, 3, 4, 4], [3, 3, 4, 4]]
+    flat = np.full((10, 20, 3), 77, np.uint8)
+    out = resize_rgb(flat, 12, 7)
+    assert out.shape == (7, 12, 3) and (out == 77).all()
+    ramp = np.tile(np.linspace(0, 255, 40).astype(np.uint8)[None, :, None], (4, 1, 3))
+    small = resize_rgb(ramp, 20, 2)
+    assert (np.diff(small[0, :, 0].astype(int)) >= 0).all()
+    assert rgb_of(np.zeros((2, 2), np.uint8)).shape == (2, 2, 3)
+
+
+# --- matching ---------------------------------------------------------------------------------
+
+def test_in_order_pairs():
+    m = FrameMatcher(tolerance=0.01)
+    out = []
+    for i in range(5):
+        out += m.push("rgb", i * 0.1, f"c{i}")
+        out += m.push("depth", i * 0.1 + 0.004, f"d{i}")
+    assert [(f.rgb, f.depth) for f in out] == [(f"c{i}", f"d{i}") for i in range(5)]
+    assert m.stats.matched == 5 and sum(m.stats.dropped.values()) == 0
+
+
+def test_out_of_order_and_missing_depth_never_mispair():
+    now = [0.0]
+    m = FrameMatcher(tolerance=0.01, max_wait=0.35, clock=lambda: now[0])
+    out = []
+    # depth of frame 1 is missing, depth of frame 3 arrives before its colour, frame 2's colour late;
+    # images arrive 0.1 s apart (wall clock)
+    events = [("rgb", 0.0, "c0"), ("depth", 0.0, "d0"), ("rgb", 0.1, "c1"), ("depth", 0.3, "d3"),
+              ("depth", 0.2, "d2"), ("rgb", 0.3, "c3"), ("rgb", 0.2, "c2"), ("rgb", 0.6, "c6"), ("depth", 0.6, "d6")]
+    for s, t, v in events:
+        now[0] += 0.1
+        out += m.push(s, t, v)
+    pairs = [(f.rgb, f.depth) for f in out]
+    assert sorted(pairs) == [("c0", "d0"), ("c2", "d2"), ("c3", "d3"), ("c6", "d6")]
+    assert m.stats.dropped["rgb"] == 1  # c1 waited longer than max_wait
+    assert all(p[0][1:] == p[1][1:] for p in pairs)
+
+
+def test_fast_replay_is_not_dropped():
+    """A recording sent much faster than real time (stamps 1 s apart, arriving at once) all matches,
+    whatever the interleaving of the topics."""
+    m = FrameMatcher(tolerance=0.01, use_semantic=True, clock=lambda: 0.0)
+    out = []
+    for i in range(10):
+        out += m.push("depth", float(i + 1), i)
+        out += m.push("semantic", float(i + 1), i)
+    for i in reversed(range(10)):
+        out += m.push("rgb", float(i + 1), i)
+    assert sorted((f.rgb, f.depth, f.semantic) for f in out) == [(i, i, i) for i in range(10)]
+
+
+def test_ambiguous_match_is_not_forced():
+    m = FrameMatcher(tolerance=0.05)
+    m.push("rgb", 0.00, "c0")
+    m.push("rgb", 0.04, "c1")
+    out = m.push("depth", 0.035, "d1")  # nearest colour is c1, not c0
+    assert [(f.rgb, f.depth) for f in out] == [("c1", "d1")]
+
+
+def test_semantic_stream_required_when_enabled():
+    m = FrameMatcher(tolerance=0.01, use_semantic=True)
+    assert m.push("rgb", 1.0, "c") == [] and m.push("depth", 1.0, "d") == []
+    out = m.push("semantic", 1.001, "s")
+    assert [(f.rgb, f.depth, f.semantic) for f in out] == [("c", "d", "s")]
+    with pytest.raises(ValueError):
+        FrameMatcher().push("semantic", 0.0, "s")
+
+
+def test_flush_and_duplicates_are_counted():
+    m = FrameMatcher()
+    m.push("rgb", 1.0, "a")
+    m.push("rgb", 1.0, "b")
+    m.flush()
+    assert m.stats.duplicates == 1 and m.stats.dropped["rgb"] == 1 and m.pending() == {"rgb": 0, "depth": 0}
+
+
+# --- lag ------------------------------------------------------------------------------------------
+
+def test_lag_hysteresis():
+    lag = LagController(high=300, low=150)
+    seq = [10, 301, 302, 200, 151, 149, 160, 301]
+    acts = [lag.update(b) for b in seq]
+    assert acts == [LagAction.NONE, LagAction.UNSUBSCRIBE, LagAction.NONE, LagAction.NONE, LagAction.NONE,
+                    LagAction.RESUBSCRIBE, LagAction.NONE, LagAction.UNSUBSCRIBE]
+    assert lag.pauses == 2
+    with pytest.raises(ValueError):
+        LagController(high=10, low=10)
+
+
+# --- writer ---------------------------------------------------------------------------------------
+
+def test_writer_writes_complete_frames_in_order(tmp_path):
+    from PIL import Image
+
+    from semantic_gs_slam_ros.sync import MatchedFrame
+
+    prepare_output_dir(str(tmp_path))
+    done, got = threading.Event(), []
+
+    def on_written(w):
+        got.append(w)
+        if len(got) == 3:
+            done.set()
+
+    writer = AsyncFrameWriter(str(tmp_path), on_written)
+    rgb = np.full((6, 8, 3), 120, np.uint8)
+    for i in range(3):
+        depth = np.full((6, 8), 1000 + i, np.uint16)
+        assert writer.submit(MatchedFrame(i * 0.1, rgb, depth, np.full((6, 8), 7, np.uint8)))
+    assert done.wait(10)
+    writer.close()
+    assert [w.index for w in got] == [0, 1, 2]
+    assert np.array(Image.open(got[2].depth_path)).tolist() == np.full((6, 8), 1002).tolist()
+    assert np.array(Image.open(got[0].semantic_path)).max() == 7
+    records = [json.loads(line) for line in open(tmp_path / "completed.jsonl")]
+    assert [r["index"] for r in records] == [0, 1, 2] and records[1]["depth"] == "depths/depth000001.png"
+    assert not [f for f in os.listdir(tmp_path / "frames") if f.endswith(".tmp")]
+
+
+def test_clean_start_and_unwritable_directory(tmp_path):
+    (tmp_path / "frames").mkdir()
+    (tmp_path / "frames" / "old.jpg").write_text("x")
+    prepare_output_dir(str(tmp_path))
+    assert os.listdir(tmp_path / "frames") == []
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    with pytest.raises(OutputError, match="not writable"):
+        prepare_output_dir(str(blocker / "sub"))
+
+
+def test_writer_failure_is_reported_not_raised(tmp_path):
+    from semantic_gs_slam_ros.sync import MatchedFrame
+
+    prepare_output_dir(str(tmp_path))
+    writer = AsyncFrameWriter(str(tmp_path), lambda w: None)
+    os.rmdir(tmp_path / "depths")
+    (tmp_path / "depths").write_text("now a file")  # writing into it fails
+    writer.submit(MatchedFrame(0.0, np.zeros((2, 2, 3), np.uint8), np.zeros((2, 2), np.uint16)))
+    writer.close()
+    assert writer.error is not None and "cannot write frames" in str(writer.error)
+    assert not writer.submit(MatchedFrame(0.1, np.zeros((2, 2, 3), np.uint8), np.zeros((2, 2), np.uint16)))
+    assert writer.refused == 1
