@@ -126,7 +126,8 @@ def part_b(rates: list[float], seconds: float, tmp: str) -> None:
         node = rclpy.create_node("bench_streamer", context=ctx)
         ex = MultiThreadedExecutor(num_threads=2, context=ctx)
         ex.add_node(node)
-        threading.Thread(target=ex.spin, daemon=True).start()
+        spinner = threading.Thread(target=ex.spin, daemon=True)
+        spinner.start()
         qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
         latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                              reliability=ReliabilityPolicy.RELIABLE)
@@ -172,6 +173,7 @@ def part_b(rates: list[float], seconds: float, tmp: str) -> None:
                     break
         finally:
             ex.shutdown()
+            spinner.join(3.0)
             node.destroy_node()
             ctx.try_shutdown()
             sup.stop()

@@ -96,9 +96,9 @@ class RosTestNode:
 
     def close(self) -> None:
         self.executor.shutdown(timeout_sec=2.0)
+        self._thread.join(3.0)  # before destroying: a live spin thread at exit aborts the process
         self.node.destroy_node()
         self.context.try_shutdown()
-        self._thread.join(2.0)
 
 
 @pytest.fixture

@@ -232,6 +232,7 @@ def main(args: list[str] | None = None) -> int:
         return 130
     finally:
         executor.shutdown(timeout_sec=2.0)
+        spinner.join(3.0)  # a spin thread still alive at exit aborts the process (std::terminate)
         node.destroy_node()
         rclpy.try_shutdown()
 
