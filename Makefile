@@ -4,7 +4,7 @@ SHELL := /bin/bash
 ENV := source scripts/env.sh >/dev/null &&
 PYTEST_ARGS ?= -n 2
 
-.PHONY: setup demo test lint clean bench bench-object-query bench-decision-maker bench-voice
+.PHONY: setup demo test lint clean bench bench-object-query bench-decision-maker bench-voice bench-slam bench-slam-streaming
 
 setup:
 	@bash scripts/setup.sh
@@ -19,7 +19,7 @@ lint: setup
 	@$(ENV) ruff check .
 
 # Benchmarks print figures (and the ratio to the seed's method where there is one); minutes each.
-bench: bench-object-query bench-decision-maker bench-voice
+bench: bench-object-query bench-decision-maker bench-voice bench-slam bench-slam-streaming
 
 bench-object-query: setup
 	@$(ENV) python bench/object_query_bench.py
@@ -29,6 +29,12 @@ bench-decision-maker: setup
 
 bench-voice: setup
 	@$(ENV) python bench/voice_latency.py
+
+bench-slam: setup
+	@$(ENV) python bench/slam_synthetic.py
+
+bench-slam-streaming: setup
+	@$(ENV) python bench/slam_streaming.py
 
 clean:
 	rm -rf build install log

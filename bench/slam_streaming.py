@@ -194,7 +194,7 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=10)
     ap.add_argument("--width", type=int, default=300)
     ap.add_argument("--height", type=int, default=170)
-    ap.add_argument("--rates", type=float, nargs="+", default=[5, 10, 15, 20, 30])
+    ap.add_argument("--rates", type=float, nargs="+", default=[5, 10, 20, 30, 40])
     ap.add_argument("--seconds", type=float, default=4.0)
     ap.add_argument("--skip-a", action="store_true")
     ap.add_argument("--skip-b", action="store_true")
