@@ -64,10 +64,11 @@ class SlamClient(Node):
         self._done_pub = self.create_publisher(String, "data_transfer_done", LATCHED)
         self._goal_id: str | None = None
         self._start: dict | None = None  # the start signal of our goal
+        self._last_start: dict | None = None  # last start signal seen (any goal); guarded by _fb_lock
         self._started = threading.Event()
         self.create_subscription(String, "slam_start_signal", self._on_start, LATCHED)
         self._action = ActionClient(self, RunSlam, "run_gs_slam")
-        self._fb_lock = threading.Lock()  # guards _feedback
+        self._fb_lock = threading.Lock()  # guards _feedback, _last_start
         self._feedback: RunSlam.Feedback | None = None
         self._t_first = time.monotonic()
         self._last_print = 0.0
@@ -77,7 +78,15 @@ class SlamClient(Node):
             doc = json.loads(msg.data)
         except ValueError:
             return
-        if isinstance(doc, dict) and self._goal_id is not None and doc.get("goal") == self._goal_id:
+        if isinstance(doc, dict):
+            with self._fb_lock:
+                self._last_start = doc  # kept: it may arrive before we know our goal id
+            self._check_started()
+
+    def _check_started(self) -> None:
+        with self._fb_lock:
+            doc = self._last_start
+        if doc is not None and self._goal_id is not None and doc.get("goal") == self._goal_id:
             self._start = doc
             self._started.set()
 
@@ -122,7 +131,9 @@ class SlamClient(Node):
         result_future = handle.get_result_async()
         self._t_first = time.monotonic()
         deadline = time.monotonic() + g("server_timeout")
-        while not self._started.wait(0.05):
+        while not self._started.wait(0.1):
+            self._check_started()
+            self._publish_info(k, 0.0)  # until the run starts: the server needs the camera first
             if result_future.done():
                 log.error(f"run failed before it started: {result_future.result().result.message}")
                 return 1
@@ -142,10 +153,11 @@ class SlamClient(Node):
         next_t = time.monotonic()
         n = 0
         try:
-            for n, i in enumerate(indices, 1):
+            for i in indices:
                 if not self._wait_subscribed(streams, g("pause_timeout")):
                     log.error("the server stopped taking images")
                     break
+                n += 1
                 frame = data[i]
                 stamp = t0_wall + (frame.timestamp - t0_data)
                 rgb = np.clip(frame.rgb * 255.0 + 0.5, 0, 255).astype(np.uint8)

@@ -93,6 +93,7 @@ class SlamServer(Node):
 
     # ------------------------------------------------------------------ images
     def _subscribe(self) -> None:
+        self._unsubscribe()  # never two sets of subscriptions
         depth = self.get_parameter("image_qos_depth").value
         qos = QoSProfile(depth=depth, reliability=ReliabilityPolicy.RELIABLE)
         streams = ["rgb", "depth"] + (["semantic"] if self.get_parameter("use_semantic").value else [])
@@ -124,13 +125,13 @@ class SlamServer(Node):
     def _on_done(self, msg: String) -> None:
         try:
             doc = json.loads(msg.data)
-            expected = int(doc.get("frames_sent", 0))
-            if doc.get("goal") != self._goal_id:
-                return  # another (earlier) run's signal
-        except (ValueError, AttributeError, TypeError):
-            self.get_logger().warning(
-                f"malformed data_transfer_done {msg.data[:80]!r}; expected {{\"frames_sent\": N}}")
-            expected = 0
+            if not isinstance(doc, dict) or doc.get("goal") != self._goal_id or self._goal_id is None:
+                return  # another (earlier) run's signal, or not ours at all
+            expected = int(doc["frames_sent"])
+        except (ValueError, KeyError, TypeError):
+            self.get_logger().warning(f"malformed data_transfer_done {msg.data[:80]!r} ignored; expected "
+                                      '{"goal": id, "frames_sent": N}')
+            return
         self._done_deadline = time.monotonic() + self.get_parameter("done_wait").value
         self._done_expected = expected
 
@@ -141,6 +142,8 @@ class SlamServer(Node):
             return
         action = session.lag_action()
         with self._session_lock:
+            if self._session is not session:
+                return  # the run ended meanwhile: its subscriptions are gone and must stay gone
             if action is LagAction.UNSUBSCRIBE and self._subs:
                 self._unsubscribe()
                 self.get_logger().warning("backlog too long: image topics unsubscribed")
@@ -198,6 +201,7 @@ class SlamServer(Node):
             with self._session_lock:
                 self._unsubscribe()
                 self._session = None
+                self._goal_id = None
             self._busy.release()
 
     def _run(self, goal_handle, result: RunSlam.Result) -> RunSlam.Result:

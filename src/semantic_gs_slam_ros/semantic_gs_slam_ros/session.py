@@ -25,7 +25,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from semantic_gs_slam_ros.errors import OutputError, StreamingError
+from semantic_gs_slam_ros.errors import ImageFormatError, OutputError, StreamingError
 from semantic_gs_slam_ros.images import depth_to_mm, resize_nearest, resize_rgb, rgb_of
 from semantic_gs_slam_ros.lag import LagAction, LagController
 from semantic_gs_slam_ros.sync import FrameMatcher
@@ -155,7 +155,9 @@ class StreamingSession:
         self._cancelled = False
         self._ready: collections.deque[WrittenFrame] = collections.deque()  # written, not yet processed
         self._wake = threading.Event()  # set when a frame is written, or on done/cancel
-        self._writer = AsyncFrameWriter(config.work_dir, self._on_written)
+        # after a resume the folder keeps the earlier frames: continue their numbering
+        self._writer = AsyncFrameWriter(config.work_dir, self._on_written,
+                                        start_index=0 if config.clean_start else _frames_on_record(config.work_dir))
 
     # ---------------------------------------------------------------- producer side (callbacks)
     def on_image(self, stream: str, stamp: float, image: np.ndarray) -> None:
@@ -176,6 +178,10 @@ class StreamingSession:
 
     def _prepare(self, stream: str, image: np.ndarray) -> np.ndarray:
         w, h = self.cfg.width, self.cfg.height
+        if stream == "rgb" and not (image.ndim == 2 or (image.ndim == 3 and image.shape[2] in (3, 4))):
+            raise ImageFormatError(f"colour image must be [H, W, 3|4] or mono, got {list(image.shape)}")
+        if stream in ("depth", "semantic") and image.ndim != 2:
+            raise ImageFormatError(f"{stream} image must be single-channel [H, W], got {list(image.shape)}")
         if stream == "rgb":
             img = rgb_of(image)
             return resize_rgb(img, w, h) if w and h else img
@@ -233,6 +239,12 @@ class StreamingSession:
     def run(self, on_progress: Callable[[Progress], None] | None = None, poll: float = 0.1) -> SessionResult:
         """Process frames until the client is done and the backlog is empty, ``max_frames`` are
         processed, or :meth:`cancel`; then export the map. Blocks the calling thread."""
+        try:
+            return self._run(on_progress, poll)
+        finally:
+            self._writer.close()
+
+    def _run(self, on_progress: Callable[[Progress], None] | None, poll: float) -> SessionResult:
         ckpt_dir = os.path.join(self.cfg.work_dir, "checkpoint")
         message = ""
         t0 = time.monotonic()
@@ -263,27 +275,37 @@ class StreamingSession:
                     on_progress(self.progress())
                 continue
             depth_m = f.depth.astype(np.float32) / np.float32(self.cfg.depth_scale)
-            c2w = self.engine.add_frame(f.rgb, depth_m, f.semantic, f.stamp)
+            try:
+                c2w = self.engine.add_frame(f.rgb, depth_m, f.semantic, f.stamp)
+            except Exception as exc:  # a frame the engine refuses (e.g. no valid depth) is skipped
+                self._log(f"frame {frame.index} skipped by SLAM: {exc}")
+                with self._lock:
+                    self._progress.refused += 1
+                continue
             with self._lock:
                 self._progress.processed += 1
                 self._progress.gaussians = int(self.engine.num_gaussians)
                 self._progress.pose = np.asarray(c2w, dtype=float).tolist()
                 n = self._progress.processed
-            if self.cfg.checkpoint_every and n % self.cfg.checkpoint_every == 0:
-                self._checkpoint(ckpt_dir, frame)
-            if self.cfg.export_every and n % self.cfg.export_every == 0:
-                self._export()
+            try:
+                if self.cfg.checkpoint_every and n % self.cfg.checkpoint_every == 0:
+                    self._checkpoint(ckpt_dir, frame)
+                if self.cfg.export_every and n % self.cfg.export_every == 0:
+                    self._export()
+            except (OSError, StreamingError) as exc:
+                message = f"cannot write the checkpoint or map: {exc}"
+                break
             if on_progress is not None:
                 on_progress(self.progress())
             if self.cfg.max_frames and n >= self.cfg.max_frames:
                 message = f"reached max_frames={self.cfg.max_frames}"
                 break
-        self._writer.close()
+        self._writer.close()  # write what is still queued before reporting
         p = self.progress()
         n = p.processed
         dropped = {k: v for k, v in p.dropped.items() if v}
         if dropped or p.refused:
-            self._log(f"unmatched images dropped: {dropped or 0}; frames refused by the writer: {p.refused}")
+            self._log(f"unmatched images dropped: {dropped or 0}; frames refused (writer or SLAM): {p.refused}")
         if n == 0:
             return SessionResult(False, "", "", 0, message or "no frame was processed")
         if self.engine is None:
@@ -292,7 +314,7 @@ class StreamingSession:
                                                 f"to {self.cfg.work_dir} (no SLAM)")
         try:
             map_path, sem_path = self._export()
-        except OSError as exc:
+        except (OSError, StreamingError) as exc:
             return SessionResult(False, "", "", n, f"cannot write the map: {exc}")
         rate = n / max(time.monotonic() - t0, 1e-9)
         ok = self._writer.error is None
@@ -321,6 +343,21 @@ class StreamingSession:
         self._log(f"map written: {paths[0]}")
         self._on_map(*paths)
         return paths
+
+
+def _frames_on_record(work_dir: str) -> int:
+    """Index after the last frame recorded in ``work_dir/completed.jsonl`` (0 if none)."""
+    last = -1
+    try:
+        with open(os.path.join(work_dir, "completed.jsonl"), encoding="utf-8") as fh:
+            for line in fh:
+                try:
+                    last = max(last, int(json.loads(line)["index"]))
+                except (ValueError, KeyError, TypeError):
+                    continue
+    except OSError:
+        return 0
+    return last + 1
 
 
 def checkpoint_state(work_dir: str) -> dict[str, Any] | None:

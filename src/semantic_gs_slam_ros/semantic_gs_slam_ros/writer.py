@@ -115,7 +115,9 @@ class AsyncFrameWriter:
         return self._queue.qsize()
 
     def close(self, timeout: float = 30.0) -> None:
-        """Write what is queued, then stop the thread (waits at most ``timeout`` s)."""
+        """Write what is queued, then stop the thread (waits at most ``timeout`` s). Idempotent."""
+        if not self._thread.is_alive():
+            return
         try:
             self._queue.put(None, timeout=timeout)
         except queue.Full:

@@ -217,3 +217,17 @@ def test_writer_failure_is_reported_not_raised(tmp_path):
     assert writer.error is not None and "cannot write frames" in str(writer.error)
     assert not writer.submit(MatchedFrame(0.1, np.zeros((2, 2, 3), np.uint8), np.zeros((2, 2), np.uint16)))
     assert writer.refused == 1
+
+
+def test_session_drops_malformed_images_and_keeps_running(tmp_path):
+    """A colour image on the depth topic is refused with a clear error; the run is not ended."""
+    from semantic_gs_slam_ros.session import SessionConfig, StreamingSession
+
+    session = StreamingSession(SessionConfig(work_dir=str(tmp_path), width=0, height=0, checkpoint_every=0), None)
+    with pytest.raises(ImageFormatError, match="depth image must be single-channel"):
+        session.on_image("depth", 0.0, np.zeros((4, 4, 3), np.uint8))
+    session.on_image("depth", 0.0, np.ones((4, 4), np.float32))
+    session.on_image("rgb", 0.0, np.zeros((4, 4, 3), np.uint8))
+    session.data_transfer_done()
+    result = session.run()
+    assert result.success and result.frames_processed == 1 and "recorded 1 frames" in result.message

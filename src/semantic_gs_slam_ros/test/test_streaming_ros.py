@@ -162,6 +162,9 @@ def test_resume_after_a_crash(launch_nodes, ros_domain, sequence, tmp_path):
     log = sup2.get("run_gs_slam_server").output()
     assert f"resuming after frame {state['processed']}" in log
     assert f"{8 - state['processed']} frames processed" in client.text()
+    # the resumed run continued the numbering: the crashed run's frames are still there
+    indices = [json.loads(line)["index"] for line in open(work / "completed.jsonl")]
+    assert len(indices) == len(set(indices)) and len(os.listdir(work / "frames")) == len(indices)
 
 
 def test_bad_output_directory_is_a_clear_error(launch_nodes, ros_domain, sequence, tmp_path):
