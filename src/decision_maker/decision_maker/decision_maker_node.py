@@ -26,6 +26,7 @@ Parameters (read at start; see config/params/decision_maker.yaml for the default
 from __future__ import annotations
 
 import json
+import math
 import os
 import threading
 import time
@@ -41,7 +42,7 @@ from decision_maker.command_types import FrameTransform, load_locations
 from decision_maker.errors import ConfigError
 from decision_maker.execution import EngineConfig, ExecutionEngine, TaskStatus
 from decision_maker.nl_planner import PlanningContext, make_planner
-from decision_maker.ros_robot import RosRobot
+from decision_maker.ros_robot import OWN_CANCEL_PREFIX, RosRobot
 from decision_maker.topics import CANCEL_QOS, COMMAND_QOS, OBJECT_LIST_QOS
 
 
@@ -49,6 +50,16 @@ def default_locations_file() -> str:
     from ament_index_python.packages import get_package_share_directory
 
     return os.path.join(get_package_share_directory("decision_maker"), "config", "locations.yaml")
+
+
+def _position(value: object) -> tuple[float, float, float]:
+    """An /object_list position: exactly three finite numbers (ValueError otherwise)."""
+    if not isinstance(value, list) or len(value) != 3 or any(isinstance(v, bool) for v in value):
+        raise ValueError(f"bad position {value!r}")
+    out = tuple(float(v) for v in value)
+    if not all(math.isfinite(v) for v in out):
+        raise ValueError(f"bad position {value!r}")
+    return out  # type: ignore[return-value]
 
 
 class DecisionMakerNode(Node):
@@ -154,6 +165,8 @@ class DecisionMakerNode(Node):
         self.engine.submit(msg.data)
 
     def _on_cancel(self, msg: String) -> None:
+        if msg.data.startswith(OWN_CANCEL_PREFIX):
+            return  # our own stop for the hardware: the engine already stopped and cleared the queue
         reason = " ".join(msg.data.split())[:200] or "operator"
         n = self.engine.cancel(f"/cancel_command ({reason})")
         self.get_logger().warn(f"/cancel_command ({reason}): cancelled {n} command(s)")
@@ -161,7 +174,7 @@ class DecisionMakerNode(Node):
     def _on_object_list(self, msg: String) -> None:
         try:
             doc = json.loads(msg.data)
-            objects = {str(k).lower(): tuple(v) for k, v in doc.items()} if isinstance(doc, dict) else None
+            objects = {str(k).lower(): _position(v) for k, v in doc.items()} if isinstance(doc, dict) else None
         except (json.JSONDecodeError, TypeError, ValueError):
             objects = None
         if objects is None:

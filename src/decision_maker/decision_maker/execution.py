@@ -312,16 +312,21 @@ class ExecutionEngine:
     def cancel(self, reason: str = "cancel requested") -> int:
         """Clear the queue and stop the running batch. Returns how many commands it cancelled."""
         with self._cond:
-            dropped = list(self._queue)
-            self._queue.clear()
             current = self._current
         if current is not None:  # the robot first, the bookkeeping after
             current[1].abort(reason)
             self._robot.cancel_active()
+        return self._drop_queue(reason) + (1 if current else 0)
+
+    def _drop_queue(self, reason: str) -> int:
+        """Cancel every waiting command (the running one is not touched). Returns how many."""
+        with self._cond:
+            dropped = list(self._queue)
+            self._queue.clear()
         for cmd in dropped:
             self._emit(cmd.id, shorten(cmd.text, 200), TaskState.CANCELLED, message=f"{reason} (was queued)",
                        sentence="Cancelled before it started.")
-        return len(dropped) + (1 if current else 0)
+        return len(dropped)
 
     def queue_length(self) -> int:
         with self._cond:
@@ -419,6 +424,7 @@ class ExecutionEngine:
             if elapsed > cfg.batch_timeout_s:
                 msg = f"batch watchdog: {elapsed:.1f} s elapsed > {cfg.batch_timeout_s:g} s before {prim}"
                 self._robot.emergency_stop(msg)
+                self._drop_queue(f"command #{cid} timed out")  # nothing runs blindly after a timeout
                 return self._final(cid, shown, TaskState.TIMED_OUT, i, n, str(prim), msg,
                                    "That took too long, so I stopped.")
             self._emit(cid, shown, TaskState.RUNNING, i, n, str(prim), f"step {i}/{n}: {prim}",
@@ -434,6 +440,7 @@ class ExecutionEngine:
                     msg = f"batch time limit {cfg.batch_timeout_s:g} s reached during {msg}"
                 self._robot.cancel_active()
                 self._robot.emergency_stop(msg)
+                self._drop_queue(f"command #{cid} timed out")  # nothing runs blindly after a timeout
                 return self._final(cid, shown, TaskState.TIMED_OUT, i, n, str(prim), msg,
                                    f"I stopped: {describe(prim)} took too long.")
             except ExecutionError as exc:

@@ -43,6 +43,9 @@ _STATUS_NAMES = {GoalStatus.STATUS_SUCCEEDED: "succeeded", GoalStatus.STATUS_ABO
                  GoalStatus.STATUS_CANCELED: "canceled"}
 
 
+#: Prefix of the /cancel_command messages the decision maker publishes itself (on timeouts).
+OWN_CANCEL_PREFIX = "decision_maker: "
+
 class RosRobot:
     """Navigation, grasp, place and object lookup for the execution engine.
 
@@ -97,6 +100,7 @@ class RosRobot:
                                         f"after {timeout_s:.1f} s")
         future = self._query.query_async(name)
         if not self._wait_future(future, deadline, abort):
+            self._query.forget(future)
             if abort.is_set():
                 raise ActionCancelled(abort.reason)
             raise ServerUnavailable(f"object query gave no answer within {timeout_s:.1f} s")
@@ -139,7 +143,7 @@ class RosRobot:
 
     def emergency_stop(self, reason: str) -> None:
         self._node.get_logger().warn(f"publishing /cancel_command: {reason}")
-        self._cancel_pub.publish(String(data=f"decision_maker: {reason}"))
+        self._cancel_pub.publish(String(data=f"{OWN_CANCEL_PREFIX}{reason}"))
 
     # --- helpers -----------------------------------------------------------------------------------
 

@@ -183,7 +183,7 @@ def test_cancel_during_navigation_then_batch_watchdog(launch_nodes, ros_node, ro
 def test_nav_hang_timeout_and_object_query_absent(launch_nodes, ros_node, ros_domain):
     """No object database; navigation hangs: both end in clear statuses, a hang stops the hardware."""
     sup = launch_nodes(nodes=robot_specs(with_query=False), set=[
-        "mock_nav_server.fault=hang", "decision_maker.nav_timeout_s=1.0", "decision_maker.query_timeout_s=2.0"])
+        "mock_nav_server.fault=hang", "decision_maker.nav_timeout_s=1.0", "decision_maker.query_timeout_s=5.0"])
     robot = Robot(ros_node)
     robot.wait_connected()
 
@@ -202,11 +202,14 @@ def test_nav_hang_timeout_and_object_query_absent(launch_nodes, ros_node, ros_do
     robot.send("go home")
     robot.send("clean table")
     final = robot.final("go home", 15.0)
-    assert final.state is TaskState.TIMED_OUT and "navigation did not finish within 1.0 s" in final.message, final
+    # (on a loaded machine the 1 s may already run out before the goal is accepted)
+    assert final.state is TaskState.TIMED_OUT and "navigation" in final.message and "within 1.0 s" in final.message, \
+        final
     assert wait_for(lambda: any("decision_maker" in c for _, c in robot.cancels), 5.0), robot.cancels
-    # the hung goal was cancelled on the server, and the hardware stop also cleared the queue
+    # the hung goal was cancelled on the server, and the timeout also cleared the queue
     assert wait_for(lambda: "goal cancelled" in sup.get("mock_nav_server").output(), 5.0)
-    assert robot.final("clean table", 5.0).state is TaskState.CANCELLED
+    queued = robot.final("clean table", 5.0)
+    assert queued.state is TaskState.CANCELLED and "timed out" in queued.message, queued
 
 
 def test_bad_inputs_and_flood(launch_nodes, ros_node, ros_domain):

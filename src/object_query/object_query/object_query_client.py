@@ -86,22 +86,30 @@ class ObjectQueryClient:
         distances = tuple(i.distance for i in resp.instances)
         return InstancesResult(resp.found, resp.name, resp.message, instances, distances)
 
+    def forget(self, future: Future) -> None:
+        """Drop a request whose answer is no longer awaited (after a timeout or cancel)."""
+        if not future.done():
+            self._client.remove_pending_request(future)
+
     def _call(self, client, request, timeout_sec: float, spin: bool):
-        """Send ``request`` and wait for the response (see the class docstring for ``spin``)."""
+        """Send ``request`` and wait for the response (see the class docstring for ``spin``).
+
+        ``timeout_sec`` bounds the whole call: waiting for the service and for the answer.
+        """
+        deadline = time.monotonic() + timeout_sec
         if not client.service_is_ready() and not client.wait_for_service(timeout_sec=timeout_sec):
             raise ObjectQueryTimeout(f"service {client.srv_name} not available after {timeout_sec:.1f} s")
         future = client.call_async(request)
         if spin:
             executor = SingleThreadedExecutor(context=self._node.context)
             executor.add_node(self._node)
-            deadline = time.monotonic() + timeout_sec
             while not future.done() and time.monotonic() < deadline:
                 executor.spin_once(timeout_sec=0.05)
             executor.remove_node(self._node)
         else:
             done = threading.Event()
             future.add_done_callback(lambda _f: done.set())
-            done.wait(timeout_sec)
+            done.wait(max(0.0, deadline - time.monotonic()))
         if not future.done():
             client.remove_pending_request(future)
             raise ObjectQueryTimeout(f"no answer from {client.srv_name} within {timeout_sec:.1f} s")
