@@ -28,6 +28,7 @@ import os
 import time
 import urllib.error
 import urllib.request
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -155,8 +156,13 @@ class ChatClient:
             body["response_format"] = {"type": "json_object"}
         return body
 
-    def complete(self, messages: list[dict[str, str]]) -> dict[str, Any]:
+    def complete(self, messages: list[dict[str, str]],
+                 should_stop: Callable[[], bool] = lambda: False) -> dict[str, Any]:
         """Send the conversation; return the answer's JSON object.
+
+        Each attempt is bounded as a whole (connect, headers and a body that may trickle in):
+        the body is read in chunks against the attempt's deadline. ``should_stop`` (e.g. the
+        command was cancelled) is checked between chunks and attempts.
 
         Raises:
             LLMUnavailable: no usable answer after all attempts (down, slow, 5xx/429, 4xx).
@@ -172,10 +178,13 @@ class ChatClient:
         for attempt in range(self.cfg.retries + 1):
             if attempt:
                 time.sleep(0.2)
+            if should_stop():
+                raise PlanningError("cancelled while asking the LLM")
             req = urllib.request.Request(url, data=data, headers=headers, method="POST")
+            deadline = time.monotonic() + self.cfg.timeout_s
             try:
                 with urllib.request.urlopen(req, timeout=self.cfg.timeout_s) as resp:
-                    raw = resp.read(1_000_001)
+                    raw = _read_until(resp, deadline, 1_000_001, should_stop)
             except urllib.error.HTTPError as exc:
                 last = f"HTTP {exc.code} from {url}"
                 if exc.code in (429,) or exc.code >= 500:
@@ -190,6 +199,23 @@ class ChatClient:
             return extract_reply(raw)
         raise LLMUnavailable(f"the LLM endpoint {self.cfg.base_url} is unavailable "
                              f"({last}, {self.cfg.retries + 1} attempt(s), {self.cfg.timeout_s:g} s each)")
+
+
+def _read_until(resp: Any, deadline: float, limit: int, should_stop: Callable[[], bool]) -> bytes:
+    """The response body, read in chunks; TimeoutError past ``deadline``, at most ``limit`` bytes."""
+    parts: list[bytes] = []
+    size = 0
+    while size < limit:
+        if time.monotonic() > deadline:
+            raise TimeoutError("timed out reading the answer")
+        if should_stop():
+            raise PlanningError("cancelled while asking the LLM")
+        chunk = resp.read1(65536)
+        if not chunk:
+            break
+        parts.append(chunk)
+        size += len(chunk)
+    return b"".join(parts)
 
 
 def extract_reply(raw: bytes) -> dict[str, Any]:
@@ -371,7 +397,7 @@ class LLMPlanner:
 
     def plan(self, text: str, context: PlanningContext) -> Plan:
         held = context.held_object
-        doc = self.client.complete(build_messages(text, context, held, self.cfg.max_steps))
+        doc = self.client.complete(build_messages(text, context, held, self.cfg.max_steps), context.should_stop)
         return validate_reply(doc, context, self.cfg, held)
 
 

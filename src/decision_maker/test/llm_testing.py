@@ -40,6 +40,18 @@ class ScriptedEndpoint:
                 endpoint.requests.append({"path": self.path, "body": json.loads(body)})
                 endpoint.headers.append(dict(self.headers))
                 step = endpoint.script.pop(0) if len(endpoint.script) > 1 else endpoint.script[0]
+                if step[0] == "trickle":  # headers at once, then the body one byte per step[1] s
+                    self.send_response(200)
+                    self.send_header("Content-Type", "application/json")
+                    self.end_headers()
+                    try:
+                        for b in step[2]:
+                            self.wfile.write(bytes([b]))
+                            self.wfile.flush()
+                            time.sleep(step[1])
+                    except (BrokenPipeError, ConnectionResetError):
+                        pass
+                    return
                 if step[0] == "sleep":
                     time.sleep(step[1])
                     step = step[2]

@@ -158,6 +158,15 @@ def test_timeouts_are_bounded_and_reported(endpoint, context):
     assert len(ep.requests) == 2
 
 
+def test_a_trickling_answer_is_bounded_too(endpoint, context):
+    """Bytes arriving slowly (each within the socket timeout) still end at the request deadline."""
+    ep = endpoint(("trickle", 0.1, completion(PLAN_DRINK)))
+    t0 = time.monotonic()
+    with pytest.raises(LLMUnavailable, match="timed out"):
+        planner_for(ep, timeout_s=0.5, retries=0).plan("drink", context)
+    assert time.monotonic() - t0 < 5.0  # the whole answer would take ~40 s
+
+
 def test_server_errors_are_retried_then_succeed(endpoint, context):
     ep = endpoint((500, b"{}"), (200, completion(PLAN_DRINK)))
     plan = planner_for(ep, retries=2).plan("drink", context)

@@ -196,6 +196,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"demo: ROS_DOMAIN_ID={lease.domain_id}, discovery LOCALHOST; starting the simulated robot "
               "(object database, simulated base and arm, decision maker)...", flush=True)
         t0 = time.monotonic()
+        sup = None
         try:
             specs = apply_overrides(load_nodeset("sim_robot"), opts.set)
             sup = Supervisor(specs, env, echo=sys.stdout if opts.verbose else None)
@@ -203,7 +204,13 @@ def main(argv: list[str] | None = None) -> int:
             sup.wait_ready(opts.ready_timeout)
         except BringupError as exc:
             print(f"demo: error: {exc}", file=sys.stderr)
+            if sup is not None:
+                sup.stop()
             return 1
+        from decision_maker.command_types import sanitize_text, shorten
+
+        # statuses carry the command as the decision maker sanitised it: match on that
+        keys = [shorten(sanitize_text(t), 200) for t in commands]
         op = None
         try:
             op = Operator(lease.domain_id)
@@ -220,11 +227,11 @@ def main(argv: list[str] | None = None) -> int:
                 op.send(text)
             ok = True
             if commands:
-                if not op.wait_finals(commands, opts.timeout):
+                if not op.wait_finals(keys, opts.timeout):
                     print(f"demo: not all commands finished within {opts.timeout:g} s", file=sys.stderr)
                     ok = False
                 ok = ok and all(getattr(op.finals.get(t), "state", None) is not None
-                                and op.finals[t].state.value == "succeeded" for t in commands)
+                                and op.finals[t].state.value == "succeeded" for t in keys)
                 time.sleep(0.6)  # the world state of the last step (published on change, and at 2 Hz)
                 world = op.snapshot()
                 print("demo: the world now:\n" + "\n".join(describe_world(world, locations)), flush=True)

@@ -28,11 +28,15 @@ _COLOURS = ("36", "33", "35", "32", "34", "91", "96", "93", "95", "92")
 _PR_SET_PDEATHSIG = 1
 
 
-def _die_with_parent() -> None:  # runs in the child between fork and exec
-    try:
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
-    except OSError:
-        pass
+try:  # loaded once here: the child may only call it (no dlopen between fork and exec)
+    _LIBC: ctypes.CDLL | None = ctypes.CDLL("libc.so.6", use_errno=True)
+except OSError:  # pragma: no cover - non-glibc systems
+    _LIBC = None
+
+
+def _die_with_parent() -> None:  # runs in the child between fork and exec: keep it trivial
+    if _LIBC is not None:
+        _LIBC.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
 
 
 def node_environment(domain_id: int | None = None, base: dict[str, str] | None = None) -> dict[str, str]:
