@@ -197,9 +197,14 @@ class ObjectQueryServer(Node):
 
     # -- loading ---------------------------------------------------------------------------------
 
-    def _build(self) -> tuple[ObjectDatabase, FileSignature]:
+    def _signature_now(self) -> FileSignature:
         map_path, sem_path, syn_path = self._paths()
-        signature = FileSignature.of(map_path, sem_path, *([syn_path] if syn_path else []))
+        return FileSignature.of(map_path, sem_path, *([syn_path] if syn_path else []))
+
+    def _build(self, signature: FileSignature | None = None) -> tuple[ObjectDatabase, FileSignature]:
+        """The database from the files; ``signature`` = the files' state taken before reading them."""
+        map_path, sem_path, syn_path = self._paths()
+        signature = signature or self._signature_now()
         db = ObjectDatabase.from_files(map_path, sem_path, self._config(), load_synonyms(syn_path))
         return db, signature
 
@@ -232,10 +237,12 @@ class ObjectQueryServer(Node):
             ``(success, message)``; the message says what was loaded or why the old map was kept.
         """
         with self._reload_lock:
+            # taken before reading: if a writer replaces the files while we read them, the next
+            # poll sees a newer signature and loads again (never a good file marked as failed)
+            signature = self._signature_now()
             try:
-                db, signature = self._build()
+                db, signature = self._build(signature)
             except (MapLoadError, SynonymsError, ValueError, OSError, MemoryError) as exc:
-                signature = FileSignature.of(*[p for p in self._paths() if p])
                 with self._lock:
                     self._failed_signature = signature
                     old = self._db
