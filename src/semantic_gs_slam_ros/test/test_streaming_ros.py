@@ -12,6 +12,7 @@ import os
 import signal
 import subprocess
 import threading
+import time
 
 import pytest
 
@@ -183,3 +184,65 @@ def test_client_reports_missing_dataset_and_server(ros_domain, tmp_path):
     seq.mkdir()
     client = Client(ros_domain, seq, server_timeout=2.0)
     assert client.wait(60) == 2
+
+
+def test_out_of_order_and_missing_depth_over_ros(launch_nodes, ros_node, tmp_path):
+    """The test publishes like a camera driver would, but out of order and with one depth missing:
+    every complete frame is written, the lone colour image is dropped, nothing is mispaired."""
+    import numpy as np
+    from rclpy.action import ActionClient
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+    from semantic_gs_slam_interfaces.action import RunSlam
+    from sensor_msgs.msg import CameraInfo, Image
+    from std_msgs.msg import String
+
+    from semantic_gs_slam_ros.run_gs_slam_client import image_msg
+
+    work = tmp_path / "run"
+    launch_nodes(nodes=[NodeSpec("run_gs_slam_server", "semantic_gs_slam_ros", "run_gs_slam_server",
+                                 ready="ready:", parameters={"work_dir": str(work), "width": 0, "height": 0,
+                                                             "slam_enabled": False, "done_wait": 3.0})])
+    reliable = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+    latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
+    rgb_pub = ros_node.create_publisher(Image, "rgb", reliable)
+    depth_pub = ros_node.create_publisher(Image, "depth", reliable)
+    info_pub = ros_node.create_publisher(CameraInfo, "camera_info", reliable)
+    done_pub = ros_node.create_publisher(String, "data_transfer_done", latched)
+    action = ActionClient(ros_node, RunSlam, "run_gs_slam")
+    assert action.wait_for_server(timeout_sec=20)
+    info_pub.publish(CameraInfo(width=8, height=6, k=[8.0, 0, 3.5, 0, 8.0, 2.5, 0, 0, 1]))
+    sent = action.send_goal_async(RunSlam.Goal())
+    assert wait_for(lambda: sent.done(), 20)
+    handle = sent.result()
+    result = handle.get_result_async()
+    assert wait_for(lambda: rgb_pub.get_subscription_count() > 0 and depth_pub.get_subscription_count() > 0, 20)
+    time.sleep(0.5)
+    t0 = 1_000.0
+
+    def rgb(i):
+        return image_msg(np.full((6, 8, 3), 10 * i, np.uint8), "rgb8", t0 + i * 0.1, "camera")
+
+    def depth(i):
+        return image_msg(np.full((6, 8), 1.0 + i, np.float32), "32FC1", t0 + i * 0.1, "camera")
+
+    # frame 0 in order; frame 2's depth before frame 1's colour; frame 1 has no depth at all;
+    # frames 3 and 4 colour first, depths after in reverse order
+    for msg, pub in [(rgb(0), rgb_pub), (depth(0), depth_pub), (depth(2), depth_pub), (rgb(1), rgb_pub),
+                     (rgb(2), rgb_pub), (rgb(3), rgb_pub), (rgb(4), rgb_pub), (depth(4), depth_pub),
+                     (depth(3), depth_pub)]:
+        pub.publish(msg)
+        time.sleep(0.02)
+    goal_id = bytes(handle.goal_id.uuid).hex()
+    done_pub.publish(String(data=json.dumps({"goal": goal_id, "frames_sent": 5})))
+    assert wait_for(lambda: result.done(), 60)
+    res = result.result().result
+    assert res.success and res.frames_processed == 4, res.message
+    from PIL import Image as PILImage
+
+    records = [json.loads(line) for line in open(work / "completed.jsonl")]
+    stamps = sorted(round(r["stamp"] - t0, 1) for r in records)
+    assert stamps == [0.0, 0.2, 0.3, 0.4]
+    for r in records:  # colour and depth of each written frame belong together
+        i = round((r["stamp"] - t0) * 10)
+        assert np.array(PILImage.open(work / r["depth"])).max() == 1000 * (1 + i)
+        assert abs(int(np.array(PILImage.open(work / r["rgb"])).mean()) - 10 * i) <= 2
