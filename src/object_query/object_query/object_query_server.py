@@ -323,10 +323,10 @@ def main(args: list[str] | None = None) -> int:
     finally:
         maintenance.shutdown(timeout_sec=2.0)
         executor.shutdown(timeout_sec=2.0)
+        maintenance_thread.join(3.0)  # before destroying: a live spin thread at exit aborts the process
         node.maintenance_node.destroy_node()
         node.destroy_node()
         rclpy.try_shutdown()
-        maintenance_thread.join(2.0)
     return 0
 
 
