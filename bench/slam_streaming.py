@@ -22,7 +22,6 @@ import statistics
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 
 import numpy as np
@@ -96,14 +95,13 @@ def part_a(frames: int, width: int, height: int, tmp: str) -> None:
 
 
 def part_b(rates: list[float], seconds: float, tmp: str) -> None:
-    import rclpy
     from rclpy.action import ActionClient
-    from rclpy.executors import MultiThreadedExecutor
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
     from semantic_gs_slam_interfaces.action import RunSlam
     from sensor_msgs.msg import CameraInfo, Image
     from std_msgs.msg import String
 
+    from home_robot_bringup.background import BackgroundNode
     from home_robot_bringup.domain import DomainLease
     from home_robot_bringup.nodeset import NodeSpec
     from home_robot_bringup.process import Supervisor, node_environment
@@ -121,13 +119,8 @@ def part_b(rates: list[float], seconds: float, tmp: str) -> None:
         sup = Supervisor([spec], node_environment(lease.domain_id), echo=None)
         sup.start()
         sup.wait_ready(60)
-        ctx = rclpy.Context()
-        rclpy.init(context=ctx, domain_id=lease.domain_id)
-        node = rclpy.create_node("bench_streamer", context=ctx)
-        ex = MultiThreadedExecutor(num_threads=2, context=ctx)
-        ex.add_node(node)
-        spinner = threading.Thread(target=ex.spin, daemon=True)
-        spinner.start()
+        ros = BackgroundNode(lease.domain_id, "bench_streamer")
+        node = ros.node
         qos = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
         latched = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
                              reliability=ReliabilityPolicy.RELIABLE)
@@ -172,10 +165,7 @@ def part_b(rates: list[float], seconds: float, tmp: str) -> None:
                 if not ok:
                     break
         finally:
-            ex.shutdown()
-            spinner.join(3.0)
-            node.destroy_node()
-            ctx.try_shutdown()
+            ros.close()
             sup.stop()
     print(f"   highest rate with no frame lost: {best:g} Hz (load average {os.getloadavg()[0]:.1f})")
 

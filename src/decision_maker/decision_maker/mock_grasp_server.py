@@ -27,11 +27,9 @@ import math
 import time
 from dataclasses import dataclass
 
-import rclpy
 from decision_maker_interfaces.action import Grasp, Place
 from geometry_msgs.msg import PoseStamped
 from rclpy.action.server import ServerGoalHandle
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
@@ -39,7 +37,7 @@ from std_msgs.msg import String
 from decision_maker.command_types import Point3, Pose2D
 from decision_maker.errors import ConfigError, SimError
 from decision_maker.mock_nav_server import FAULTS, POSE_QOS, yaw_of
-from decision_maker.sim_actions import SimGoals
+from decision_maker.sim_actions import SimGoals, run_sim_node
 from decision_maker.sim_world import ObjectWorld
 
 WORLD_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
@@ -222,21 +220,7 @@ class MockGraspServer(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    rclpy.init(args=args)
-    try:
-        node = MockGraspServer()
-    except ConfigError as exc:
-        rclpy.logging.get_logger("mock_grasp_server").fatal(f"configuration error: {exc}")
-        rclpy.try_shutdown()
-        return 2
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_sim_node(MockGraspServer, "mock_grasp_server", args)
 
 
 if __name__ == "__main__":

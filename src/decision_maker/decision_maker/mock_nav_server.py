@@ -19,19 +19,17 @@ from __future__ import annotations
 import math
 import time
 
-import rclpy
 from builtin_interfaces.msg import Duration
 from geometry_msgs.msg import PoseStamped
 from nav2_msgs.action import NavigateToPose
 from rclpy.action.server import ServerGoalHandle
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
 from decision_maker.command_types import Pose2D
 from decision_maker.errors import ConfigError
-from decision_maker.sim_actions import SimGoals
+from decision_maker.sim_actions import SimGoals, run_sim_node
 from decision_maker.sim_world import BaseSim
 
 POSE_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
@@ -164,21 +162,7 @@ class MockNavServer(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    rclpy.init(args=args)
-    try:
-        node = MockNavServer()
-    except ConfigError as exc:
-        rclpy.logging.get_logger("mock_nav_server").fatal(f"configuration error: {exc}")
-        rclpy.try_shutdown()
-        return 2
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_sim_node(MockNavServer, "mock_nav_server", args)
 
 
 if __name__ == "__main__":

@@ -122,3 +122,28 @@ class SimGoals:
         else:
             gh.abort()
         return outcome.result
+
+
+def run_sim_node(node_class: Callable[[], Node], name: str, args: list[str] | None = None) -> int:
+    """``main()`` of a simulated server: build the node (a ConfigError is reported, exit 2), spin
+    it in this thread until Ctrl-C / shutdown, then clean up. Returns the exit code."""
+    import rclpy
+    from rclpy.executors import ExternalShutdownException
+
+    from decision_maker.errors import ConfigError
+
+    rclpy.init(args=args)
+    try:
+        node = node_class()
+    except ConfigError as exc:
+        rclpy.logging.get_logger(name).fatal(f"configuration error: {exc}")
+        rclpy.try_shutdown()
+        return 2
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0

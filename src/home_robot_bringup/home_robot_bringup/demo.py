@@ -27,6 +27,7 @@ import sys
 import threading
 import time
 
+from home_robot_bringup.background import BackgroundNode
 from home_robot_bringup.domain import DomainLease
 from home_robot_bringup.errors import BringupError
 from home_robot_bringup.launcher import apply_overrides
@@ -40,9 +41,6 @@ class Operator:
     """The demo's own ROS node: sends commands/cancels, receives statuses and the world state."""
 
     def __init__(self, domain_id: int, echo=sys.stdout) -> None:
-        import rclpy
-        from rclpy.context import Context
-        from rclpy.executors import SingleThreadedExecutor
         from std_msgs.msg import String
 
         from decision_maker.topics import CANCEL_QOS, COMMAND_QOS, OBJECT_LIST_QOS
@@ -50,28 +48,15 @@ class Operator:
         self._String = String
         self._echo = echo
         self._t0 = time.monotonic()
-        self.context = Context()
-        rclpy.init(context=self.context, domain_id=domain_id)
-        self.node = rclpy.create_node("demo_operator", context=self.context)
         self._cond = threading.Condition()  # guards finals, world
         self.finals: dict[str, object] = {}
         self.world: dict | None = None
-        self._cmd = self.node.create_publisher(String, "manual_command", COMMAND_QOS)
-        self._cancel = self.node.create_publisher(String, "cancel_command", CANCEL_QOS)
-        self.node.create_subscription(String, "task_status", self._on_status, COMMAND_QOS)
-        self.node.create_subscription(String, "sim/world_state", self._on_world, OBJECT_LIST_QOS)
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(self.node)
-        self._thread = threading.Thread(target=self._spin, name="demo-executor", daemon=True)
-        self._thread.start()
-
-    def _spin(self) -> None:
-        from rclpy.executors import ExternalShutdownException
-
-        try:
-            self.executor.spin()
-        except ExternalShutdownException:
-            pass
+        self._ros = BackgroundNode(domain_id, "demo_operator", threads=1)
+        node = self._ros.node
+        self._cmd = node.create_publisher(String, "manual_command", COMMAND_QOS)
+        self._cancel = node.create_publisher(String, "cancel_command", CANCEL_QOS)
+        node.create_subscription(String, "task_status", self._on_status, COMMAND_QOS)
+        node.create_subscription(String, "sim/world_state", self._on_world, OBJECT_LIST_QOS)
 
     def _on_status(self, msg) -> None:
         from decision_maker.execution import TaskStatus
@@ -119,10 +104,7 @@ class Operator:
             return None if self.world is None else json.loads(json.dumps(self.world))
 
     def close(self) -> None:
-        self.executor.shutdown(timeout_sec=2.0)
-        self._thread.join(2.0)
-        self.node.destroy_node()
-        self.context.try_shutdown()
+        self._ros.close()
 
 
 def describe_world(world: dict, locations: dict) -> list[str]:

@@ -15,11 +15,11 @@ Every environment created here sets ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST.
 from __future__ import annotations
 
 import os
-import threading
 from collections.abc import Callable, Iterator
 
 import pytest
 
+from home_robot_bringup.background import BackgroundNode
 from home_robot_bringup.domain import DomainLease
 from home_robot_bringup.launcher import apply_overrides
 from home_robot_bringup.nodeset import NodeSpec, load_nodeset
@@ -70,41 +70,10 @@ def launch_nodes(ros_domain: int, request: pytest.FixtureRequest) -> Iterator[Ca
             print(sup.output())
 
 
-class RosTestNode:
-    """An rclpy context + node on the test's domain, spun in a background thread."""
-
-    def __init__(self, domain_id: int, name: str = "test_client") -> None:
-        import rclpy
-        from rclpy.context import Context
-        from rclpy.executors import MultiThreadedExecutor
-
-        self.context = Context()
-        rclpy.init(context=self.context, domain_id=domain_id)
-        self.node = rclpy.create_node(name, context=self.context)
-        self.executor = MultiThreadedExecutor(num_threads=2, context=self.context)
-        self.executor.add_node(self.node)
-        self._thread = threading.Thread(target=self._spin, name="test-executor", daemon=True)
-        self._thread.start()
-
-    def _spin(self) -> None:
-        from rclpy.executors import ExternalShutdownException
-
-        try:
-            self.executor.spin()
-        except ExternalShutdownException:
-            pass
-
-    def close(self) -> None:
-        self.executor.shutdown(timeout_sec=2.0)
-        self._thread.join(3.0)  # before destroying: a live spin thread at exit aborts the process
-        self.node.destroy_node()
-        self.context.try_shutdown()
-
-
 @pytest.fixture
 def ros_node(ros_domain: int) -> Iterator[object]:
     """The test's own rclpy node (``rclpy.node.Node``), already being spun."""
-    helper = RosTestNode(ros_domain)
+    helper = BackgroundNode(ros_domain, "test_client")
     try:
         yield helper.node
     finally:

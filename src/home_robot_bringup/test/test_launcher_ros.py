@@ -3,11 +3,10 @@
 import os
 import re
 import signal
-import subprocess
-import threading
 
 import pytest
 
+from home_robot_bringup.background import CapturedProcess
 from home_robot_bringup.nodeset import find_executable
 from home_robot_bringup.process import node_environment
 from home_robot_bringup.testing import wait_for
@@ -15,27 +14,13 @@ from home_robot_bringup.testing import wait_for
 pytestmark = pytest.mark.ros
 
 
-class LauncherRun:
+class LauncherRun(CapturedProcess):
     def __init__(self, domain: int, *args: str) -> None:
         exe = find_executable("home_robot_bringup", "launch")
-        self.proc = subprocess.Popen([exe, *args, "--domain-id", str(domain), "--no-color"],
-                                     env=node_environment(domain), stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                     text=True)
-        self.lines: list[str] = []
-        self._t = threading.Thread(target=lambda: self.lines.extend(iter(self.proc.stdout.readline, "")),
-                                   daemon=True)
-        self._t.start()
-
-    def text(self) -> str:
-        return "".join(self.lines)
+        super().__init__([exe, *args, "--domain-id", str(domain), "--no-color"], node_environment(domain))
 
     def finish(self, timeout: float = 30) -> int:
-        try:
-            return self.proc.wait(timeout)
-        finally:
-            if self.proc.poll() is None:
-                self.proc.kill()
-            self._t.join(5)
+        return self.wait(timeout)
 
 
 def child_pid(run: LauncherRun, name: str) -> int:

@@ -10,12 +10,11 @@ from __future__ import annotations
 import json
 import os
 import signal
-import subprocess
-import threading
 import time
 
 import pytest
 
+from home_robot_bringup.background import CapturedProcess
 from home_robot_bringup.nodeset import NodeSpec, find_executable
 from home_robot_bringup.process import node_environment
 from home_robot_bringup.testing import wait_for
@@ -47,7 +46,7 @@ def server_spec(work, sequence, **params) -> NodeSpec:
                     parameters={**base, **params}, ready="ready:")
 
 
-class Client:
+class Client(CapturedProcess):
     """run_gs_slam_client as a process; output collected."""
 
     def __init__(self, domain: int, dataset, **params):
@@ -55,22 +54,10 @@ class Client:
         args = [exe, "--ros-args", "-p", f"dataset:={dataset}", "-p", "rate:=0.0"]
         for k, v in params.items():
             args += ["-p", f"{k}:={json.dumps(v)}"]
-        self.proc = subprocess.Popen(args, env=node_environment(domain), stdout=subprocess.PIPE,
-                                     stderr=subprocess.STDOUT, text=True)
-        self.lines: list[str] = []
-        self._t = threading.Thread(target=lambda: self.lines.extend(iter(self.proc.stdout.readline, "")), daemon=True)
-        self._t.start()
-
-    def text(self) -> str:
-        return "".join(self.lines)
+        super().__init__(args, node_environment(domain))
 
     def wait(self, timeout: float = 240) -> int:
-        try:
-            return self.proc.wait(timeout)
-        finally:
-            if self.proc.poll() is None:
-                self.proc.kill()
-            self._t.join(5)
+        return super().wait(timeout)
 
 
 def processed_frames(work) -> int:
