@@ -94,12 +94,15 @@ class MappingConfig:
     iters: int = 10  # Adam iterations per keyframe
     first_frame_iters: int = 60  # iterations on the first frame
     window: int = 4  # keyframes optimised together (current + the most overlapping earlier ones)
+    window_random: int = 1  # of the window's earlier keyframes, this many are drawn at random among the overlapping
     pixel_stride: int = 2  # new Gaussians seeded at every k-th pixel of the empty/occluding region
     densify_silhouette: float = 0.5  # pixels below this silhouette get new Gaussians
     densify_depth_factor: float = 50.0  # ... or where the model is behind depth by > factor * median error
     radius_factor: float = 0.6  # new Gaussian std dev = radius_factor * pixel_stride * depth / f
     init_logit_opacity: float = 3.0
-    rare_label_fraction: float = 0.02  # labels on < 2 % of a keyframe's new pixels are seeded at every pixel
+    rare_label_fraction: float = 0.02  # labels on < 2 % of a frame's valid pixels (small objects) are seeded
+    # at every pixel (one-pixel radius) instead of every pixel_stride-th
+    semantic_densify: bool = True  # keyframes also seed small-object pixels that the map renders with another label
     lr_means: float = 1e-4
     lr_rgb: float = 2.5e-3
     lr_semantic: float = 2.5e-3
@@ -116,6 +119,8 @@ class MappingConfig:
     prune_every: int = 5  # keyframes between pruning passes
 
     def check(self) -> None:
+        if self.window_random < 0:
+            raise ConfigError("mapping.window_random must be >= 0")
         if self.keyframe_every < 1 or self.window < 1 or self.pixel_stride < 1:
             raise ConfigError("mapping.keyframe_every, window and pixel_stride must be >= 1")
         if self.iters < 0 or self.first_frame_iters < 0:

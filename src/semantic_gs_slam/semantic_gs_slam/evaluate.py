@@ -7,15 +7,7 @@ import numpy as np
 import torch
 
 from semantic_gs_slam.datasets import Dataset
-from semantic_gs_slam.gaussian_map import palette
 from semantic_gs_slam.metrics import ate_rmse, confusion, depth_l1, miou, psnr, ssim
-
-
-def semantic_labels(sem_rgb: torch.Tensor, class_ids: list[int]) -> np.ndarray:
-    """Class id per pixel [H, W] = nearest palette colour of a rendered semantic image [H, W, 3]."""
-    pal = torch.as_tensor(palette(np.array([0] + class_ids)), dtype=sem_rgb.dtype)
-    d = torch.cdist(sem_rgb.reshape(-1, 3), pal)
-    return np.array([0] + class_ids)[d.argmin(1).numpy()].reshape(sem_rgb.shape[:2])
 
 
 def evaluate(eng, ds: Dataset, frame_idx: list[int], every: int = 1) -> dict:
@@ -28,14 +20,13 @@ def evaluate(eng, ds: Dataset, frame_idx: list[int], every: int = 1) -> dict:
         every: render-evaluate every k-th frame.
 
     Returns:
-        dict with ate_rmse_cm, psnr, ssim, depth_l1_cm, miou, gaussians, frames.
+        dict with ate_rmse_cm, psnr, ssim, depth_l1_cm, miou, class_iou (name -> IoU), gaussians, frames.
     """
     res = {"frames": len(eng.poses), "gaussians": len(eng.map)}
     gts = [ds[i].gt_c2w for i in frame_idx]
     if all(g is not None for g in gts):
         res["ate_rmse_cm"] = 100 * ate_rmse(eng.poses, gts)
     ps, ss, dl = [], [], []
-    class_ids = sorted(i for i in eng.classes if i > 0)
     conf = np.zeros((256, 256), np.int64)
     have_sem = False
     for n in range(0, len(frame_idx), every):
@@ -46,14 +37,18 @@ def evaluate(eng, ds: Dataset, frame_idx: list[int], every: int = 1) -> dict:
         ps.append(psnr(img, rgb))
         ss.append(float(ssim(img, rgb)))
         dl.append(depth_l1(out.depth, torch.as_tensor(f.depth)))
-        if f.semantics is not None and out.semantic is not None and class_ids:
+        if f.semantics is not None and out.semantic is not None:
             have_sem = True
-            sem = out.semantic / out.silhouette.clamp_min(1e-6)[..., None]  # colour, not colour x coverage
-            pred = semantic_labels(sem, class_ids)
+            sem = out.semantic / out.silhouette.clamp_min(1e-6)[..., None]  # class scores, not scores x coverage
+            pred = eng.map.labels_from_features(sem).numpy()
             conf += confusion(pred.clip(0, 255), f.semantics.clip(0, 255), 256)
     res.update(psnr=float(np.mean(ps)), ssim=float(np.mean(ss)), depth_l1_cm=100 * float(np.nanmean(dl)))
     if have_sem:
         res["miou"] = miou(conf)
+        inter = np.diag(conf).astype(np.float64)
+        union = conf.sum(0) + conf.sum(1) - inter
+        res["class_iou"] = {eng.classes.get(int(c), str(c)): float(inter[c] / max(union[c], 1))
+                            for c in np.flatnonzero(conf.sum(1) > 0)}
     return res
 
 
@@ -66,4 +61,6 @@ def format_table(res: dict) -> str:
     for key, name, fmt in rows:
         if key in res:
             lines.append(f"| {name} | {fmt.format(res[key])} |")
+    if "class_iou" in res:
+        lines.append("per-class IoU: " + ", ".join(f"{k} {v:.2f}" for k, v in res["class_iou"].items()))
     return "\n".join(lines)

@@ -2,8 +2,16 @@
 
 Parameters (torch leaf tensors in :attr:`GaussianMap.params`): ``means3D`` [N, 3], ``rgb_colors``
 [N, 3], ``unnorm_rotations`` [N, 4] (wxyz), ``logit_opacities`` [N, 1], ``log_scales`` [N, 1]
-(isotropic), ``semantic_colors`` [N, 3] (a class's palette colour, optimised through rendering).
-Non-optimised: ``semantic_ids`` [N] and ``timestep`` [N] (frame that created the Gaussian).
+(isotropic), ``semantic_features`` [N, C] (one column per class in :attr:`GaussianMap.class_slots`,
+seeded one-hot, optimised through rendering; a Gaussian's class is its largest column).
+Non-optimised: ``semantic_ids`` [N] (seed label) and ``timestep`` [N] (frame that created the Gaussian).
+
+Why class columns and not SGS-SLAM's 3-channel semantic colour: a rendered pixel is a blend of several
+Gaussians, and a blend of two palette colours is often nearest a *third* class's colour (the palette
+has 64 levels per channel), which turned object edges into spurious small-object labels (cup IoU
+0.13). With one column per class a blend's largest column is always one of the blended classes.
+Files still carry ``semantic_colors`` [N, 3] (the palette colour of each Gaussian's class) for
+SplaTAM-family tools, plus ``semantic_features`` / ``semantic_feature_ids`` for our own reload.
 """
 
 from __future__ import annotations
@@ -21,7 +29,8 @@ from semantic_gs_slam.errors import MapFormatError
 from semantic_gs_slam.geometry import backproject
 from semantic_gs_slam.render import Gaussians
 
-PARAM_KEYS = ("means3D", "rgb_colors", "unnorm_rotations", "logit_opacities", "log_scales", "semantic_colors")
+PARAM_KEYS = ("means3D", "rgb_colors", "unnorm_rotations", "logit_opacities", "log_scales", "semantic_features")
+MIN_CLASS_SCORE = 0.1  # a Gaussian whose largest class column is below this has no class (id 0)
 SH_C0 = 0.28209479177387814
 
 
@@ -45,7 +54,8 @@ class GaussianMap:
         z = torch.zeros
         self.params: dict[str, Tensor] = {
             "means3D": z(0, 3), "rgb_colors": z(0, 3), "unnorm_rotations": z(0, 4),
-            "logit_opacities": z(0, 1), "log_scales": z(0, 1), "semantic_colors": z(0, 3)}
+            "logit_opacities": z(0, 1), "log_scales": z(0, 1), "semantic_features": z(0, 0)}
+        self.class_slots: list[int] = []  # class id of each semantic_features column
         self.semantic_ids = torch.zeros(0, dtype=torch.int64)
         self.timestep = torch.zeros(0, dtype=torch.int64)
         for v in self.params.values():
@@ -57,8 +67,39 @@ class GaussianMap:
     def gaussians(self) -> Gaussians:
         """View of the parameters for the renderer (keeps the autograd link to :attr:`params`)."""
         p = self.params
+        sem = p["semantic_features"] if self.class_slots else None
         return Gaussians(p["means3D"], p["unnorm_rotations"], p["log_scales"], p["logit_opacities"],
-                         p["rgb_colors"], p["semantic_colors"])
+                         p["rgb_colors"], sem)
+
+    def ensure_classes(self, ids: Tensor | np.ndarray) -> None:
+        """Add a (zero) feature column for every class id > 0 in ``ids`` that has none yet."""
+        new = sorted({int(i) for i in np.unique(np.asarray(ids)) if i > 0} - set(self.class_slots))
+        if not new:
+            return
+        self.class_slots.extend(new)
+        p = dict(self.params)
+        f = p["semantic_features"].detach()
+        p["semantic_features"] = torch.cat([f, torch.zeros(f.shape[0], len(new), device=f.device)], 1)
+        self._set(p, self.semantic_ids, self.timestep)
+
+    def one_hot(self, ids: Tensor) -> Tensor:
+        """[..., C] one-hot rows of class ids in :attr:`class_slots` order (0 / unknown ids: all zero)."""
+        lut = torch.full((max(self.class_slots + [0]) + 1,), -1, dtype=torch.int64)
+        lut[torch.tensor(self.class_slots, dtype=torch.int64)] = torch.arange(len(self.class_slots))
+        ids = ids.long()
+        slot = torch.where((ids >= 0) & (ids < len(lut)), lut[ids.clamp(0, len(lut) - 1)], -1)
+        out = torch.zeros(ids.shape + (len(self.class_slots),))
+        hit = slot >= 0
+        out[hit, slot[hit]] = 1.0
+        return out
+
+    def labels_from_features(self, feats: Tensor) -> Tensor:
+        """Class id of each row of ``feats`` [..., C] (largest column; 0 when it is below MIN_CLASS_SCORE)."""
+        if not self.class_slots:
+            return torch.zeros(feats.shape[:-1], dtype=torch.int64)
+        best, arg = feats.detach().max(-1)
+        ids = torch.tensor(self.class_slots, dtype=torch.int64)[arg]
+        return torch.where(best >= MIN_CLASS_SCORE, ids, torch.zeros_like(ids))
 
     def _set(self, new: dict[str, Tensor], ids: Tensor, ts: Tensor) -> None:
         self.params = {k: v.detach().contiguous().requires_grad_(True) for k, v in new.items()}
@@ -82,12 +123,13 @@ class GaussianMap:
         m = means.shape[0]
         if m == 0:
             return 0
-        sem_col = torch.as_tensor(palette(sem_ids.cpu().numpy()), dtype=torch.float32)
+        self.ensure_classes(sem_ids.cpu())
+        sem_col = self.one_hot(sem_ids.cpu())
         new = {
             "means3D": means.float(), "rgb_colors": rgb.float(),
             "unnorm_rotations": torch.tensor([[1.0, 0, 0, 0]]).repeat(m, 1),
             "logit_opacities": torch.full((m, 1), float(logit_opacity)),
-            "log_scales": torch.log(radius.float().clamp_min(1e-4))[:, None], "semantic_colors": sem_col}
+            "log_scales": torch.log(radius.float().clamp_min(1e-4))[:, None], "semantic_features": sem_col}
         cat = {k: torch.cat([self.params[k].detach(), new[k].to(self.device)]) for k in PARAM_KEYS}
         self._set(cat, torch.cat([self.semantic_ids, sem_ids.long().cpu()]),
                   torch.cat([self.timestep, torch.full((m,), frame, dtype=torch.int64)]))
@@ -95,28 +137,21 @@ class GaussianMap:
 
     def add_from_frame(self, rgb: Tensor, depth: Tensor, sem: Tensor | None, c2w: Tensor, k: Intrinsics,
                        mask: Tensor, stride: int, frame: int, radius_factor: float = 0.6,
-                       logit_opacity: float = 3.0, rare_fraction: float = 0.0) -> int:
+                       logit_opacity: float = 3.0, fine: Tensor | None = None) -> int:
         """Seed Gaussians at every ``stride``-th pixel where ``mask`` holds.
 
         Args:
             rgb: [H, W, 3]; depth: [H, W] metres; sem: [H, W] ids or None; c2w: [4, 4];
             mask: [H, W] bool (valid depth and empty/occluding model).
-            rare_fraction: labels covering less than this fraction of the masked pixels are seeded at
-                every pixel (small objects), with a one-pixel radius.
+            fine: [H, W] bool or None: of the masked pixels, these are seeded at every pixel with a
+                one-pixel radius (small objects).
 
         Returns:
             Number of Gaussians added.
         """
         sel = torch.zeros_like(mask)
         sel[stride // 2::stride, stride // 2::stride] = True
-        fine = torch.zeros_like(mask)
-        if sem is not None and rare_fraction > 0 and stride > 1:
-            # small objects (labels on few pixels of this frame) are seeded at every pixel
-            counts = torch.bincount(sem[mask].reshape(-1).clamp_min(0), minlength=1)
-            rare = torch.nonzero((counts > 0) & (counts < rare_fraction * max(int(mask.sum()), 1))).squeeze(1)
-            rare = rare[rare > 0]
-            if rare.numel():
-                fine = torch.isin(sem, rare)
+        fine = torch.zeros_like(mask) if fine is None else fine
         sel = (sel | fine) & mask
         small = fine[sel]  # these get the one-pixel radius
         if not bool(sel.any()):
@@ -139,19 +174,20 @@ class GaussianMap:
             self._set({k: v[keep] for k, v in self.params.items()}, self.semantic_ids[keep], self.timestep[keep])
         return removed
 
-    def ids_from_colours(self, class_ids: list[int]) -> np.ndarray:
-        """Semantic id of each Gaussian = the class whose palette colour is nearest its optimised colour [N]."""
-        if not class_ids or len(self) == 0:
+    def class_ids(self) -> np.ndarray:
+        """Semantic id of each Gaussian [N] = its largest optimised class column (0: none)."""
+        if not self.class_slots or len(self) == 0:
             return self.semantic_ids.numpy().copy()
-        pal = torch.as_tensor(palette(np.array(class_ids)), dtype=torch.float32)
-        d = torch.cdist(self.params["semantic_colors"].detach().float(), pal)
-        return np.asarray(class_ids)[d.argmin(1).numpy()]
+        return self.labels_from_features(self.params["semantic_features"].cpu()).numpy()
 
     # ------------------------------------------------------------------ files
     def to_arrays(self) -> dict[str, np.ndarray]:
-        """Gaussian arrays in the SplaTAM / SGS-SLAM layout (float32; ids uint8 when they fit)."""
+        """Gaussian arrays in the SplaTAM / SGS-SLAM layout (float32; ids uint8 when they fit), plus
+        ``semantic_features`` [N, C] and ``semantic_feature_ids`` [C]."""
         out = {k: v.detach().cpu().numpy().astype(np.float32) for k, v in self.params.items()}
-        ids = self.semantic_ids.numpy()
+        ids = self.class_ids()
+        out["semantic_colors"] = palette(ids).astype(np.float32)
+        out["semantic_feature_ids"] = np.array(self.class_slots, np.int64)
         out["semantic_ids"] = ids.astype(np.uint8) if (ids.size == 0 or ids.max() < 256) else ids.astype(np.int64)
         out["timestep"] = self.timestep.numpy().astype(np.float32)
         return out
@@ -169,15 +205,24 @@ class GaussianMap:
         m = GaussianMap(device)
         ids = np.asarray(a["semantic_ids"]).reshape(-1).astype(np.int64) if "semantic_ids" in a \
             else np.zeros(n, np.int64)
+        if "semantic_features" in a and "semantic_feature_ids" in a:
+            m.class_slots = [int(i) for i in np.asarray(a["semantic_feature_ids"]).reshape(-1)]
+        else:  # SplaTAM / SGS-SLAM file (or an older one of ours): one-hot of the stored ids
+            m.class_slots = sorted({int(i) for i in np.unique(ids) if i > 0})
+        one_hot = m.one_hot(torch.as_tensor(ids)).numpy() if len(ids) == n else np.zeros((n, len(m.class_slots)))
         defaults = {"rgb_colors": np.full((n, 3), 0.5), "unnorm_rotations": np.tile([1.0, 0, 0, 0], (n, 1)),
                     "logit_opacities": np.full((n, 1), 3.0), "log_scales": np.full((n, 1), np.log(0.01)),
-                    "semantic_colors": palette(ids) if len(ids) == n else np.zeros((n, 3))}
+                    "semantic_features": one_hot}
         params = {}
         for k in PARAM_KEYS:
-            v = np.asarray(a[k]) if k in a else defaults[k]
+            v = np.asarray(a[k]) if k in a and (k != "semantic_features" or "semantic_feature_ids" in a) \
+                else defaults[k]
             if v.shape[0] != n:
                 raise MapFormatError(f"'{k}' has {v.shape[0]} rows but means3D has {n}")
             params[k] = torch.as_tensor(np.asarray(v, dtype=np.float32)).to(m.device)
+        if params["semantic_features"].shape != (n, len(m.class_slots)):
+            raise MapFormatError(f"'semantic_features' is {list(params['semantic_features'].shape)}, expected "
+                                 f"[{n}, {len(m.class_slots)}] (one column per semantic_feature_ids entry)")
         if params["log_scales"].ndim == 1:
             params["log_scales"] = params["log_scales"][:, None]
         if len(ids) != n:

@@ -26,7 +26,6 @@ from semantic_gs_slam.gaussian_map import (
     export_ply,
     load_params,
     load_semantic_json,
-    palette,
     save_params,
     save_semantic_json,
 )
@@ -213,9 +212,17 @@ class SLAM:
             return render(g, w2c, self.k, self.cfg.renderer)
 
     # ------------------------------------------------------------------ mapping
-    def _densify(self, idx: int, rgb: Tensor, depth: Tensor, sem: Tensor | None, c2w: np.ndarray) -> int:
+    def _densify(self, idx: int, rgb: Tensor, depth: Tensor, sem: Tensor | None, c2w: np.ndarray,
+                 keyframe: bool = False) -> int:
         mc = self.cfg.mapping
         valid = depth > 0
+        fine = None
+        if sem is not None and mc.rare_label_fraction > 0:
+            # small objects: labels on few of this frame's valid pixels are seeded at every pixel
+            counts = torch.bincount(sem[valid].clamp_min(0), minlength=1)
+            rare = torch.nonzero((counts > 0) & (counts < mc.rare_label_fraction * max(int(valid.sum()), 1)))[:, 0]
+            rare = rare[rare > 0]
+            fine = torch.isin(sem, rare) & valid if rare.numel() else None
         if len(self.map) == 0:
             mask = valid
         else:
@@ -224,9 +231,12 @@ class SLAM:
             med = float(err[valid].median()) if bool(valid.any()) else 0.0
             behind = (out.depth > depth) & (err > mc.densify_depth_factor * med)
             mask = valid & ((out.silhouette < mc.densify_silhouette) | behind)
+            if keyframe and fine is not None and mc.semantic_densify and out.semantic is not None:
+                # where the map renders a small object's pixels with another label, add Gaussians there
+                pred = self.map.labels_from_features(out.semantic / out.silhouette.clamp_min(1e-6)[..., None])
+                mask = mask | (fine & (pred != sem))
         return self.map.add_from_frame(rgb, depth, sem, torch.as_tensor(c2w, dtype=torch.float32), self.k, mask,
-                                       mc.pixel_stride, idx, mc.radius_factor, mc.init_logit_opacity,
-                                       mc.rare_label_fraction)
+                                       mc.pixel_stride, idx, mc.radius_factor, mc.init_logit_opacity, fine)
 
     def _window(self, current: Keyframe) -> list[Keyframe]:
         n = self.cfg.mapping.window - 1
@@ -247,13 +257,19 @@ class SLAM:
             v = k.fy * pc[:, 1] / z + k.cy
             inside = (z > 0) & (u >= 0) & (u < k.width) & (v >= 0) & (v < k.height)
             scores.append(float(inside.double().mean()))
-        order = np.argsort(scores)[::-1][:n]
-        return [current] + [self.keyframes[i] for i in order if scores[i] > 0]
+        order = [i for i in np.argsort(scores)[::-1] if scores[i] > 0]
+        r = min(self.cfg.mapping.window_random, n, max(len(order) - n, 0))
+        # `r` slots go to other overlapping keyframes drawn at random, so areas first seen long ago keep
+        # being optimised against their own views, not only against the latest (most overlapping) ones
+        rest = order[n - r:]
+        drawn = np.random.default_rng(current.index).choice(len(rest), r, replace=False) if r else []
+        pick = order[:n - r] + [rest[int(i)] for i in drawn]
+        return [current] + [self.keyframes[i] for i in pick]
 
     def _map_keyframe(self, idx: int, rgb: Tensor, depth: Tensor, sem: Tensor | None) -> tuple[int, int, float]:
         mc = self.cfg.mapping
         c2w = self.poses[-1]
-        added = self._densify(idx, rgb, depth, sem, c2w)
+        added = self._densify(idx, rgb, depth, sem, c2w, keyframe=True)
         kf = Keyframe(idx, torch.as_tensor(c2w), rgb, depth, sem)
         self.keyframes.append(kf)
         window = self._window(kf)
@@ -277,10 +293,10 @@ class SLAM:
             {"params": [p["unnorm_rotations"]], "lr": mc.lr_rotations},
             {"params": [p["logit_opacities"]], "lr": mc.lr_opacity},
             {"params": [p["log_scales"]], "lr": mc.lr_scales},
-            {"params": [p["semantic_colors"]], "lr": mc.lr_semantic}])
+            {"params": [p["semantic_features"]], "lr": mc.lr_semantic}])
         w2cs = [torch.linalg.inv(kf.c2w).float() for kf in window]
-        sem_imgs = [None if kf.sem is None else torch.as_tensor(palette(kf.sem.numpy()), dtype=torch.float32)
-                    for kf in window]
+        sem_imgs = [None if kf.sem is None else self.map.one_hot(kf.sem) for kf in window]  # [H, W, C]
+        labelled = [None if kf.sem is None else (kf.sem > 0).float() for kf in window]
         sem_w = [None if (kf.sem is None or mc.semantic_balance <= 0) else _class_balance(kf.sem, mc.semantic_balance)
                  for kf in window]
         loss_v = float("nan")
@@ -294,10 +310,10 @@ class SLAM:
             l_col = (1 - mc.w_ssim) * l1 + mc.w_ssim * (1 - ssim(out.rgb, kf.rgb)) if mc.w_ssim > 0 else l1
             loss = mc.w_depth * l_depth + mc.w_colour * l_col
             if sem_imgs[j] is not None and out.semantic is not None and mc.w_semantic > 0:
-                err = (out.semantic - sem_imgs[j]).abs().sum(-1)  # [H, W]
+                err = (out.semantic - sem_imgs[j]).abs().sum(-1) * labelled[j]  # [H, W]; label 0 = unknown
                 if sem_w[j] is not None:
                     err = err * sem_w[j]
-                loss = loss + mc.w_semantic * err.mean() / 3
+                loss = loss + mc.w_semantic * err.mean() / 2
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
@@ -318,13 +334,12 @@ class SLAM:
 
     # ------------------------------------------------------------------ output
     def semantic_ids(self) -> np.ndarray:
-        """Per-Gaussian class id from the optimised semantic colours (nearest class palette colour)."""
-        return self.map.ids_from_colours(sorted(i for i in self.classes if i > 0))
+        """Per-Gaussian class id [N]: the largest optimised class column (0: none)."""
+        return self.map.class_ids()
 
     def save(self, out_dir: str, ply: bool = True) -> dict[str, str]:
         """Write ``params.npz``, ``semantic.json`` (and ``map.ply``) into ``out_dir``; returns the paths."""
         os.makedirs(out_dir, exist_ok=True)
-        self.map.semantic_ids = torch.as_tensor(self.semantic_ids())
         paths = {"params": os.path.join(out_dir, "params.npz"), "semantic": os.path.join(out_dir, "semantic.json")}
         w2c = [np.linalg.inv(p) for p in self.poses]
         gt = [None if g is None else np.linalg.inv(g) for g in self.gt_poses]

@@ -133,16 +133,26 @@ class HomeRenderer:
         self.colour = {i: np.array(c) for i, _, c in CLASSES}
         self.light = np.array([0.3, 0.5, 1.0]) / np.linalg.norm([0.3, 0.5, 1.0])
 
-    def render(self, c2w: np.ndarray, k: Intrinsics) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def render(self, c2w: np.ndarray, k: Intrinsics, supersample: int = 1
+               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Render one view.
 
         Args:
             c2w: [4, 4] camera-to-world pose (OpenCV camera).
             k: intrinsics.
+            supersample: odd s >= 1: colour is the mean of s x s rays spread over each pixel's area (a
+                camera integrates light over the pixel; one ray per pixel aliases the fine texture into
+                view-dependent noise), depth and label come from the ray through the pixel centre.
 
         Returns:
             rgb [H, W, 3] float in [0, 1], depth [H, W] metres (z), semantic ids [H, W] uint8.
         """
+        if supersample < 1 or supersample % 2 == 0:
+            raise ValueError(f"supersample must be an odd integer >= 1, got {supersample}")
+        if supersample > 1:
+            s, c = supersample, supersample // 2
+            rgb, depth, sem = self.render(c2w, k.scaled(s))
+            return (rgb.reshape(k.height, s, k.width, s, 3).mean((1, 3)), depth[c::s, c::s], sem[c::s, c::s])
         v, u = np.meshgrid(np.arange(k.height), np.arange(k.width), indexing="ij")
         dirs_c = np.stack([(u - k.cx) / k.fx, (v - k.cy) / k.fy, np.ones_like(u, dtype=float)], -1).reshape(-1, 3)
         d = dirs_c @ c2w[:3, :3].T  # world directions with unit z-component in camera
@@ -229,8 +239,35 @@ def default_intrinsics(width: int, height: int) -> Intrinsics:
     return Intrinsics(width, height, width / 2.0, width / 2.0, (width - 1) / 2.0, (height - 1) / 2.0)
 
 
+_RENDERERS: dict[int, HomeRenderer] = {}
+
+
+def _render_job(job: tuple) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One view for :func:`generate` (a top-level function, so worker processes can run it)."""
+    seed, c2w, k, supersample = job
+    if seed not in _RENDERERS:
+        _RENDERERS[seed] = HomeRenderer(seed)
+    return _RENDERERS[seed].render(c2w, k, supersample)
+
+
+def _write_frames(out: str, views, depth_noise: float, missing_depth: float, rng: np.random.Generator) -> None:
+    from PIL import Image
+
+    for i, (rgb, depth, sem) in enumerate(views):
+        if depth_noise > 0:
+            depth = depth * (1 + depth_noise * rng.standard_normal(depth.shape))
+        if missing_depth > 0:
+            depth = np.where(rng.random(depth.shape) < missing_depth, 0.0, depth)
+        Image.fromarray((rgb * 255 + 0.5).astype(np.uint8)).save(os.path.join(out, "results", f"frame{i:06d}.jpg"),
+                                                                 quality=95)
+        d16 = np.clip(depth * DEPTH_SCALE + 0.5, 0, 65535).astype(np.uint16)
+        Image.fromarray(d16).save(os.path.join(out, "results", f"depth{i:06d}.png"))
+        Image.fromarray(sem).save(os.path.join(out, "semantic", f"semantic{i:06d}.png"))
+
+
 def generate(out: str, frames: int = 60, width: int = 300, height: int = 170, seed: int = 0,
-             depth_noise: float = 0.0, missing_depth: float = 0.0, span_deg: float = 120.0) -> Intrinsics:
+             depth_noise: float = 0.0, missing_depth: float = 0.0, span_deg: float = 120.0,
+             supersample: int = 3) -> Intrinsics:
     """Write a synthetic sequence (layout in the module docstring).
 
     Args:
@@ -241,29 +278,26 @@ def generate(out: str, frames: int = 60, width: int = 300, height: int = 170, se
         depth_noise: std of multiplicative depth noise (0.01 = 1 %).
         missing_depth: fraction of depth pixels set to 0 (missing).
         span_deg: how far around the ellipse the camera travels.
+        supersample: rays per pixel side for colour (odd; 1 = point-sampled, aliased texture).
 
     Returns:
         The intrinsics used.
     """
-    from PIL import Image
-
     k = default_intrinsics(width, height)
     rng = np.random.default_rng(seed + 1)
     os.makedirs(os.path.join(out, "results"), exist_ok=True)
     os.makedirs(os.path.join(out, "semantic"), exist_ok=True)
-    ren = HomeRenderer(seed)
     poses = trajectory(frames, span_deg)
-    for i, c2w in enumerate(poses):
-        rgb, depth, sem = ren.render(c2w, k)
-        if depth_noise > 0:
-            depth = depth * (1 + depth_noise * rng.standard_normal(depth.shape))
-        if missing_depth > 0:
-            depth = np.where(rng.random(depth.shape) < missing_depth, 0.0, depth)
-        Image.fromarray((rgb * 255 + 0.5).astype(np.uint8)).save(os.path.join(out, "results", f"frame{i:06d}.jpg"),
-                                                                 quality=95)
-        d16 = np.clip(depth * DEPTH_SCALE + 0.5, 0, 65535).astype(np.uint16)
-        Image.fromarray(d16).save(os.path.join(out, "results", f"depth{i:06d}.png"))
-        Image.fromarray(sem).save(os.path.join(out, "semantic", f"semantic{i:06d}.png"))
+    jobs = [(seed, c2w, k, supersample) for c2w in poses]
+    workers = min(os.cpu_count() or 1, 4, len(jobs))
+    if workers > 1 and len(jobs) * k.width * k.height * supersample**2 > 2_000_000:  # else not worth processes
+        import multiprocessing
+
+        with multiprocessing.get_context("spawn").Pool(workers) as pool:
+            views = pool.imap(_render_job, jobs)
+            _write_frames(out, views, depth_noise, missing_depth, rng)
+    else:
+        _write_frames(out, map(_render_job, jobs), depth_noise, missing_depth, rng)
     with open(os.path.join(out, "traj.txt"), "w") as fh:
         for p in poses:
             fh.write(" ".join(f"{x:.10f}" for x in p.reshape(-1)) + "\n")
@@ -286,8 +320,10 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--depth-noise", type=float, default=0.0)
     ap.add_argument("--missing-depth", type=float, default=0.0)
     ap.add_argument("--span-deg", type=float, default=120.0)
+    ap.add_argument("--supersample", type=int, default=3,
+                    help="odd; colour averages s x s rays per pixel (1: one ray, aliased texture)")
     a = ap.parse_args(argv)
-    generate(a.out, a.frames, a.width, a.height, a.seed, a.depth_noise, a.missing_depth, a.span_deg)
+    generate(a.out, a.frames, a.width, a.height, a.seed, a.depth_noise, a.missing_depth, a.span_deg, a.supersample)
     print(f"wrote {a.frames} frames {a.width}x{a.height} to {a.out}")
 
 

@@ -115,3 +115,17 @@ def test_bad_input_gives_clear_errors(tmp_path, tiny_home):
     _png(str(tmp_path / "results" / "frame000001.jpg"), np.zeros((6, 8, 3), np.uint8))
     with pytest.raises(DatasetError, match="2 colour images but 1 depth"):
         load_replica(str(tmp_path))
+
+
+def test_supersampled_colour_keeps_centre_ray_depth_and_labels():
+    ren, k = HomeRenderer(), default_intrinsics(40, 24)
+    c2w = trajectory(3)[1]
+    rgb1, d1, s1 = ren.render(c2w, k)
+    rgb3, d3, s3 = ren.render(c2w, k, supersample=3)
+    np.testing.assert_array_equal(d3, d1)  # the middle of the 3 x 3 rays is the pixel-centre ray
+    np.testing.assert_array_equal(s3, s1)
+    assert rgb3.shape == rgb1.shape and 0 < np.abs(rgb3 - rgb1).mean() < 0.1  # averaged, not another view
+    # averaging over the pixel removes texture energy above the pixel frequency: smoother images
+    assert np.abs(np.diff(rgb3, axis=1)).mean() < np.abs(np.diff(rgb1, axis=1)).mean()
+    with pytest.raises(ValueError, match="odd"):
+        ren.render(c2w, k, supersample=2)

@@ -45,10 +45,11 @@ def test_params_npz_has_the_splatam_key_set_and_round_trips(tmp_path):
     assert a["cam_trans"][0, 0, 1] == pytest.approx(0.5)
     assert a["log_scales"].shape == (50, 1) and a["semantic_ids"].shape == (50,)
     assert np.isnan(a["gt_w2c_all_frames"][0]).all() and a["gt_w2c_all_frames"][1][0, 0] == 1
+    np.testing.assert_allclose(a["semantic_colors"], palette(a["semantic_ids"]), atol=1e-7)
     m2 = GaussianMap.from_arrays(a)
     for key, v in m.params.items():
         torch.testing.assert_close(m2.params[key], v.detach())
-    assert (m2.semantic_ids == m.semantic_ids).all()
+    assert (m2.semantic_ids == m.semantic_ids).all() and m2.class_slots == m.class_slots
 
 
 def test_object_query_reads_our_map(tmp_path):
@@ -75,6 +76,7 @@ def test_load_splatam_style_params_without_semantics():
          "logit_opacities": np.zeros((3, 1)), "unnorm_rotations": np.tile([1.0, 0, 0, 0], (3, 1))}
     m = GaussianMap.from_arrays(a)
     assert len(m) == 3 and m.params["log_scales"].shape == (3, 3) and (m.semantic_ids == 0).all()
+    assert m.gaussians().semantic is None and (m.class_ids() == 0).all()
     with pytest.raises(MapFormatError, match="rows"):
         GaussianMap.from_arrays({"means3D": np.zeros((3, 3)), "rgb_colors": np.zeros((2, 3))})
     with pytest.raises(MapFormatError, match="means3D"):
@@ -118,3 +120,31 @@ def test_prune_removes_transparent_and_huge():
         m.params["logit_opacities"][:3] = -10.0
         m.params["log_scales"][3] = 0.0  # 1 m
     assert m.prune(0.005, 0.3) == 4 and len(m) == 6 and len(m.semantic_ids) == 6
+
+
+def test_class_features_are_one_hot_grow_with_new_classes_and_decide_ids():
+    m = GaussianMap()
+    m.add(torch.zeros(3, 3), torch.rand(3, 3), torch.tensor([5, 2, 0]), torch.full((3,), 0.01), frame=0)
+    assert m.class_slots == [2, 5]
+    f = m.params["semantic_features"].detach()
+    assert f.tolist() == [[0, 1], [1, 0], [0, 0]]  # label 0 (unknown) has no class column set
+    m.add(torch.zeros(1, 3), torch.rand(1, 3), torch.tensor([9]), torch.full((1,), 0.01), frame=1)
+    assert m.class_slots == [2, 5, 9] and m.params["semantic_features"].shape == (4, 3)
+    assert m.class_ids().tolist() == [5, 2, 0, 9]
+    with torch.no_grad():  # optimisation moved the first Gaussian toward class 9
+        m.params["semantic_features"][0] = torch.tensor([0.0, 0.3, 0.6])
+    assert m.class_ids()[0] == 9
+    # a blend of two classes is labelled with one of them (a 3-channel palette blend is not)
+    blend = 0.5 * m.one_hot(torch.tensor([2])) + 0.5 * m.one_hot(torch.tensor([9])) + 0.01 * torch.tensor([0, 0, 1.0])
+    assert m.labels_from_features(blend).tolist() == [9]
+    assert m.labels_from_features(torch.zeros(1, 3)).tolist() == [0]
+
+
+def test_sgs_slam_file_gets_one_hot_features_from_its_ids():
+    n = 4
+    a = {"means3D": np.zeros((n, 3)), "semantic_ids": np.array([3, 3, 7, 0]), "semantic_colors": palette([3, 3, 7, 0])}
+    m = GaussianMap.from_arrays(a)
+    assert m.class_slots == [3, 7] and m.class_ids().tolist() == [3, 3, 7, 0]
+    bad = dict(a, semantic_features=np.zeros((n, 5)), semantic_feature_ids=np.array([3, 7]))
+    with pytest.raises(MapFormatError, match="semantic_features"):
+        GaussianMap.from_arrays(bad)

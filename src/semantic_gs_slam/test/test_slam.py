@@ -111,3 +111,29 @@ def test_config_errors():
         SLAM(SlamConfig(intrinsics=Intrinsics(16, 12, 0.0, 8.0, 7.5, 5.5)))
     with pytest.raises(ConfigError, match="unknown"):
         SlamConfig.from_dict({"intrinsics": {"width": 1, "height": 1, "fx": 1, "fy": 1, "cx": 0, "cy": 0}, "x": 1})
+
+
+def test_window_keeps_the_most_overlapping_and_draws_older_ones(tiny_home):
+    import torch
+
+    from semantic_gs_slam.slam import Keyframe
+
+    ds = load_dataset(str(tiny_home))
+    f = ds[0]
+    eng = SLAM(SlamConfig(intrinsics=ds.intrinsics, mapping=MappingConfig(window=3, window_random=1)), ds.classes)
+    depth = torch.as_tensor(f.depth)
+    base = f.gt_c2w
+    for i in range(8):  # keyframes sliding sideways: the later, the more overlap with the current one
+        c2w = base.copy()
+        c2w[:3, 3] += base[:3, 0] * 0.15 * (i - 8)
+        eng.keyframes.append(Keyframe(i * 5, torch.as_tensor(c2w), torch.zeros(1), depth, None))
+    current = Keyframe(40, torch.as_tensor(base), torch.zeros(1), depth, None)
+    eng.keyframes.append(current)
+    win = eng._window(current)
+    idx = [kf.index for kf in win]
+    assert idx[0] == 40 and idx[1] == 35 and len(idx) == 3  # current, the most overlapping, one drawn
+    assert idx[2] < 35 and idx == [kf.index for kf in eng._window(current)]  # deterministic per keyframe
+    drawn = {eng._window(Keyframe(40 + j, current.c2w, current.rgb, depth, None))[2].index for j in range(8)}
+    assert min(drawn) < 30 and len(drawn) > 1  # not just the next most overlapping one
+    eng.cfg.mapping.window_random = 0
+    assert [kf.index for kf in eng._window(current)] == [40, 35, 30]
