@@ -1,9 +1,11 @@
 """Synthetic home generator: a procedural room rendered into an RGB-D + semantic sequence.
 
-The home is the same one as the foundation's sample map (``scripts/make_sample_map.py``): a 6 m x 5 m
-x 2.5 m room, z up, metres, with the same furniture, small objects, class names and ids, so maps
-built from it fit the robot's named locations. Surfaces carry a procedural texture (multi-scale
-value noise and stripes, with fixed Lambert shading) so tracking has something to lock onto.
+The home is the robot's demo home (the bundled map ``data/`` is built from it by our SLAM, see
+:mod:`semantic_gs_slam.demo_map`): a 6 m x 5 m x 2.5 m room, z up, metres, with furniture, small
+objects, class names and ids that fit the robot's named locations
+(``decision_maker/config/locations.yaml``). Surfaces carry a procedural texture (multi-scale value
+noise and stripes, with fixed Lambert shading) so tracking has something to lock onto. Colour is
+averaged over each pixel's area (3 x 3 rays), as a camera integrates light.
 
 Output (Replica as NICE-SLAM ships it, plus semantics)::
 
@@ -29,7 +31,7 @@ import numpy as np
 from semantic_gs_slam.config import Intrinsics
 from semantic_gs_slam.geometry import look_at
 
-# id, class, base rgb (identical to scripts/make_sample_map.py)
+# id, class, base rgb
 CLASSES: list[tuple[int, str, tuple[float, float, float]]] = [
     (1, "floor", (0.55, 0.45, 0.35)),
     (2, "wall", (0.85, 0.85, 0.80)),

@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 
 from semantic_gs_slam.run import main
+from semantic_gs_slam.slam import SLAM
 
 
 def test_run_checkpoint_resume_and_eval(tiny_home, tmp_path, capsys):
@@ -24,3 +25,14 @@ def test_run_checkpoint_resume_and_eval(tiny_home, tmp_path, capsys):
 def test_run_reports_bad_dataset(tmp_path, capsys):
     assert main(["--dataset", str(tmp_path / "missing"), "--out", str(tmp_path / "o")]) == 2
     assert "error: dataset folder not found" in capsys.readouterr().err
+
+
+def test_demo_map_builder_writes_a_map_object_query_reads(tmp_path):
+    from semantic_gs_slam.demo_map import build
+
+    out = tmp_path / "map"
+    res = build(str(out), frames=8, width=80, height=45, refine_iters=5, threads=1, quiet=True)
+    assert {"ate_rmse_cm", "psnr", "miou", "gaussians"} <= set(res)
+    assert (out / "params.npz").is_file() and (out / "semantic.json").is_file() and not (out / "map.ply").exists()
+    gmap, classes, arr = SLAM.load_map(str(out))
+    assert len(gmap) == res["gaussians"] and classes[7] == "bottle" and arr["cam_trans"].shape == (1, 3, 8)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import os
 
 import numpy as np
@@ -11,17 +10,9 @@ from PIL import Image
 
 from semantic_gs_slam.datasets import associate, load_dataset, load_replica, load_sgs, load_tum
 from semantic_gs_slam.errors import DatasetError
-from semantic_gs_slam.synthetic import CLASSES, HomeRenderer, default_intrinsics, trajectory
+from semantic_gs_slam.synthetic import HomeRenderer, default_intrinsics, trajectory
 
 ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", "..", ".."))
-
-
-def test_classes_match_the_sample_map_script():
-    path = os.path.join(ROOT, "scripts", "make_sample_map.py")
-    spec = importlib.util.spec_from_file_location("make_sample_map", path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    assert [(i, c) for i, c, _ in mod.CLASSES] == [(i, c) for i, c, _ in CLASSES]
 
 
 def test_generator_writes_replica_layout_and_reader_round_trips(tiny_home):
