@@ -89,12 +89,12 @@ class TrackingConfig:
 class MappingConfig:
     """Keyframe mapping: densification, window optimisation, pruning."""
 
-    keyframe_every: int = 5  # map on every k-th frame (and the first)
+    keyframe_every: int = 4  # map on every k-th frame (and the first)
     densify_every_frame: bool = True  # also add Gaussians (without optimising) on non-keyframes
     iters: int = 10  # Adam iterations per keyframe
     first_frame_iters: int = 60  # iterations on the first frame
     window: int = 4  # keyframes optimised together (current + the most overlapping earlier ones)
-    window_random: int = 1  # of the window's earlier keyframes, this many are drawn at random among the overlapping
+    window_random: int = 2  # of the window's earlier keyframes, this many are drawn at random among the overlapping
     pixel_stride: int = 2  # new Gaussians seeded at every k-th pixel of the empty/occluding region
     densify_silhouette: float = 0.5  # pixels below this silhouette get new Gaussians
     densify_depth_factor: float = 50.0  # ... or where the model is behind depth by > factor * median error
@@ -109,7 +109,7 @@ class MappingConfig:
     lr_opacity: float = 5e-2
     lr_scales: float = 5e-3
     lr_rotations: float = 1e-3
-    w_colour: float = 0.5
+    w_colour: float = 2.0
     w_depth: float = 1.0
     w_semantic: float = 0.3
     semantic_balance: float = 0.5  # semantic L1 weighted by class frequency^-this per keyframe (0: off)
