@@ -137,3 +137,30 @@ def test_window_keeps_the_most_overlapping_and_draws_older_ones(tiny_home):
     assert min(drawn) < 30 and len(drawn) > 1  # not just the next most overlapping one
     eng.cfg.mapping.window_random = 0
     assert [kf.index for kf in eng._window(current)] == [40, 35, 30]
+
+
+@pytest.mark.parametrize("enabled", [True, False])
+def test_semantic_densification_adds_small_objects_the_map_mislabels(tiny_home, enabled):
+    import torch
+
+    ds = load_dataset(str(tiny_home))
+    f = ds[0]
+    cfg = config(ds)
+    cfg.mapping.semantic_densify = enabled
+    eng = SLAM(cfg, ds.classes)
+    eng.add_frame(f.rgb, f.depth, f.semantics, f.timestamp, f.gt_c2w)
+    cup = eng.map.class_slots.index(8)
+    table = eng.map.class_slots.index(4)
+    with torch.no_grad():  # the map now says "table" where the cups are
+        feats = eng.map.params["semantic_features"]
+        was_cup = feats[:, cup] > 0.5
+        feats[was_cup, cup], feats[was_cup, table] = 0.0, 1.0
+    assert int(was_cup.sum()) > 0 and not (eng.map.class_ids() == 8).any()
+    rgb, depth, sem = eng._tensors(f.rgb, f.depth, f.semantics)
+    n0 = len(eng.map)
+    eng._densify(1, rgb, depth, sem, eng.poses[0], keyframe=True)
+    new_cups = int((eng.map.class_ids()[n0:] == 8).sum())
+    if enabled:  # every cup pixel the map mislabels gets a cup Gaussian
+        assert new_cups == int(((sem == 8) & (depth > 0)).sum())
+    else:
+        assert new_cups == 0
