@@ -40,7 +40,7 @@ def evaluate(eng, ds: Dataset, frame_idx: list[int], every: int = 1) -> dict:
         if f.semantics is not None and out.semantic is not None:
             have_sem = True
             sem = out.semantic / out.silhouette.clamp_min(1e-6)[..., None]  # class scores, not scores x coverage
-            pred = eng.map.labels_from_features(sem).numpy()
+            pred = eng.map.labels_from_features(sem).cpu().numpy()
             conf += confusion(pred.clip(0, 255), f.semantics.clip(0, 255), 256)
     res.update(psnr=float(np.mean(ps)), ssim=float(np.mean(ss)), depth_l1_cm=100 * float(np.nanmean(dl)))
     if have_sem:

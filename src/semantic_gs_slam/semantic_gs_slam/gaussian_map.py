@@ -84,11 +84,13 @@ class GaussianMap:
 
     def one_hot(self, ids: Tensor) -> Tensor:
         """[..., C] one-hot rows of class ids in :attr:`class_slots` order (0 / unknown ids: all zero)."""
-        lut = torch.full((max(self.class_slots + [0]) + 1,), -1, dtype=torch.int64)
-        lut[torch.tensor(self.class_slots, dtype=torch.int64)] = torch.arange(len(self.class_slots))
+        dev = ids.device
+        lut = torch.full((max(self.class_slots + [0]) + 1,), -1, dtype=torch.int64, device=dev)
+        lut[torch.tensor(self.class_slots, dtype=torch.int64, device=dev)] = torch.arange(len(self.class_slots),
+                                                                                          device=dev)
         ids = ids.long()
         slot = torch.where((ids >= 0) & (ids < len(lut)), lut[ids.clamp(0, len(lut) - 1)], -1)
-        out = torch.zeros(ids.shape + (len(self.class_slots),))
+        out = torch.zeros(ids.shape + (len(self.class_slots),), device=dev)
         hit = slot >= 0
         out[hit, slot[hit]] = 1.0
         return out
@@ -98,7 +100,7 @@ class GaussianMap:
         if not self.class_slots:
             return torch.zeros(feats.shape[:-1], dtype=torch.int64)
         best, arg = feats.detach().max(-1)
-        ids = torch.tensor(self.class_slots, dtype=torch.int64)[arg]
+        ids = torch.tensor(self.class_slots, dtype=torch.int64, device=feats.device)[arg]
         return torch.where(best >= MIN_CLASS_SCORE, ids, torch.zeros_like(ids))
 
     def _set(self, new: dict[str, Tensor], ids: Tensor, ts: Tensor) -> None:
