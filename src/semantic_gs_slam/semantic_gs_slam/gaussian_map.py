@@ -4,7 +4,9 @@ Parameters (torch leaf tensors in :attr:`GaussianMap.params`): ``means3D`` [N, 3
 [N, 3], ``unnorm_rotations`` [N, 4] (wxyz), ``logit_opacities`` [N, 1], ``log_scales`` [N, 1]
 (isotropic), ``semantic_features`` [N, C] (one column per class in :attr:`GaussianMap.class_slots`,
 seeded one-hot, optimised through rendering; a Gaussian's class is its largest column).
-Non-optimised: ``semantic_ids`` [N] (seed label) and ``timestep`` [N] (frame that created the Gaussian).
+Non-optimised: ``semantic_ids`` [N] (seed label), ``timestep`` [N] (frame that created the Gaussian)
+and ``normals`` [N, 3] (world-frame surface normal measured at seeding, zero when unknown; used by
+tracking to render unbiased depth, see :func:`semantic_gs_slam.tracking.plane_depth_features`).
 
 Why class columns and not SGS-SLAM's 3-channel semantic colour: a rendered pixel is a blend of several
 Gaussians, and a blend of two palette colours is often nearest a *third* class's colour (the palette
@@ -46,6 +48,16 @@ def palette(ids: np.ndarray | Tensor | int) -> np.ndarray:
     return c / 255.0
 
 
+def _seed_normals(depth: Tensor, k: Intrinsics, smooth: int = 5) -> Tensor:
+    """Camera-frame unit normals [H, W, 3] of a depth image (box-smoothed; zero where unknown or at
+    depth discontinuities)."""
+    from semantic_gs_slam.tracking import normal_map, smooth_depth
+
+    d, ok = smooth_depth(depth, depth > 0, smooth)
+    n, nok = normal_map(backproject(d, k.fx, k.fy, k.cx, k.cy), ok)
+    return torch.where(nok[..., None], n, torch.zeros_like(n))
+
+
 class GaussianMap:
     """Semantic Gaussian map with parameters as torch leaf tensors."""
 
@@ -58,6 +70,7 @@ class GaussianMap:
         self.class_slots: list[int] = []  # class id of each semantic_features column
         self.semantic_ids = torch.zeros(0, dtype=torch.int64)
         self.timestep = torch.zeros(0, dtype=torch.int64)
+        self.normals = torch.zeros(0, 3)
         for v in self.params.values():
             v.requires_grad_(True)
 
@@ -108,7 +121,7 @@ class GaussianMap:
         self.semantic_ids, self.timestep = ids, ts
 
     def add(self, means: Tensor, rgb: Tensor, sem_ids: Tensor, radius: Tensor, frame: int,
-            logit_opacity: float = 3.0) -> int:
+            logit_opacity: float = 3.0, normals: Tensor | None = None) -> int:
         """Append Gaussians.
 
         Args:
@@ -118,6 +131,7 @@ class GaussianMap:
             radius: [M] isotropic standard deviation (metres).
             frame: creating frame index.
             logit_opacity: initial opacity logit.
+            normals: [M, 3] world unit normals (zero rows: unknown) or None.
 
         Returns:
             M.
@@ -135,6 +149,7 @@ class GaussianMap:
         cat = {k: torch.cat([self.params[k].detach(), new[k].to(self.device)]) for k in PARAM_KEYS}
         self._set(cat, torch.cat([self.semantic_ids, sem_ids.long().cpu()]),
                   torch.cat([self.timestep, torch.full((m,), frame, dtype=torch.int64)]))
+        self.normals = torch.cat([self.normals, torch.zeros(m, 3) if normals is None else normals.float().cpu()])
         return m
 
     def add_from_frame(self, rgb: Tensor, depth: Tensor, sem: Tensor | None, c2w: Tensor, k: Intrinsics,
@@ -158,12 +173,14 @@ class GaussianMap:
         small = fine[sel]  # these get the one-pixel radius
         if not bool(sel.any()):
             return 0
-        pts = backproject(depth, k.fx, k.fy, k.cx, k.cy)[sel]  # [M, 3] camera
+        vmap = backproject(depth, k.fx, k.fy, k.cx, k.cy)  # [H, W, 3] camera
+        pts = vmap[sel]  # [M, 3]
         world = pts @ c2w[:3, :3].T + c2w[:3, 3]
+        normals = _seed_normals(depth, k)[sel] @ c2w[:3, :3].T  # [M, 3] world (zero: unknown)
         f = 0.5 * (k.fx + k.fy)
         radius = depth[sel] / f * radius_factor * torch.where(small, 1.0, float(stride))
         ids = sem[sel] if sem is not None else torch.zeros(world.shape[0], dtype=torch.int64)
-        return self.add(world, rgb[sel], ids, radius, frame, logit_opacity)
+        return self.add(world, rgb[sel], ids, radius, frame, logit_opacity, normals)
 
     def prune(self, min_opacity: float, max_scale: float) -> int:
         """Remove near-transparent or huge Gaussians; returns how many were removed."""
@@ -174,6 +191,7 @@ class GaussianMap:
         removed = int((~keep).sum())
         if removed:
             self._set({k: v[keep] for k, v in self.params.items()}, self.semantic_ids[keep], self.timestep[keep])
+            self.normals = self.normals[keep]
         return removed
 
     def class_ids(self) -> np.ndarray:
@@ -192,6 +210,7 @@ class GaussianMap:
         out["semantic_feature_ids"] = np.array(self.class_slots, np.int64)
         out["semantic_ids"] = ids.astype(np.uint8) if (ids.size == 0 or ids.max() < 256) else ids.astype(np.int64)
         out["timestep"] = self.timestep.numpy().astype(np.float32)
+        out["normals"] = self.normals.numpy().astype(np.float32)
         return out
 
     @staticmethod
@@ -231,6 +250,10 @@ class GaussianMap:
             raise MapFormatError(f"'semantic_ids' has {len(ids)} rows but means3D has {n}")
         ts = np.asarray(a["timestep"]).reshape(-1).astype(np.int64) if "timestep" in a else np.zeros(n, np.int64)
         m._set(params, torch.as_tensor(ids), torch.as_tensor(ts))
+        nrm = np.asarray(a["normals"], np.float32) if "normals" in a else np.zeros((n, 3), np.float32)
+        if nrm.shape != (n, 3):
+            raise MapFormatError(f"'normals' is {list(nrm.shape)}, expected [{n}, 3]")
+        m.normals = torch.as_tensor(nrm)
         return m
 
 
@@ -302,13 +325,14 @@ def load_semantic_json(path: str) -> dict[int, str]:
 
 def export_ply(path: str, gmap: GaussianMap) -> None:
     """Binary little-endian PLY in the standard 3DGS layout (x y z nx ny nz f_dc_0-2 f_rest_0-44 opacity
-    scale_0-2 rot_0-3); degree-0 colour only, isotropic scales repeated."""
+    scale_0-2 rot_0-3); degree-0 colour only, isotropic scales repeated, normals as seeded (0: unknown)."""
     a = gmap.to_arrays()
     n = len(a["means3D"])
     names = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(45)] + \
         ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
     data = np.zeros((n, len(names)), np.float32)
     data[:, 0:3] = a["means3D"]
+    data[:, 3:6] = a["normals"]
     data[:, 6:9] = (a["rgb_colors"] - 0.5) / SH_C0
     data[:, 54] = a["logit_opacities"][:, 0]
     ls = a["log_scales"]

@@ -31,7 +31,7 @@ from semantic_gs_slam.gaussian_map import (
 )
 from semantic_gs_slam.metrics import ssim
 from semantic_gs_slam.render import Gaussians, RenderOutput, render
-from semantic_gs_slam.tracking import icp, photometric_refine
+from semantic_gs_slam.tracking import icp, photometric_refine, plane_depth_features, plane_depth_image
 
 log = logging.getLogger("semantic_gs_slam")
 
@@ -186,10 +186,14 @@ class SLAM:
         prev = self.poses[-1]
         guess = prev @ (np.linalg.inv(self.poses[-2]) @ prev) if len(self.poses) >= 2 else prev
         g = torch.as_tensor(guess)
-        out = self.render_view(guess, scale_shrink=self.cfg.tracking.render_scale_shrink)
+        tc = self.cfg.tracking
+        plane = tc.plane_depth and bool((self.map.normals.abs().sum(-1) > 0).any())
+        out = self.render_view(guess, scale_shrink=tc.render_scale_shrink_plane if plane else tc.render_scale_shrink,
+                               plane_depth=plane)
         sil = out.silhouette
-        valid = sil > self.cfg.tracking.min_silhouette
-        model_depth = torch.where(valid, out.depth / sil.clamp_min(1e-6), torch.zeros_like(out.depth))
+        valid = sil > tc.min_silhouette
+        md = plane_depth_image(out.semantic, sil) if plane else out.depth / sil.clamp_min(1e-6)
+        model_depth = torch.where(valid & (md > 0), md, torch.zeros_like(out.depth))
         try:
             res = icp(model_depth, valid, g, depth, self.k, self.cfg.tracking, out.rgb, rgb)
         except TrackingError as exc:
@@ -201,14 +205,20 @@ class SLAM:
                                      self.cfg.tracking)
         return c2w.numpy(), res.residual, res.inliers, False
 
-    def render_view(self, c2w: np.ndarray, scale_shrink: float = 1.0) -> RenderOutput:
-        """Render the map at a camera-to-world pose (gradients off); ``scale_shrink`` multiplies all radii."""
+    def render_view(self, c2w: np.ndarray, scale_shrink: float = 1.0, plane_depth: bool = False) -> RenderOutput:
+        """Render the map at a camera-to-world pose (gradients off); ``scale_shrink`` multiplies all radii.
+
+        With ``plane_depth`` the semantic output holds :func:`~semantic_gs_slam.tracking.plane_depth_features`
+        instead (for :func:`~semantic_gs_slam.tracking.plane_depth_image`)."""
         w2c = torch.as_tensor(np.linalg.inv(c2w), dtype=torch.float32)
         with torch.no_grad():
             g = self.map.gaussians()
             ls = g.log_scales.detach() + math.log(scale_shrink)
-            g = Gaussians(g.means.detach(), g.quats.detach(), ls, g.logit_opacities.detach(), g.rgb.detach(),
-                          None if g.semantic is None else g.semantic.detach())
+            sem = None if g.semantic is None else g.semantic.detach()
+            if plane_depth:
+                means_c = g.means.detach() @ w2c[:3, :3].T + w2c[:3, 3]
+                sem = plane_depth_features(means_c, self.map.normals.to(means_c) @ w2c[:3, :3].T, self.k)
+            g = Gaussians(g.means.detach(), g.quats.detach(), ls, g.logit_opacities.detach(), g.rgb.detach(), sem)
             return render(g, w2c, self.k, self.cfg.renderer)
 
     # ------------------------------------------------------------------ mapping

@@ -56,6 +56,46 @@ def normal_map(v: Tensor, valid: Tensor) -> tuple[Tensor, Tensor]:
     return n / norm.clamp_min(1e-12), ok
 
 
+def plane_depth_features(means_c: Tensor, normals_c: Tensor, k: Intrinsics, min_cos: float = 0.2) -> Tensor:
+    """Per-Gaussian features [N, 3] whose rendered blend gives depth along each pixel's ray.
+
+    A Gaussian rendered with its centre depth ``Z`` is biased on oblique surfaces: a pixel ``d``
+    pixels from the centre sees the surface at ``Z + d * dz/du``, not ``Z``. With a surface normal
+    ``n`` the depth of the plane through the centre is, to first order around the centre pixel
+    ``(u_c, v_c)``, ``z(u, v) = Z + a (u - u_c) + b (v - v_c)`` with ``a = -Z^2 n_x / (f_x n.mu)``,
+    ``b = -Z^2 n_y / (f_y n.mu)``. Rendering ``F = [Z - a u_c - b v_c, a, b]`` as features and
+    computing ``(F0 + u F1 + v F2) / silhouette`` per pixel blends these per-Gaussian planes instead
+    of constant depths.
+
+    Args:
+        means_c: [N, 3] camera-frame centres. normals_c: [N, 3] camera-frame unit normals (zero rows:
+            unknown). k: intrinsics. min_cos: planes seen more obliquely than this (|cos| of the angle
+            between the normal and the viewing ray) fall back to the centre depth.
+
+    Returns:
+        [N, 3] features.
+    """
+    z = means_c[:, 2]
+    nmu = (normals_c * means_c).sum(-1)
+    cos = nmu.abs() / means_c.norm(dim=-1).clamp_min(1e-9)
+    use = (cos >= min_cos) & (normals_c.norm(dim=-1) > 0.5)
+    nmu = torch.where(use, nmu, torch.ones_like(nmu))
+    a = torch.where(use, -z * z * normals_c[:, 0] / (k.fx * nmu), torch.zeros_like(z))
+    b = torch.where(use, -z * z * normals_c[:, 1] / (k.fy * nmu), torch.zeros_like(z))
+    uc = k.fx * means_c[:, 0] / z + k.cx
+    vc = k.fy * means_c[:, 1] / z + k.cy
+    return torch.stack([z - a * uc - b * vc, a, b], -1)
+
+
+def plane_depth_image(feats_img: Tensor, silhouette: Tensor) -> Tensor:
+    """Depth [H, W] from rendered :func:`plane_depth_features` [H, W, 3] (normalised by the silhouette)."""
+    h, w = silhouette.shape
+    v, u = torch.meshgrid(torch.arange(h, dtype=feats_img.dtype, device=feats_img.device),
+                          torch.arange(w, dtype=feats_img.dtype, device=feats_img.device), indexing="ij")
+    num = feats_img[..., 0] + u * feats_img[..., 1] + v * feats_img[..., 2]
+    return num / silhouette.clamp_min(1e-6)
+
+
 def smooth_depth(depth: Tensor, valid: Tensor, size: int) -> tuple[Tensor, Tensor]:
     """Box-filter a depth image over its valid pixels (size x size window).
 

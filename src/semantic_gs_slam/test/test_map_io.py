@@ -35,6 +35,7 @@ def small_map(n: int = 50) -> GaussianMap:
 
 def test_params_npz_has_the_splatam_key_set_and_round_trips(tmp_path):
     m = small_map()
+    m.normals = torch.nn.functional.normalize(torch.randn(50, 3), dim=-1)
     k = Intrinsics(8, 6, 4.0, 4.0, 3.5, 2.5)
     w2c = [np.eye(4), np.eye(4)]
     w2c[1][0, 3] = 0.5
@@ -50,6 +51,9 @@ def test_params_npz_has_the_splatam_key_set_and_round_trips(tmp_path):
     for key, v in m.params.items():
         torch.testing.assert_close(m2.params[key], v.detach())
     assert (m2.semantic_ids == m.semantic_ids).all() and m2.class_slots == m.class_slots
+    torch.testing.assert_close(m2.normals, m.normals)
+    with pytest.raises(MapFormatError, match="normals"):
+        GaussianMap.from_arrays(dict(a, normals=np.zeros((3, 3))))
 
 
 def test_object_query_reads_our_map(tmp_path):
