@@ -13,7 +13,7 @@ import math
 import os
 import shutil
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 import torch
@@ -187,12 +187,11 @@ class SLAM:
         guess = prev @ (np.linalg.inv(self.poses[-2]) @ prev) if len(self.poses) >= 2 else prev
         g = torch.as_tensor(guess)
         tc = self.cfg.tracking
-        plane = tc.plane_depth and bool((self.map.normals.abs().sum(-1) > 0).any())
-        out = self.render_view(guess, scale_shrink=tc.render_scale_shrink_plane if plane else tc.render_scale_shrink,
-                               plane_depth=plane)
+        shrink = tc.render_scale_shrink_plane if self._plane_depth_on() else tc.render_scale_shrink
+        out = self.render_view(guess, scale_shrink=shrink, semantic=False)
         sil = out.silhouette
         valid = sil > tc.min_silhouette
-        md = plane_depth_image(out.semantic, sil) if plane else out.depth / sil.clamp_min(1e-6)
+        md = out.depth / sil.clamp_min(1e-6)
         model_depth = torch.where(valid & (md > 0), md, torch.zeros_like(out.depth))
         try:
             res = icp(model_depth, valid, g, depth, self.k, self.cfg.tracking, out.rgb, rgb)
@@ -205,21 +204,33 @@ class SLAM:
                                      self.cfg.tracking)
         return c2w.numpy(), res.residual, res.inliers, False
 
-    def render_view(self, c2w: np.ndarray, scale_shrink: float = 1.0, plane_depth: bool = False) -> RenderOutput:
-        """Render the map at a camera-to-world pose (gradients off); ``scale_shrink`` multiplies all radii.
+    def _plane_depth_on(self) -> bool:
+        return self.cfg.plane_depth and bool((self.map.normals.abs().sum(-1) > 0).any())
 
-        With ``plane_depth`` the semantic output holds :func:`~semantic_gs_slam.tracking.plane_depth_features`
-        instead (for :func:`~semantic_gs_slam.tracking.plane_depth_image`)."""
+    def _render(self, g: Gaussians, w2c: Tensor, plane: bool = True) -> RenderOutput:
+        """Render ``g``; with ``plane`` and ``plane_depth`` the depth output blends each Gaussian's surface
+        plane (:func:`~semantic_gs_slam.tracking.plane_depth_features`) instead of its centre depth."""
+        if not (plane and self._plane_depth_on()):
+            return render(g, w2c, self.k, self.cfg.renderer)
+        means_c = g.means @ w2c[:3, :3].T + w2c[:3, 3]
+        pf = plane_depth_features(means_c, self.map.normals.to(means_c) @ w2c[:3, :3].T, self.k)
+        c = 0 if g.semantic is None else g.semantic.shape[1]
+        feats = pf if g.semantic is None else torch.cat([g.semantic, pf], -1)
+        out = render(Gaussians(g.means, g.quats, g.log_scales, g.logit_opacities, g.rgb, feats), w2c, self.k,
+                     self.cfg.renderer)
+        depth = plane_depth_image(out.semantic[..., c:], torch.ones_like(out.silhouette))  # sum w_i z_i(u, v)
+        return replace(out, depth=depth, semantic=out.semantic[..., :c] if c else None)
+
+    def render_view(self, c2w: np.ndarray, scale_shrink: float = 1.0, semantic: bool = True) -> RenderOutput:
+        """Render the map at a camera-to-world pose (gradients off); ``scale_shrink`` multiplies all radii;
+        ``semantic=False`` skips the class columns (cheaper: tracking and densification do not need them)."""
         w2c = torch.as_tensor(np.linalg.inv(c2w), dtype=torch.float32)
         with torch.no_grad():
             g = self.map.gaussians()
             ls = g.log_scales.detach() + math.log(scale_shrink)
-            sem = None if g.semantic is None else g.semantic.detach()
-            if plane_depth:
-                means_c = g.means.detach() @ w2c[:3, :3].T + w2c[:3, 3]
-                sem = plane_depth_features(means_c, self.map.normals.to(means_c) @ w2c[:3, :3].T, self.k)
-            g = Gaussians(g.means.detach(), g.quats.detach(), ls, g.logit_opacities.detach(), g.rgb.detach(), sem)
-            return render(g, w2c, self.k, self.cfg.renderer)
+            g = Gaussians(g.means.detach(), g.quats.detach(), ls, g.logit_opacities.detach(), g.rgb.detach(),
+                          None if g.semantic is None or not semantic else g.semantic.detach())
+            return self._render(g, w2c)
 
     # ------------------------------------------------------------------ mapping
     def _densify(self, idx: int, rgb: Tensor, depth: Tensor, sem: Tensor | None, c2w: np.ndarray,
@@ -236,12 +247,13 @@ class SLAM:
         if len(self.map) == 0:
             mask = valid
         else:
-            out = self.render_view(c2w)
+            want_sem = keyframe and fine is not None and mc.semantic_densify
+            out = self.render_view(c2w, semantic=want_sem)
             err = (out.depth - depth).abs() * valid
             med = float(err[valid].median()) if bool(valid.any()) else 0.0
             behind = (out.depth > depth) & (err > mc.densify_depth_factor * med)
             mask = valid & ((out.silhouette < mc.densify_silhouette) | behind)
-            if keyframe and fine is not None and mc.semantic_densify and out.semantic is not None:
+            if want_sem and out.semantic is not None:
                 # where the map renders a small object's pixels with another label, add Gaussians there
                 pred = self.map.labels_from_features(out.semantic / out.silhouette.clamp_min(1e-6)[..., None])
                 mask = mask | (fine & (pred != sem))
@@ -313,7 +325,7 @@ class SLAM:
         for it in range(iters):
             j = it % len(window)
             kf = window[j]
-            out = render(self.map.gaussians(), w2cs[j], self.k, self.cfg.renderer)
+            out = self._render(self.map.gaussians(), w2cs[j], plane=mc.plane_depth_loss)
             valid = kf.depth > 0
             l_depth = (out.depth - kf.depth).abs()[valid].mean()
             l1 = (out.rgb - kf.rgb).abs().mean()
