@@ -72,7 +72,6 @@ class TrackingConfig:
     prior_sigma_rot: float = 0.05  # radians
     render_scale_shrink: float = 0.35  # the model is rendered for tracking with Gaussian radii x this:
     # blending overlapping full-size footprints biases depth toward the camera on oblique surfaces
-    render_scale_shrink_plane: float = 0.35  # radii factor instead when SlamConfig.plane_depth is on
     normal_smoothing: int = 5  # box filter (pixels) on the model depth before vertices/normals (1: off)
     min_silhouette: float = 0.5  # model pixels used only where the map is this opaque (depth normalised by it)
     min_correspondences: int = 100  # fewer raises TrackingError (the frame keeps the previous pose, is not mapped)

@@ -7,7 +7,7 @@ import numpy as np
 import torch
 
 from semantic_gs_slam.datasets import Dataset
-from semantic_gs_slam.metrics import ate_rmse, confusion, depth_l1, miou, psnr, ssim
+from semantic_gs_slam.metrics import ate_rmse, class_iou, confusion, depth_l1, miou, psnr, ssim
 
 
 def evaluate(eng, ds: Dataset, frame_idx: list[int], every: int = 1) -> dict:
@@ -45,10 +45,7 @@ def evaluate(eng, ds: Dataset, frame_idx: list[int], every: int = 1) -> dict:
     res.update(psnr=float(np.mean(ps)), ssim=float(np.mean(ss)), depth_l1_cm=100 * float(np.nanmean(dl)))
     if have_sem:
         res["miou"] = miou(conf)
-        inter = np.diag(conf).astype(np.float64)
-        union = conf.sum(0) + conf.sum(1) - inter
-        res["class_iou"] = {eng.classes.get(int(c), str(c)): float(inter[c] / max(union[c], 1))
-                            for c in np.flatnonzero(conf.sum(1) > 0)}
+        res["class_iou"] = {eng.classes.get(c, str(c)): v for c, v in class_iou(conf).items()}
     return res
 
 

@@ -62,12 +62,17 @@ def confusion(pred: np.ndarray, gt: np.ndarray, n: int) -> np.ndarray:
     return np.bincount(gt[m].astype(np.int64) * n + pred[m].astype(np.int64), minlength=n * n).reshape(n, n)
 
 
-def miou(conf: np.ndarray) -> float:
-    """Mean IoU over classes present in the ground truth."""
+def class_iou(conf: np.ndarray) -> dict[int, float]:
+    """IoU of every class present in the ground truth (rows of ``conf``), by class index."""
     inter = np.diag(conf).astype(np.float64)
     union = conf.sum(0) + conf.sum(1) - inter
-    present = conf.sum(1) > 0
-    return float((inter[present] / np.maximum(union[present], 1)).mean()) if present.any() else float("nan")
+    return {int(c): float(inter[c] / max(union[c], 1)) for c in np.flatnonzero(conf.sum(1) > 0)}
+
+
+def miou(conf: np.ndarray) -> float:
+    """Mean IoU over classes present in the ground truth."""
+    ious = class_iou(conf)
+    return float(np.mean(list(ious.values()))) if ious else float("nan")
 
 
 def ate_rmse(est_c2w: list[np.ndarray], gt_c2w: list[np.ndarray]) -> float:

@@ -187,8 +187,7 @@ class SLAM:
         guess = prev @ (np.linalg.inv(self.poses[-2]) @ prev) if len(self.poses) >= 2 else prev
         g = torch.as_tensor(guess)
         tc = self.cfg.tracking
-        shrink = tc.render_scale_shrink_plane if self._plane_depth_on() else tc.render_scale_shrink
-        out = self.render_view(guess, scale_shrink=shrink, semantic=False)
+        out = self.render_view(guess, scale_shrink=tc.render_scale_shrink, semantic=False)
         sil = out.silhouette
         valid = sil > tc.min_silhouette
         md = out.depth / sil.clamp_min(1e-6)
@@ -218,7 +217,7 @@ class SLAM:
         feats = pf if g.semantic is None else torch.cat([g.semantic, pf], -1)
         out = render(Gaussians(g.means, g.quats, g.log_scales, g.logit_opacities, g.rgb, feats), w2c, self.k,
                      self.cfg.renderer)
-        depth = plane_depth_image(out.semantic[..., c:], torch.ones_like(out.silhouette))  # sum w_i z_i(u, v)
+        depth = plane_depth_image(out.semantic[..., c:])  # sum w_i z_i(u, v), like the centre-depth channel
         return replace(out, depth=depth, semantic=out.semantic[..., :c] if c else None)
 
     def render_view(self, c2w: np.ndarray, scale_shrink: float = 1.0, semantic: bool = True) -> RenderOutput:

@@ -87,13 +87,14 @@ def plane_depth_features(means_c: Tensor, normals_c: Tensor, k: Intrinsics, min_
     return torch.stack([z - a * uc - b * vc, a, b], -1)
 
 
-def plane_depth_image(feats_img: Tensor, silhouette: Tensor) -> Tensor:
-    """Depth [H, W] from rendered :func:`plane_depth_features` [H, W, 3] (normalised by the silhouette)."""
-    h, w = silhouette.shape
+def plane_depth_image(feats_img: Tensor, silhouette: Tensor | None = None) -> Tensor:
+    """Depth [H, W] from rendered :func:`plane_depth_features` [H, W, 3]: normalised by ``silhouette``
+    when given, else the blend ``sum w_i z_i(u, v)`` (not normalised, like the renderer's depth)."""
+    h, w = feats_img.shape[:2]
     v, u = torch.meshgrid(torch.arange(h, dtype=feats_img.dtype, device=feats_img.device),
                           torch.arange(w, dtype=feats_img.dtype, device=feats_img.device), indexing="ij")
     num = feats_img[..., 0] + u * feats_img[..., 1] + v * feats_img[..., 2]
-    return num / silhouette.clamp_min(1e-6)
+    return num if silhouette is None else num / silhouette.clamp_min(1e-6)
 
 
 def smooth_depth(depth: Tensor, valid: Tensor, size: int) -> tuple[Tensor, Tensor]:
