@@ -17,7 +17,15 @@ Parameters:
     objects (JSON of instances, see sim.yaml), objects_source ("params" | "object_list": take the
     object database's centres of the ``graspable`` classes), graspable (list of classes),
     frame_id ("map"), pose_topic ("robot_pose"), world_topic ("sim/world_state"),
-    world_rate_hz (2), stop_grace_s (0.5), fault ("none" | "fail" | "hang", for both actions).
+    world_rate_hz (2), stop_grace_s (0.5), fault ("none" | "fail" | "hang", for both actions),
+    workspace_bound_m (100.0).
+
+Everything that comes in is validated: goals (finite target inside ``workspace_bound_m``, the
+right frame, names of at most 64 characters) are rejected with the reason; a ``robot_pose`` that
+is not finite, in another frame or outside the bound is ignored with a warning (the last good pose
+stays); a malformed ``/object_list`` is ignored. The defaults are the params file's values
+(config/params/sim.yaml, a test compares them): the sample home's objects, so a plain
+``ros2 run decision_maker mock_grasp_server`` serves the seed's scenarios.
 """
 
 from __future__ import annotations
@@ -38,11 +46,20 @@ from decision_maker.command_types import Point3, Pose2D
 from decision_maker.errors import ConfigError, SimError
 from decision_maker.mock_nav_server import FAULTS, POSE_QOS, yaw_of
 from decision_maker.sim_actions import SimGoals, run_sim_node
-from decision_maker.sim_world import ObjectWorld
+from decision_maker.sim_world import SAMPLE_OBJECTS, ObjectWorld, check_coordinates, check_name, check_quaternion
 
 WORLD_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 GRASP_STAGES = ((0.4, "approach"), (0.7, "close_gripper"), (1.01, "lift"))
 PLACE_STAGES = ((0.4, "approach"), (0.7, "open_gripper"), (1.01, "retreat"))
+
+
+#: Parameters and their defaults (= config/params/sim.yaml).
+DEFAULTS: dict[str, object] = {
+    "reach": 1.1, "grasp_duration_s": 1.0, "place_duration_s": 1.0, "rate_hz": 20.0, "objects": SAMPLE_OBJECTS,
+    "objects_source": "params", "graspable": ["bottle", "cup", "trash"], "frame_id": "map",
+    "pose_topic": "robot_pose", "world_topic": "sim/world_state", "world_rate_hz": 2.0, "stop_grace_s": 0.5,
+    "fault": "none", "workspace_bound_m": 100.0,
+}
 
 
 @dataclass
@@ -58,10 +75,7 @@ class _Job:
 class MockGraspServer(Node):
     def __init__(self) -> None:
         super().__init__("mock_grasp_server")
-        defaults = {"reach": 1.1, "grasp_duration_s": 1.0, "place_duration_s": 1.0, "rate_hz": 20.0,
-                    "objects": "{}", "objects_source": "params", "graspable": ["bottle", "cup", "trash"],
-                    "frame_id": "map", "pose_topic": "robot_pose", "world_topic": "sim/world_state",
-                    "world_rate_hz": 2.0, "stop_grace_s": 0.5, "fault": "none"}
+        defaults = DEFAULTS
         for k, val in defaults.items():
             self.declare_parameter(k, val)
         v = {k: self.get_parameter(k).value for k in defaults}
@@ -78,6 +92,9 @@ class MockGraspServer(Node):
             raise ConfigError(f"objects: not JSON ({exc})") from exc
         if not isinstance(objects, dict):
             raise ConfigError("objects must be a JSON object {id: [x, y, z] | {class, position}}")
+        self._bound = float(v["workspace_bound_m"])
+        if not self._bound > 0 or not math.isfinite(self._bound):
+            raise ConfigError(f"workspace_bound_m must be a finite number > 0, got {v['workspace_bound_m']}")
         self._reach = float(v["reach"])
         from_list = v["objects_source"] == "object_list"
         self._world = ObjectWorld.from_mapping({} if from_list else objects, self._reach)
@@ -107,6 +124,14 @@ class MockGraspServer(Node):
 
     def _on_pose(self, msg: PoseStamped) -> None:
         p = msg.pose
+        try:
+            check_coordinates("robot_pose", (p.position.x, p.position.y, p.position.z), self._bound)
+            check_quaternion("robot_pose", p.orientation.x, p.orientation.y, p.orientation.z, p.orientation.w)
+            if msg.header.frame_id and msg.header.frame_id != self._frame:
+                raise SimError(f"robot_pose frame {msg.header.frame_id[:40]!r} is not {self._frame!r}")
+        except SimError as exc:
+            self.get_logger().warn(f"ignoring a robot_pose: {exc}", throttle_duration_sec=1.0)
+            return
         self._robot = Pose2D(p.position.x, p.position.y, yaw_of(p.orientation))
         if self._world.held is not None:
             self._world.carry(self._robot)
@@ -115,12 +140,17 @@ class MockGraspServer(Node):
         if self._world.objects:
             return  # the world is initialised once; later lists are the database's belief, not the world
         try:
+            if len(msg.data) > 1_000_000:
+                raise ConfigError(f"{len(msg.data)} characters (at most 1000000)")
             doc = json.loads(msg.data)
             chosen = {k: v for k, v in doc.items() if str(k).lower() in self._graspable}
-            self._world = ObjectWorld.from_mapping(chosen, self._reach)
-        except (json.JSONDecodeError, AttributeError, ConfigError) as exc:
-            self.get_logger().warn(f"ignoring a malformed /object_list: {exc}")
+            world = ObjectWorld.from_mapping(chosen, self._reach)
+            for o in world.objects.values():
+                check_coordinates(f"object {o.id}", (o.position.x, o.position.y, o.position.z), self._bound)
+        except (json.JSONDecodeError, AttributeError, ConfigError, SimError, RecursionError) as exc:
+            self.get_logger().warn(f"ignoring a malformed /object_list: {str(exc)[:200]}")
             return
+        self._world = world
         self.get_logger().info(f"world objects from /object_list: {', '.join(sorted(self._world.objects))}")
         self._publish_world()
 
@@ -128,16 +158,27 @@ class MockGraspServer(Node):
         job = self._job
         if job is not None and job.stop_deadline is None:
             job.stop_deadline = time.monotonic() + self._grace
-        self.get_logger().warn(f"/cancel_command: arm stops ({msg.data[:80]})")
+        self.get_logger().warn(f"/cancel_command: arm stops ({msg.data[:80]!r})")
 
     # --- goals ------------------------------------------------------------------------------------
 
     def _check_goal(self, goal) -> str | None:
         if self._job is not None:
             return f"arm busy ({self._job.kind})"
-        header = goal.target.header if hasattr(goal, "target") else goal.target_pose.header
+        try:
+            if hasattr(goal, "target"):  # Grasp
+                header, p = goal.target.header, goal.target.point
+                check_name("object name", goal.object_name)
+            else:  # Place
+                header, p = goal.target_pose.header, goal.target_pose.pose.position
+                q = goal.target_pose.pose.orientation
+                check_name("location name", goal.location_name)
+                check_quaternion("target", q.x, q.y, q.z, q.w)
+            check_coordinates("target", (p.x, p.y, p.z), self._bound)
+        except SimError as exc:
+            return str(exc)
         if header.frame_id and header.frame_id != self._frame:
-            return f"target frame {header.frame_id!r} is not {self._frame!r}"
+            return f"target frame {header.frame_id[:40]!r} is not {self._frame!r}"
         return None
 
     def _start_grasp(self, gh: ServerGoalHandle) -> None:

@@ -11,7 +11,11 @@ Parameters:
     initial_pose ([x, y, theta], [0.5, 0.5, 0.0]), frame_id ("map"), action_name
     ("navigate_to_pose"), pose_topic ("robot_pose"), stop_grace_s (0.5),
     fault: "none" | "fail" (abort after fail_after_s) | "hang" (never moves or finishes; cancel works),
-    fail_after_s (0.3).
+    fail_after_s (0.3), workspace_bound_m (100.0: goals with |x| or |y| beyond it are rejected).
+
+Every goal is validated before it is accepted (finite numbers, inside ``workspace_bound_m``, a unit
+quaternion, the right frame); a bad one is rejected with the reason in the log, and the node goes on.
+The code defaults below are the params file's values (config/params/sim.yaml; a test compares them).
 """
 
 from __future__ import annotations
@@ -28,9 +32,9 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
 from decision_maker.command_types import Pose2D
-from decision_maker.errors import ConfigError
+from decision_maker.errors import ConfigError, SimError
 from decision_maker.sim_actions import SimGoals, run_sim_node
-from decision_maker.sim_world import BaseSim
+from decision_maker.sim_world import BaseSim, check_coordinates, check_quaternion
 
 POSE_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 FAULTS = ("none", "fail", "hang")
@@ -40,17 +44,24 @@ def yaw_of(q) -> float:
     return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
 
 
+#: Parameters and their defaults (= config/params/sim.yaml).
+DEFAULTS: dict[str, object] = {
+    "speed": 1.0, "turn_rate": 2.0, "rate_hz": 20.0, "initial_pose": [0.5, 0.5, 0.0], "frame_id": "map",
+    "action_name": "navigate_to_pose", "pose_topic": "robot_pose", "stop_grace_s": 0.5, "fault": "none",
+    "fail_after_s": 0.3, "workspace_bound_m": 100.0,
+}
+_MAX_DURATION_S = 2.0**31 - 1  # builtin_interfaces/Duration.sec is an int32
+
+
 def _duration(seconds: float) -> Duration:
-    seconds = max(0.0, seconds)
+    seconds = min(max(0.0, seconds), _MAX_DURATION_S) if math.isfinite(seconds) else 0.0
     return Duration(sec=int(seconds), nanosec=int((seconds % 1.0) * 1e9))
 
 
 class MockNavServer(Node):
     def __init__(self) -> None:
         super().__init__("mock_nav_server")
-        defaults = {"speed": 1.0, "turn_rate": 2.0, "rate_hz": 20.0, "initial_pose": [0.5, 0.5, 0.0],
-                    "frame_id": "map", "action_name": "navigate_to_pose", "pose_topic": "robot_pose",
-                    "stop_grace_s": 0.5, "fault": "none", "fail_after_s": 0.3}
+        defaults = DEFAULTS
         for k, val in defaults.items():
             self.declare_parameter(k, val)
         v = {k: self.get_parameter(k).value for k in defaults}
@@ -61,6 +72,13 @@ class MockNavServer(Node):
         init = [float(x) for x in v["initial_pose"]]
         if len(init) != 3:
             raise ConfigError(f"initial_pose must be [x, y, theta], got {init}")
+        self._bound = float(v["workspace_bound_m"])
+        if not self._bound > 0 or not math.isfinite(self._bound):
+            raise ConfigError(f"workspace_bound_m must be a finite number > 0, got {v['workspace_bound_m']}")
+        try:
+            check_coordinates("initial_pose", tuple(init[:2]), self._bound)
+        except SimError as exc:
+            raise ConfigError(str(exc)) from exc
         self._base = BaseSim(Pose2D(*init), float(v["speed"]), float(v["turn_rate"]))
         self._frame = str(v["frame_id"])
         self._fault = str(v["fault"])
@@ -85,12 +103,15 @@ class MockNavServer(Node):
     # --- goals ------------------------------------------------------------------------------------
 
     def _check_goal(self, goal: NavigateToPose.Goal) -> str | None:
-        pos = goal.pose.pose.position
-        if not all(math.isfinite(c) for c in (pos.x, pos.y, yaw_of(goal.pose.pose.orientation))):
-            return "non-finite goal pose"
+        pos, q = goal.pose.pose.position, goal.pose.pose.orientation
         frame = goal.pose.header.frame_id
+        try:
+            check_coordinates("goal", (pos.x, pos.y, pos.z), self._bound)
+            check_quaternion("goal", q.x, q.y, q.z, q.w)
+        except SimError as exc:
+            return str(exc)
         if frame and frame != self._frame:
-            return f"goal frame {frame!r} is not {self._frame!r}"
+            return f"goal frame {frame[:40]!r} is not {self._frame!r}"
         return None
 
     def _start(self, gh: ServerGoalHandle) -> None:
@@ -114,7 +135,7 @@ class MockNavServer(Node):
         self._base.stop()
         if self._active is not None and self._stop_deadline is None:
             self._stop_deadline = time.monotonic() + self._grace
-        self.get_logger().warn(f"/cancel_command: stopped ({msg.data[:80]})")
+        self.get_logger().warn(f"/cancel_command: stopped ({msg.data[:80]!r})")
 
     def _result(self, code: int = 0, msg: str = "") -> NavigateToPose.Result:
         return self._goals.result(error_code=code, error_msg=msg)

@@ -19,6 +19,51 @@ from decision_maker.command_types import Point3, Pose2D, normalize_name
 from decision_maker.errors import ConfigError, SimError
 
 
+#: The sample home's true world (map frame, metres): what ``mock_grasp_server`` holds by default.
+SAMPLE_OBJECTS = ('{"bottle": [5.2, 0.3, 1.02], "cup_1": [4.6, 0.35, 0.95], "cup_2": [2.8, 2.6, 0.8], '
+                  '"trash": [2.28, 2.48, 0.8]}')
+#: Longest object / location name a simulated server takes (longer: rejected, not stored or logged whole).
+MAX_NAME_CHARS = 64
+
+
+def check_coordinates(what: str, values: tuple[float, ...], bound: float) -> None:
+    """Every value finite and within ``[-bound, bound]`` (metres, or a unit quaternion's parts).
+
+    Raises:
+        SimError: the reason, e.g. ``goal x = 1.7e+308 is outside the workspace (|x| <= 100 m)``.
+    """
+    for axis, v in zip("xyzw", values, strict=False):
+        if not math.isfinite(v):
+            raise SimError(f"{what} {axis} = {v} is not a finite number")
+        if abs(v) > bound:
+            raise SimError(f"{what} {axis} = {v:.6g} is outside the workspace (|{axis}| <= {bound:g} m)")
+
+
+def check_quaternion(what: str, x: float, y: float, z: float, w: float) -> None:
+    """A usable orientation: finite parts and a norm near 1 (0.9 .. 1.1; an all-zero one is refused).
+
+    Raises:
+        SimError: the reason.
+    """
+    if not all(math.isfinite(v) for v in (x, y, z, w)):
+        raise SimError(f"{what} orientation is not finite")
+    norm = math.sqrt(x * x + y * y + z * z + w * w)
+    if not 0.9 <= norm <= 1.1:
+        raise SimError(f"{what} orientation is not a unit quaternion (norm {norm:.3g})")
+
+
+def check_name(what: str, name: str) -> None:
+    """A non-empty name of at most :data:`MAX_NAME_CHARS` characters.
+
+    Raises:
+        SimError: the reason (the name is cut in the message).
+    """
+    if not name.strip():
+        raise SimError(f"{what} is empty")
+    if len(name) > MAX_NAME_CHARS:
+        raise SimError(f"{what} is {len(name)} characters long (at most {MAX_NAME_CHARS}): {name[:20]!r}...")
+
+
 def _wrap(a: float) -> float:
     return math.remainder(a, 2 * math.pi)
 
@@ -122,7 +167,11 @@ class ObjectWorld:
             try:
                 x, y, z = (float(v) for v in pos)  # type: ignore[union-attr]
             except (TypeError, ValueError) as exc:
-                raise ConfigError(f"object {oid!r}: position must be [x, y, z], got {pos!r}") from exc
+                raise ConfigError(f"object {str(oid)[:40]!r}: position must be [x, y, z], got {pos!r}"[:200]) from exc
+            if not all(math.isfinite(v) for v in (x, y, z)):
+                raise ConfigError(f"object {str(oid)[:40]!r}: position must be finite, got {pos!r}")
+            if len(str(oid)) > MAX_NAME_CHARS or len(str(cls_name)) > MAX_NAME_CHARS:
+                raise ConfigError(f"object {str(oid)[:20]!r}...: name longer than {MAX_NAME_CHARS} characters")
             objs.append(SimObject(normalize_name(str(oid)), normalize_name(str(cls_name)), Point3(x, y, z)))
         return cls(objs, reach)
 

@@ -17,7 +17,7 @@ Parameters (see docs/object_query.md):
     voxel_size, min_instance_points, min_opacity, centre_method, trim_fraction, query_position:
     how the database is built (:class:`object_query.semantic_map.DatabaseConfig`); changing any of
     them, or a path, at run time reloads the map.
-    auto_reload (bool): reload when the files change on disk (polled every
+    auto_reload (bool, true): reload when the files change on disk (polled every
     reload_poll_period seconds; a file must be unchanged for one period before it is read).
     frame_id (str): frame of the markers.
 """
@@ -123,7 +123,7 @@ class ObjectQueryServer(Node):
         self.declare_parameter("centre_method", defaults.centre_method)
         self.declare_parameter("trim_fraction", defaults.trim_fraction, number)
         self.declare_parameter("query_position", defaults.query_position)
-        self.declare_parameter("auto_reload", False)
+        self.declare_parameter("auto_reload", True)
         self.declare_parameter("reload_poll_period", 1.0, ParameterDescriptor(read_only=True))
         self.declare_parameter("frame_id", "map")
 

@@ -39,6 +39,8 @@ from semantic_gs_slam_ros.lag import LagAction
 from semantic_gs_slam_ros.session import Progress, SessionConfig, StreamingSession, checkpoint_state
 
 IMAGE_QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+#: work_dir when the parameter is "" (its default)
+DEFAULT_WORK_DIR = os.path.join(os.path.expanduser("~"), ".local", "share", "home_robot", "slam")
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 
 
@@ -50,7 +52,7 @@ class SlamServer(Node):
     def __init__(self) -> None:
         super().__init__("run_gs_slam_server")
         p = self.declare_parameter
-        p("work_dir", os.path.join(os.path.expanduser("~"), ".local", "share", "home_robot", "slam"))
+        p("work_dir", "")  # "" = DEFAULT_WORK_DIR (the params file cannot spell the home directory)
         p("map_dir", "")
         p("width", 1200)
         p("height", 680)
@@ -180,7 +182,7 @@ class SlamServer(Node):
     def _config(self, goal: RunSlam.Goal) -> SessionConfig:
         g = self.get_parameter
         return SessionConfig(
-            work_dir=goal.output_dir or g("work_dir").value,
+            work_dir=goal.output_dir or g("work_dir").value or DEFAULT_WORK_DIR,
             map_dir=goal.map_dir or g("map_dir").value,
             width=g("width").value, height=g("height").value, depth_scale=g("depth_scale").value,
             sync_tolerance=g("sync_tolerance").value, sync_max_wait=g("sync_max_wait").value,

@@ -1,0 +1,124 @@
+"""Every node's declared parameter defaults equal its params file in config/params/ (one truth).
+
+The code defaults are the source of truth (``ros2 run <pkg> <exe>`` with no parameters must do
+what the node sets do); the YAML files are the documented copy the launchers load. This test
+builds each node in a child process with no parameters (real node classes, nothing patched),
+reads what it declared, and compares names, types and values with the YAML. Change one side
+only, and it fails.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import pytest
+import yaml
+
+from home_robot_bringup.nodeset import load_nodeset
+from home_robot_bringup.process import node_environment
+
+PARAMS_DIR = Path(__file__).resolve().parents[1] / "config" / "params"
+NODESETS = Path(__file__).resolve().parents[1] / "config" / "nodesets.yaml"
+
+#: node name (the params file key) -> (package, executable, "module:Class" that declares its parameters)
+NODES = {
+    "object_query_server": ("object_query", "object_query_server", "object_query.object_query_server:ObjectQueryServer"),
+    "decision_maker": ("decision_maker", "decision_maker_node", "decision_maker.decision_maker_node:DecisionMakerNode"),
+    "mock_nav_server": ("decision_maker", "mock_nav_server", "decision_maker.mock_nav_server:MockNavServer"),
+    "mock_grasp_server": ("decision_maker", "mock_grasp_server", "decision_maker.mock_grasp_server:MockGraspServer"),
+    "audio_command_node": ("decision_maker", "audio_command_node",
+                           "decision_maker.audio_command_node:AudioCommandNode"),
+    "run_gs_slam_server": ("semantic_gs_slam_ros", "run_gs_slam_server",
+                           "semantic_gs_slam_ros.run_gs_slam_server:SlamServer"),
+    "run_gs_slam_client": ("semantic_gs_slam_ros", "run_gs_slam_client",
+                           "semantic_gs_slam_ros.run_gs_slam_client:SlamClient"),
+}
+#: parameters every rclpy node has (not ours to document)
+BUILTIN = {"use_sim_time", "start_type_description_service"}
+
+_DUMP = """
+import importlib, json, sys
+import rclpy
+rclpy.init()
+mod, cls = sys.argv[1].split(":")
+node = getattr(importlib.import_module(mod), cls)()
+print("PARAMS=" + json.dumps({n: p.value for n, p in node.get_parameters_by_prefix("").items()}))
+node.destroy_node()
+rclpy.try_shutdown()
+"""
+
+
+def yaml_params() -> dict[str, dict[str, object]]:
+    """node name -> its ros__parameters, over every file in config/params/ (a node appears once)."""
+    out: dict[str, dict[str, object]] = {}
+    for path in sorted(PARAMS_DIR.glob("*.yaml")):
+        doc = yaml.safe_load(path.read_text()) or {}
+        for node, body in doc.items():
+            assert node not in out, f"{node} is in two params files"
+            out[node] = dict((body or {}).get("ros__parameters") or {})
+    return out
+
+
+def declared_defaults(target: str, domain: int) -> dict[str, object]:
+    env = node_environment(domain)
+    proc = subprocess.run([sys.executable, "-c", _DUMP, target], env=env, capture_output=True, text=True,
+                          timeout=240, stdin=subprocess.DEVNULL)
+    lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("PARAMS=")]
+    assert proc.returncode == 0 and lines, f"{target} did not build with no parameters:\n{proc.stdout}\n{proc.stderr}"
+    return {k: v for k, v in json.loads(lines[-1][len("PARAMS="):]).items() if k not in BUILTIN}
+
+
+def same(a: object, b: object) -> bool:
+    """Equal with the same ROS parameter type (a YAML 1 is an integer, 1.0 a double)."""
+    if isinstance(a, list) and isinstance(b, list):
+        return len(a) == len(b) and all(same(x, y) for x, y in zip(a, b, strict=True))
+    if type(a) is not type(b):
+        return False
+    return math.isclose(a, b) if isinstance(a, float) else a == b
+
+
+def test_every_node_is_covered():
+    """A node in nodesets.yaml or a params file without an entry here would escape the check."""
+    in_sets = set()
+    doc = yaml.safe_load(NODESETS.read_text())
+    for name in doc["nodesets"]:
+        in_sets |= {spec.name for spec in load_nodeset(name)}
+    assert in_sets <= set(NODES), f"add these nodes to NODES: {sorted(in_sets - set(NODES))}"
+    assert set(yaml_params()) == set(NODES), f"params files vs NODES: {sorted(set(yaml_params()) ^ set(NODES))}"
+
+
+def compare(node: str, declared: dict[str, object], documented: dict[str, object]) -> list[str]:
+    # (an empty list cannot be written in a ROS params file: its type is unknown; the YAML comments it)
+    problems = [f"{node}.{k}: declared in code, missing in the params file" for k in sorted(declared.keys()
+                                                                                           - documented.keys())
+                if declared[k] != []]
+    problems += [f"{node}.{k}: in the params file, not declared by the node" for k in sorted(documented.keys()
+                                                                                            - declared.keys())]
+    problems += [f"{node}.{k}: code default {declared[k]!r} != params file {documented[k]!r}"
+                 for k in sorted(declared.keys() & documented.keys()) if not same(declared[k], documented[k])]
+    return problems
+
+
+def test_compare_finds_a_difference():
+    """The comparison itself can fail: a changed value, a changed type, a missing name."""
+    assert compare("n", {"a": 1.0, "b": "x"}, {"a": 1.0, "b": "x"}) == []
+    assert compare("n", {"a": 1.0}, {"a": 2.0}) and compare("n", {"a": 1.0}, {"a": 1})
+    assert compare("n", {"a": 1.0}, {}) and compare("n", {}, {"a": 1.0})
+    assert compare("n", {"a": [1.0, 2.0]}, {"a": [1.0, 2]})
+    assert compare("n", {"a": []}, {}) == []
+
+
+@pytest.mark.ros
+def test_declared_defaults_equal_params_files(ros_domain):
+    documented = yaml_params()
+    with ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 2)) as pool:
+        declared = dict(zip(NODES, pool.map(lambda n: declared_defaults(NODES[n][2], ros_domain), NODES),
+                            strict=True))
+    problems = [p for node in NODES for p in compare(node, declared[node], documented.get(node, {}))]
+    assert not problems, "code defaults and config/params/*.yaml disagree:\n  " + "\n  ".join(problems)
