@@ -29,6 +29,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 
+from decision_maker.command_client import CommandClient  # noqa: E402
 from decision_maker.speech.errors import AudioDeviceError, AudioSourceError, SpeechError  # noqa: E402
 from decision_maker.speech.filtering import FilterConfig  # noqa: E402
 from decision_maker.speech.pipeline import PipelineConfig, Result, VoicePipeline  # noqa: E402
@@ -112,6 +113,8 @@ class AudioCommandNode(Node):
         self._pipeline = VoicePipeline(self._pipeline_config, self._transcriber.transcribe, self._vocabulary(),
                                        self._on_result)
         self._command_pub = self.create_publisher(String, "manual_command", 10)
+        # acknowledged through the brain's submit_command service when it is up, else this topic (warned once)
+        self._commands = CommandClient(self, publisher=self._command_pub)
         self._status_pub = self.create_publisher(String, "audio_command/status", 10)
         if p("object_list_topic"):
             self.create_subscription(String, p("object_list_topic"), self._on_object_list, OBJECT_LIST_QOS)
@@ -196,7 +199,8 @@ class AudioCommandNode(Node):
 
     def _on_result(self, result: Result) -> None:  # pipeline's result thread
         if result.command:
-            self._command_pub.publish(String(data=result.command))
+            self._commands.submit_async(result.command, lambda ack: ack.accepted or self.get_logger().warn(
+                f"command '{ack.text}' {ack.state}: {ack.message}"))
             self.get_logger().info(f"command: '{result.command}' (confidence {result.confidence:.2f}, "
                                    f"latency {result.latency_s:.2f} s)")
         elif result.dropped == "empty":  # silence: every chunk of it in fixed mode

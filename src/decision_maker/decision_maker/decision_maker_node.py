@@ -2,8 +2,14 @@
 
 Topics:
     /manual_command (std_msgs/String, in): a command in words ("give me the bottle") or primitives.
-    /cancel_command (std_msgs/String, in and out): stop now — clears the queue and cancels the
-        active goal(s); published by this node on any timeout so the hardware layer stops too.
+    /cancel_command (std_msgs/String, in): stop now — clears the queue and cancels the active
+        goal(s). Every message cancels, whatever its text (the brain never publishes here).
+    /hardware_stop (std_msgs/String, out): the brain's own stop on any timeout, so the hardware
+        layer stops too (the simulated servers obey it like /cancel_command).
+    submit_command (decision_maker_interfaces/srv/SubmitCommand, service): the acknowledged way in:
+        answers with the command id or the rejection reason (see decision_maker.command_client).
+        A spoken/typed "stop" / "cancel" / "stop it" / "abort" there or on /manual_command cancels at
+        once, like /cancel_command.
     /object_list (std_msgs/String JSON, in, transient local): known objects, for slot filling.
     /task_status (std_msgs/String JSON, out): one update per state change (see execution.TaskStatus).
 
@@ -32,6 +38,7 @@ import threading
 import time
 
 import rclpy
+from decision_maker_interfaces.srv import SubmitCommand
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
@@ -40,10 +47,13 @@ from std_msgs.msg import String
 
 from decision_maker.command_types import FrameTransform, load_locations
 from decision_maker.errors import ConfigError
-from decision_maker.execution import EngineConfig, ExecutionEngine, TaskStatus
+from decision_maker.execution import EngineConfig, ExecutionEngine, TaskState, TaskStatus
 from decision_maker.nl_planner import PlanningContext, make_planner
-from decision_maker.ros_robot import OWN_CANCEL_PREFIX, RosRobot
-from decision_maker.topics import CANCEL_QOS, COMMAND_QOS, OBJECT_LIST_QOS
+from decision_maker.ros_robot import RosRobot
+from decision_maker.topics import CANCEL_QOS, COMMAND_QOS, HARDWARE_STOP, OBJECT_LIST_QOS, SUBMIT_COMMAND
+
+#: Longest /object_list message parsed (characters); a longer one is ignored with a warning.
+MAX_OBJECT_LIST_CHARS = 1_000_000
 
 
 def default_locations_file() -> str:
@@ -122,7 +132,7 @@ class DecisionMakerNode(Node):
         self._client_group = ReentrantCallbackGroup()
 
         self._status_pub = self.create_publisher(String, "task_status", COMMAND_QOS)
-        cancel_pub = self.create_publisher(String, "cancel_command", CANCEL_QOS)
+        cancel_pub = self.create_publisher(String, HARDWARE_STOP, CANCEL_QOS)
         self.robot = RosRobot(
             self, self._client_group, cancel_pub, frames,
             server_wait_s=float(v["server_wait_s"]), cancel_wait_s=float(v["cancel_wait_s"]),
@@ -136,6 +146,7 @@ class DecisionMakerNode(Node):
                                  callback_group=self._cancel_group)
         self.create_subscription(String, "manual_command", self._on_command, COMMAND_QOS,
                                  callback_group=self._input_group)
+        self.create_service(SubmitCommand, SUBMIT_COMMAND, self._on_submit, callback_group=self._input_group)
         self.create_subscription(String, "object_list", self._on_object_list, OBJECT_LIST_QOS,
                                  callback_group=self._input_group)
         self.get_logger().info(
@@ -164,18 +175,27 @@ class DecisionMakerNode(Node):
     def _on_command(self, msg: String) -> None:
         self.engine.submit(msg.data)
 
+    def _on_submit(self, request: SubmitCommand.Request, response: SubmitCommand.Response) -> SubmitCommand.Response:
+        status = self.engine.submit(request.text)  # never blocks: bounded, then queued or rejected
+        response.accepted = status.state is not TaskState.REJECTED
+        response.id = status.id
+        response.state = status.state.value
+        response.message = status.message
+        return response
+
     def _on_cancel(self, msg: String) -> None:
-        if msg.data.startswith(OWN_CANCEL_PREFIX):
-            return  # our own stop for the hardware: the engine already stopped and cleared the queue
-        reason = " ".join(msg.data.split())[:200] or "operator"
+        # Every message cancels, whoever sent it (the brain's own stop goes to /hardware_stop).
+        reason = " ".join(msg.data[:400].split())[:200] or "operator"
         n = self.engine.cancel(f"/cancel_command ({reason})")
         self.get_logger().warn(f"/cancel_command ({reason}): cancelled {n} command(s)")
 
     def _on_object_list(self, msg: String) -> None:
         try:
+            if len(msg.data) > MAX_OBJECT_LIST_CHARS:
+                raise ValueError("object list too long")
             doc = json.loads(msg.data)
             objects = {str(k).lower(): _position(v) for k, v in doc.items()} if isinstance(doc, dict) else None
-        except (json.JSONDecodeError, TypeError, ValueError):
+        except (json.JSONDecodeError, TypeError, ValueError, RecursionError):
             objects = None
         if objects is None:
             self.get_logger().warn("ignoring a malformed /object_list message")

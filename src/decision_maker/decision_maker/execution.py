@@ -23,6 +23,7 @@ import dataclasses
 import enum
 import itertools
 import json
+import re
 import threading
 import time
 from collections.abc import Callable
@@ -217,6 +218,25 @@ class RobotPort(Protocol):
         ...
 
 
+#: Bytes one code point may take in UTF-8: the raw byte bound is this times ``max_text_chars``.
+MAX_UTF8_BYTES_PER_CHAR = 4
+#: Words that, said alone (in any number, with "please", "robot", "now", "it"/"that"/"everything"),
+#: stop the robot at once instead of being queued ("stop", "stop it", "cancel that", "abort!").
+STOP_VERBS = frozenset({"stop", "cancel", "abort", "halt", "freeze"})
+_STOP_FILLERS = frozenset({"it", "that", "this", "now", "please", "robot", "everything", "all", "the", "task",
+                           "emergency", "right", "immediately", "hey", "ok", "okay"})
+
+
+def is_stop_command(text: str) -> bool:
+    """True when ``text`` (sanitised) asks to stop and nothing else: "stop", "Stop it!", "cancel that".
+
+    "stop at the kitchen" or "don't stop" are not stops (other words); those go to the planner.
+    """
+    words = re.findall(r"[a-z']+", text.lower())
+    return bool(words) and len(words) <= 6 and any(w in STOP_VERBS for w in words) and \
+        all(w in STOP_VERBS or w in _STOP_FILLERS for w in words)
+
+
 #: Answers to a confirmation question (normalised words).
 YES_WORDS = frozenset({"yes", "y", "yeah", "yep", "ok", "okay", "confirm", "do it", "go ahead", "sure"})
 NO_WORDS = frozenset({"no", "n", "nope", "don't", "dont", "stop", "cancel", "never mind", "abort"})
@@ -274,9 +294,33 @@ class ExecutionEngine:
     # --- input side (callbacks; never block) -------------------------------------------------
 
     def submit(self, raw_text: str) -> TaskStatus:
-        """Queue a command; returns its first status (``queued`` or ``rejected``, also published)."""
-        text = sanitize_text(raw_text)
+        """Queue a command; returns its first status (``queued`` or ``rejected``, also published).
+
+        The raw text is bounded first (code points, then UTF-8 bytes) and only then normalised:
+        NFKC can turn one code point into 18 (U+FDFA), so a 10 MB message must never reach it.
+        A spoken/typed stop ("stop", "cancel", "stop it", "abort", ...) is not queued: it cancels
+        at once like ``/cancel_command`` and gets one final status ``succeeded`` (what it stopped).
+        """
+        raw = str(raw_text)
+        limit = self.config.max_text_chars
+        size = len(raw) if len(raw) > limit else len(raw.encode("utf-8", "surrogatepass"))
+        if len(raw) > limit or size > MAX_UTF8_BYTES_PER_CHAR * limit:
+            shown = shorten(sanitize_text(raw[:240]), 200)
+            unit = "code points" if len(raw) > limit else "UTF-8 bytes"
+            bound = limit if len(raw) > limit else MAX_UTF8_BYTES_PER_CHAR * limit
+            with self._cond:
+                cid = next(self._ids)
+                return self._emit(cid, shown, TaskState.REJECTED,
+                                  message=f"command too long ({size} {unit} > {bound}, before normalisation)",
+                                  sentence="That command is too long for me; please say it shorter.")
+        text = sanitize_text(raw)
         shown = shorten(text, 200)
+        if is_stop_command(text):
+            with self._cond:
+                cid = next(self._ids)
+            n = self.cancel(f"spoken stop ({shorten(text, 40)!r})")
+            return self._emit(cid, shown, TaskState.SUCCEEDED, message=f"stop: cancelled {n} command(s)",
+                              sentence="Stopped." if n else "Nothing to stop.")
         with self._cond:
             cid = next(self._ids)
             if not text:

@@ -47,6 +47,7 @@ from decision_maker.errors import ConfigError, SimError
 from decision_maker.mock_nav_server import FAULTS, POSE_QOS, yaw_of
 from decision_maker.sim_actions import SimGoals, run_sim_node
 from decision_maker.sim_world import SAMPLE_OBJECTS, ObjectWorld, check_coordinates, check_name, check_quaternion
+from decision_maker.topics import HARDWARE_STOP
 
 WORLD_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 GRASP_STAGES = ((0.4, "approach"), (0.7, "close_gripper"), (1.01, "lift"))
@@ -110,6 +111,7 @@ class MockGraspServer(Node):
         self._place_goals = SimGoals(self, Place, "place", self._check_goal, self._start_place, self._cancelled)
         self.create_subscription(PoseStamped, str(v["pose_topic"]), self._on_pose, POSE_QOS)
         self.create_subscription(String, "cancel_command", self._on_stop, 10)
+        self.create_subscription(String, HARDWARE_STOP, self._on_stop, 10)  # the brain's own stop
         if v["objects_source"] == "object_list":
             self.create_subscription(String, "object_list", self._on_object_list, WORLD_QOS)
         self.create_timer(1.0 / float(v["rate_hz"]), self._tick)

@@ -35,6 +35,7 @@ from decision_maker.command_types import Pose2D
 from decision_maker.errors import ConfigError, SimError
 from decision_maker.sim_actions import SimGoals, run_sim_node
 from decision_maker.sim_world import BaseSim, check_coordinates, check_quaternion
+from decision_maker.topics import HARDWARE_STOP
 
 POSE_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 FAULTS = ("none", "fail", "hang")
@@ -91,6 +92,7 @@ class MockNavServer(Node):
         self._goals = SimGoals(self, NavigateToPose, str(v["action_name"]), self._check_goal, self._start,
                                self._cancelled)
         self.create_subscription(String, "cancel_command", self._on_stop, 10)
+        self.create_subscription(String, HARDWARE_STOP, self._on_stop, 10)  # the brain's own stop
         self._last = time.monotonic()
         self.create_timer(1.0 / float(v["rate_hz"]), self._tick)
         self._publish_pose()

@@ -5,7 +5,9 @@ Usage::
     ros_run decision_maker nl_command_node                       # interactive: type, Enter; Ctrl-D ends
     printf 'give me the bottle\\ngo home\\n' | ros_run decision_maker nl_command_node   # scripting
 
-The terminal stays live: statuses print while you type (the node is spun in its own thread; the
+Each command goes through the decision maker's ``submit_command`` service when it serves it
+(acknowledged: the id, or the rejection reason at once), else on ``/manual_command`` with a
+warning. The terminal stays live: statuses print while you type (the node is spun in its own thread; the
 main thread only reads stdin). On end of input the node waits until every command it sent has a
 final status (``--no-wait`` to skip, ``--timeout`` to bound it) and exits 0 when all succeeded,
 1 otherwise; Ctrl-C exits at once (130).
@@ -17,6 +19,7 @@ import argparse
 import collections
 import sys
 import threading
+import time
 
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -24,6 +27,7 @@ from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 from std_msgs.msg import String
 
+from decision_maker.command_client import Ack, CommandClient
 from decision_maker.command_types import sanitize_text, shorten
 from decision_maker.console import stdin_lines, wait_for_listeners
 from decision_maker.execution import TaskState, TaskStatus
@@ -31,24 +35,55 @@ from decision_maker.topics import COMMAND_QOS
 
 
 class CommandSender:
-    """Publishes commands and tracks their statuses (thread-safe)."""
+    """Sends commands (acknowledged through ``submit_command`` when the brain serves it, else on
+    ``/manual_command``) and tracks their statuses until each is final (thread-safe).
 
-    def __init__(self, node, echo=sys.stdout) -> None:
+    A command the service answered is tracked by its id; one sent on the topic by its text.
+    """
+
+    def __init__(self, node, echo=sys.stdout, answer_timeout_s: float = 10.0) -> None:
         self._node = node
         self._echo = echo
-        self._pub = node.create_publisher(String, "manual_command", COMMAND_QOS)
+        self.client = CommandClient(node, answer_timeout_s=answer_timeout_s,
+                                    log=lambda text: print(f"warning: {text}", file=sys.stderr, flush=True))
+        self._pub = self.client._pub
         node.create_subscription(String, "task_status", self._on_status, COMMAND_QOS)
-        self._cond = threading.Condition()  # guards _pending, failures
+        self._cond = threading.Condition()  # guards _pending, _pending_ids, _final_ids, failures
         self._pending: collections.Counter[str] = collections.Counter()
+        self._pending_ids: set[int] = set()
+        self._final_ids: dict[int, TaskState] = {}  # final states seen on /task_status (any sender)
         self.failures = 0
 
-    def wait_for_listener(self, timeout_s: float, brain: str = "") -> bool:
-        return wait_for_listeners(self._pub, timeout_s, node=self._node, required_node=brain) > 0
+    def wait_for_brain(self, timeout_s: float, brain: str = "") -> str:
+        """Wait for the brain: its service ("service"), else its /manual_command subscription ("topic"),
+        else "" (nobody); the whole wait is bounded by ``timeout_s``."""
+        deadline = time.monotonic() + timeout_s
+        if self.client.wait_for_service(timeout_s):
+            return "service"
+        left = max(0.5, deadline - time.monotonic())
+        return "topic" if wait_for_listeners(self._pub, left, node=self._node, required_node=brain) > 0 else ""
 
-    def send(self, line: str) -> None:
+    def send(self, line: str) -> Ack:
+        """Send one command; returns the brain's answer (or the topic's "sent")."""
+        if not self.client.service_ready():
+            with self._cond:
+                self._pending[shorten(sanitize_text(line), 200)] += 1
+        ack = self.client.submit(line)
         with self._cond:
-            self._pending[shorten(sanitize_text(line), 200)] += 1
-        self._pub.publish(String(data=line))
+            if ack.via != "service":
+                pass  # tracked by its text (above)
+            elif ack.state == "no_answer":
+                self.failures += 1
+                print(f"nl_command_node: no answer for {shorten(line, 60)!r}: {ack.message}", file=sys.stderr,
+                      flush=True)
+            else:
+                state = TaskState._value2member_map_.get(ack.state, TaskState.REJECTED)
+                final = state if state.terminal else self._final_ids.get(ack.id)
+                if final is None:
+                    self._pending_ids.add(ack.id)
+                elif final is not TaskState.SUCCEEDED:
+                    self.failures += 1
+        return ack
 
     def _on_status(self, msg: String) -> None:
         try:
@@ -59,15 +94,20 @@ class CommandSender:
         self._echo.flush()
         if st.state.terminal:
             with self._cond:
-                if self._pending[st.text] > 0:
+                self._final_ids[st.id] = st.state
+                if st.id in self._pending_ids:
+                    self._pending_ids.discard(st.id)
+                elif self._pending[st.text] > 0:
                     self._pending[st.text] -= 1
-                    if st.state is not TaskState.SUCCEEDED:
-                        self.failures += 1
-                    self._cond.notify_all()
+                else:
+                    return
+                if st.state is not TaskState.SUCCEEDED:
+                    self.failures += 1
+                self._cond.notify_all()
 
     def wait_all(self, timeout_s: float) -> bool:
         with self._cond:
-            return self._cond.wait_for(lambda: sum(self._pending.values()) == 0, timeout_s)
+            return self._cond.wait_for(lambda: not self._pending_ids and sum(self._pending.values()) == 0, timeout_s)
 
     def flush(self, timeout_s: float = 2.0) -> None:
         from rclpy.duration import Duration
@@ -110,11 +150,14 @@ def main(argv: list[str] | None = None) -> int:
             if not line.strip():
                 continue
             if not connected:
-                connected = sender.wait_for_listener(opts.discovery_timeout, opts.brain)
-                if not connected:
+                connected = True
+                way = sender.wait_for_brain(opts.discovery_timeout, opts.brain)
+                if not way:
                     print("warning: nobody listens on /manual_command (decision maker running? same "
                           "ROS_DOMAIN_ID?); sending anyway", file=sys.stderr, flush=True)
-            sender.send(line)
+            ack = sender.send(line)
+            if ack.via == "service" and not ack.accepted:
+                print(f"[#{ack.id} {ack.state}] {shorten(sanitize_text(line), 60)!r}: {ack.message}", flush=True)
         sender.flush()
         if not opts.no_wait and not sender.wait_all(opts.timeout):
             print(f"nl_command_node: gave up waiting for results after {opts.timeout:g} s", file=sys.stderr)

@@ -43,8 +43,9 @@ _STATUS_NAMES = {GoalStatus.STATUS_SUCCEEDED: "succeeded", GoalStatus.STATUS_ABO
                  GoalStatus.STATUS_CANCELED: "canceled"}
 
 
-#: Prefix of the /cancel_command messages the decision maker publishes itself (on timeouts).
-OWN_CANCEL_PREFIX = "decision_maker: "
+#: Prefix of the hardware stops the decision maker publishes (informative only: the topic, not the text,
+#: tells them apart from an operator's /cancel_command).
+OWN_STOP_PREFIX = "decision_maker: "
 
 class RosRobot:
     """Navigation, grasp, place and object lookup for the execution engine.
@@ -52,7 +53,8 @@ class RosRobot:
     Args:
         node: the decision maker node (spun elsewhere).
         group: callback group of the action/service clients (not the input group).
-        cancel_publisher: publisher of ``/cancel_command`` (``std_msgs/String``: the reason).
+        cancel_publisher: publisher of the hardware stop (``/hardware_stop``, ``std_msgs/String``: the
+            reason), which the hardware layer obeys like ``/cancel_command``.
         frames: map → command frame transform (Isaac Sim etc.; identity by default).
         server_wait_s: longest wait for an action server / the query service per call (> 0).
         cancel_wait_s: longest wait for a cancelled goal's final result (> 0).
@@ -142,8 +144,8 @@ class RosRobot:
             print(f"decision_maker: cancel of an active goal failed: {exc!r}", flush=True)
 
     def emergency_stop(self, reason: str) -> None:
-        self._node.get_logger().warn(f"publishing /cancel_command: {reason}")
-        self._cancel_pub.publish(String(data=f"{OWN_CANCEL_PREFIX}{reason}"))
+        self._node.get_logger().warn(f"publishing /{self._cancel_pub.topic_name.lstrip('/')}: {reason}")
+        self._cancel_pub.publish(String(data=f"{OWN_STOP_PREFIX}{reason}"))
 
     # --- helpers -----------------------------------------------------------------------------------
 

@@ -18,7 +18,6 @@ from dataclasses import dataclass
 from decision_maker.command_types import Point3, Pose2D, normalize_name
 from decision_maker.errors import ConfigError, SimError
 
-
 #: The sample home's true world (map frame, metres): what ``mock_grasp_server`` holds by default.
 SAMPLE_OBJECTS = ('{"bottle": [5.2, 0.3, 1.02], "cup_1": [4.6, 0.35, 0.95], "cup_2": [2.8, 2.6, 0.8], '
                   '"trash": [2.28, 2.48, 0.8]}')

@@ -5,6 +5,11 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 MANUAL_COMMAND = "manual_command"
 CANCEL_COMMAND = "cancel_command"
 TASK_STATUS = "task_status"
+#: The brain's acknowledged way in (decision_maker_interfaces/srv/SubmitCommand).
+SUBMIT_COMMAND = "submit_command"
+#: The brain's own stop for the hardware layer (on timeouts). Separate from /cancel_command, so that
+#: every /cancel_command the brain receives comes from someone else and always cancels.
+HARDWARE_STOP = "hardware_stop"
 OBJECT_LIST = "object_list"
 
 #: Commands and statuses: reliable with a deep history, so a burst is queued, not dropped.

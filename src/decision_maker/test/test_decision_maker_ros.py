@@ -45,6 +45,7 @@ class Robot:
         self._cancel = node.create_publisher(String, "cancel_command", QoSProfile(depth=10))
         node.create_subscription(String, "task_status", self._on_status, COMMAND_QOS)
         node.create_subscription(String, "cancel_command", self._on_cancel, 10)
+        node.create_subscription(String, "hardware_stop", self._on_cancel, 10)  # the brain's own stop
         node.create_subscription(String, "sim/world_state", self._on_world, LATCHED)
 
     def _on_status(self, msg: String) -> None:

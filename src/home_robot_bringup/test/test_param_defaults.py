@@ -28,7 +28,8 @@ NODESETS = Path(__file__).resolve().parents[1] / "config" / "nodesets.yaml"
 
 #: node name (the params file key) -> (package, executable, "module:Class" that declares its parameters)
 NODES = {
-    "object_query_server": ("object_query", "object_query_server", "object_query.object_query_server:ObjectQueryServer"),
+    "object_query_server": ("object_query", "object_query_server",
+                            "object_query.object_query_server:ObjectQueryServer"),
     "decision_maker": ("decision_maker", "decision_maker_node", "decision_maker.decision_maker_node:DecisionMakerNode"),
     "mock_nav_server": ("decision_maker", "mock_nav_server", "decision_maker.mock_nav_server:MockNavServer"),
     "mock_grasp_server": ("decision_maker", "mock_grasp_server", "decision_maker.mock_grasp_server:MockGraspServer"),
