@@ -43,6 +43,12 @@ else
   LD_LIBRARY_PATH="${LD_LIBRARY_PATH%:}"; export LD_LIBRARY_PATH   # colcon leaves a trailing ':'
 fi
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
+# Fast DDS profile: a 2 s participant lease, so a killed node leaves the graph in 2 s, not 20 s
+# (the decision maker then fails the goal it waits on at once). A profile of your own wins.
+if [ -z "${FASTRTPS_DEFAULT_PROFILES_FILE:-}${FASTDDS_DEFAULT_PROFILES_FILE:-}" ]; then
+  export FASTRTPS_DEFAULT_PROFILES_FILE="$_hr_root/src/home_robot_bringup/config/dds/fastdds_liveliness.xml"
+  export FASTDDS_DEFAULT_PROFILES_FILE="$FASTRTPS_DEFAULT_PROFILES_FILE"
+fi
 export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-0}"
 export PYTHONUNBUFFERED=1
 

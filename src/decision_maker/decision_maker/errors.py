@@ -45,6 +45,10 @@ class ServerUnavailable(ExecutionError):
     """An action server or the object query service is not available before the deadline."""
 
 
+class ServerLost(ServerUnavailable):
+    """A server that was there left the ROS graph while a call waited on it (killed, crashed)."""
+
+
 class ObjectNotFound(ExecutionError):
     """The object database does not know the object."""
 

@@ -8,6 +8,14 @@ Each action call follows the initialise / update / terminate shape: send the goa
 server is available), wait for the result while watching the deadline and the abort token, and on
 timeout or abort cancel the goal and wait a bounded time (``cancel_wait_s``) for the server to
 confirm.
+
+Servers are watched while a call waits: every :data:`WATCH_PERIOD_S` the waiting (execution)
+thread asks the ROS graph whether the server is still there (``server_is_ready()`` of the action
+client, the object query service's readiness). Gone for :data:`LOST_AFTER_S` → the call fails at
+once with :class:`~decision_maker.errors.ServerLost` ("navigation server /navigate_to_pose
+disappeared ..."), instead of waiting out the action's timeout. How soon the graph shows a killed
+process depends on the DDS participant lease: 2 s with the project's Fast DDS profile
+(config/dds/fastdds_liveliness.xml, set by scripts/env.sh), 20 s with Fast DDS's defaults.
 """
 
 from __future__ import annotations
@@ -34,6 +42,7 @@ from decision_maker.errors import (
     ActionFailed,
     ActionTimeout,
     ObjectNotFound,
+    ServerLost,
     ServerUnavailable,
 )
 from decision_maker.execution import AbortToken
@@ -46,6 +55,38 @@ _STATUS_NAMES = {GoalStatus.STATUS_SUCCEEDED: "succeeded", GoalStatus.STATUS_ABO
 #: Prefix of the hardware stops the decision maker publishes (informative only: the topic, not the text,
 #: tells them apart from an operator's /cancel_command).
 OWN_STOP_PREFIX = "decision_maker: "
+
+#: How often a waiting call checks that its server is still in the ROS graph (seconds).
+WATCH_PERIOD_S = 0.1
+#: How long a server must be missing from the graph before the call fails (seconds; > one period, so
+#: a single odd graph read does not fail a goal).
+LOST_AFTER_S = 0.25
+
+
+class _Watch:
+    """Tells a waiting call that its server left the graph (execution thread only; no locks).
+
+    Args:
+        present: reads the graph: True while the server is there (never blocks).
+        what: the server, for the message ("navigation server /navigate_to_pose").
+    """
+
+    def __init__(self, present: Callable[[], bool], what: str) -> None:
+        self._present = present
+        self._what = what
+        self._missing_since: float | None = None
+
+    def check(self) -> None:
+        """Raises ServerLost when the server has been missing for LOST_AFTER_S."""
+        now = time.monotonic()
+        if self._present():
+            self._missing_since = None
+        elif self._missing_since is None:
+            self._missing_since = now
+        elif now - self._missing_since >= LOST_AFTER_S:
+            raise ServerLost(f"{self._what} disappeared from the ROS graph while waiting for it "
+                             "(process died or lost its network)")
+
 
 class RosRobot:
     """Navigation, grasp, place and object lookup for the execution engine.
@@ -94,14 +135,29 @@ class RosRobot:
 
     def locate(self, name: str, timeout_s: float, abort: AbortToken) -> Point3:
         deadline = time.monotonic() + timeout_s
-        while not self._query.wait_for_service(timeout_sec=0.05):
-            if abort.is_set():
-                raise ActionCancelled(abort.reason)
-            if time.monotonic() >= deadline:
-                raise ServerUnavailable(f"object query service /{self._query_name} not available "
-                                        f"after {timeout_s:.1f} s")
+        wake = threading.Event()
+        remove = abort.add_waker(wake)
+        try:
+            while not self._query.wait_for_service(timeout_sec=0.0):
+                if abort.is_set():
+                    raise ActionCancelled(abort.reason)
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise ServerUnavailable(f"object query service /{self._query_name} not available "
+                                            f"after {timeout_s:.1f} s")
+                wake.wait(min(0.05, left))
+                wake.clear()
+        finally:
+            remove()
         future = self._query.query_async(name)
-        if not self._wait_future(future, deadline, abort):
+        watch = _Watch(lambda: self._query.wait_for_service(timeout_sec=0.0),
+                       f"object query service /{self._query_name}")
+        try:
+            answered = self._wait_future(future, deadline, abort, watch)
+        except ServerLost:
+            self._query.forget(future)
+            raise
+        if not answered:
             self._query.forget(future)
             if abort.is_set():
                 raise ActionCancelled(abort.reason)
@@ -158,8 +214,12 @@ class RosRobot:
         return msg
 
     @staticmethod
-    def _wait_future(future: Future, deadline: float, abort: AbortToken | None) -> bool:
-        """Wait until ``future`` is done (True), ``deadline`` passes or ``abort`` is set (False)."""
+    def _wait_future(future: Future, deadline: float, abort: AbortToken | None, watch: _Watch | None = None) -> bool:
+        """Wait until ``future`` is done (True), ``deadline`` passes or ``abort`` is set (False).
+
+        Raises:
+            ServerLost: ``watch`` saw the server leave the graph (checked every WATCH_PERIOD_S).
+        """
         wake = threading.Event()
         future.add_done_callback(lambda _f: wake.set())
         remove = abort.add_waker(wake) if abort is not None else (lambda: None)
@@ -170,6 +230,9 @@ class RosRobot:
                 left = deadline - time.monotonic()
                 if left <= 0:
                     return False
+                if watch is not None:
+                    watch.check()
+                    left = min(left, WATCH_PERIOD_S)
                 wake.wait(left)
                 wake.clear()
             return True
@@ -202,7 +265,8 @@ class RosRobot:
         send_future = client.send_goal_async(goal)
         if self._on_goal_sent is not None:
             self._on_goal_sent(what)
-        accepted = self._wait_future(send_future, deadline, abort)
+        watch = _Watch(client.server_is_ready, f"{what} server /{self._names[id(client)]}")
+        accepted = self._wait_future(send_future, deadline, abort, watch)
         if not accepted:
             # the goal may still be accepted: give it a bounded chance, then cancel it
             if self._wait_future(send_future, time.monotonic() + self._cancel_wait_s, None):
@@ -221,7 +285,7 @@ class RosRobot:
             if abort.is_set():  # a cancel arrived while the goal was being accepted
                 self._cancel(gh)
             result_future = gh.get_result_async()
-            if not self._wait_future(result_future, deadline, abort):
+            if not self._wait_future(result_future, deadline, abort, watch):
                 timed_out = not abort.is_set()
                 self._cancel(gh)  # (again, if the cancel path already did: harmless)
                 self._wait_future(result_future, time.monotonic() + self._cancel_wait_s, None)

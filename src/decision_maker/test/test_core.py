@@ -3,6 +3,7 @@
 import math
 import os
 import threading
+import time
 
 import pytest
 
@@ -415,3 +416,87 @@ def test_worker_survives_a_port_bug_and_stdin_lines():
         worker.join(5)
     lines = stdin_lines(io.StringIO("give me the cup\n\ngo home"), poll_s=0.01)
     assert list(lines) == ["give me the cup", "", "go home"]
+
+
+def test_raw_size_is_bounded_before_normalisation():
+    """10 MB of U+FDFA (18 characters each after NFKC) is rejected on its raw length, unnormalised."""
+    eng, st = make_engine(FakeRobot(), max_text_chars=500)
+    huge = "\ufdfa" * 3_500_000  # ~10 MB of UTF-8
+    status = eng.submit(huge)
+    # the count in the reason is the raw one (3.5 M code points), not the normalised 63 M characters
+    assert status.state is TaskState.REJECTED and "before normalisation" in status.message, status
+    assert f"{len(huge)} code points" in status.message and len(status.text) <= 200
+    # 500 code points of U+FDFA pass the raw bound but fail after NFKC (9 000 characters)
+    after = eng.submit("\ufdfa" * 500)
+    assert after.state is TaskState.REJECTED and "characters" in after.message
+    assert [s.state for s in st].count(TaskState.REJECTED) == 2
+
+
+def wait(predicate, timeout):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.01)
+    return predicate()
+
+
+@pytest.mark.parametrize("text", ["stop", "Stop it!", "STOP STOP", "cancel", "cancel that", "abort", "please stop",
+                                  "halt now", "robot, stop!"])
+def test_stop_phrases(text):
+    from decision_maker.execution import is_stop_command
+
+    assert is_stop_command(text)
+
+
+@pytest.mark.parametrize("text", ["", "stop at the kitchen", "don't stop", "give me the bottle", "go home",
+                                  "clean table", "stopwatch"])
+def test_not_stop_phrases(text):
+    from decision_maker.execution import is_stop_command
+
+    assert not is_stop_command(text)
+
+
+def test_spoken_stop_cancels_at_once_never_queued():
+    robot = FakeRobot()
+    robot.gate = threading.Event()
+    eng, st = make_engine(robot)
+    worker = threading.Thread(target=eng.run, daemon=True)
+    worker.start()
+    try:
+        first = eng.submit("go to the kitchen")
+        queued = eng.submit("go home")
+        assert wait(lambda: eng.busy(), 5.0)
+        stop = eng.submit("Stop it!")
+        assert stop.state is TaskState.SUCCEEDED and "cancelled 2 command(s)" in stop.message, stop
+        assert robot.cancels >= 1 and eng.queue_length() == 0
+        assert wait(lambda: any(s.id == first.id and s.state.terminal for s in st), 5.0)
+        assert final(st, first.id).state is TaskState.CANCELLED and "spoken stop" in final(st, first.id).message
+        assert final(st, queued.id).state is TaskState.CANCELLED
+        idle = eng.submit("cancel")
+        assert idle.state is TaskState.SUCCEEDED and "cancelled 0" in idle.message
+    finally:
+        eng.stop()
+        worker.join(5.0)
+
+
+def test_sim_validation_of_goals_and_objects():
+    from decision_maker.errors import ConfigError, SimError
+    from decision_maker.sim_world import ObjectWorld, check_coordinates, check_name, check_quaternion
+
+    check_coordinates("goal", (1.0, 2.0, 0.0), 100.0)
+    for bad in ((float("nan"), 0.0), (float("inf"), 0.0), (1.7e308, 0.0), (0.0, -101.0)):
+        with pytest.raises(SimError, match="goal"):
+            check_coordinates("goal", bad, 100.0)
+    check_quaternion("goal", 0.0, 0.0, 0.0, 1.0)
+    for q in ((0.0, 0.0, 0.0, 0.0), (float("nan"), 0.0, 0.0, 1.0), (0.0, 0.0, 5.0, 1.0)):
+        with pytest.raises(SimError, match="orientation"):
+            check_quaternion("goal", *q)
+    check_name("object name", "bottle")
+    for name in ("", "   ", "x" * 65):
+        with pytest.raises(SimError):
+            check_name("object name", name)
+    with pytest.raises(ConfigError, match="finite"):
+        ObjectWorld.from_mapping({"cup": [float("nan"), 0.0, 0.0]})
+    with pytest.raises(ConfigError, match="64"):
+        ObjectWorld.from_mapping({"x" * 100: [0.0, 0.0, 0.0]})

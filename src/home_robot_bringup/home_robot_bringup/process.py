@@ -39,10 +39,27 @@ def _die_with_parent() -> None:  # runs in the child between fork and exec: keep
         _LIBC.prctl(_PR_SET_PDEATHSIG, signal.SIGTERM)
 
 
+def dds_profile_file() -> str | None:
+    """The installed Fast DDS profile (config/dds/fastdds_liveliness.xml: a 2 s participant lease, so
+    a killed node leaves the graph within 2 s), or None when it is not installed."""
+    try:
+        from ament_index_python.packages import get_package_share_directory
+
+        path = os.path.join(get_package_share_directory("home_robot_bringup"), "config", "dds",
+                            "fastdds_liveliness.xml")
+    except (ImportError, LookupError, ValueError):
+        return None
+    return path if os.path.isfile(path) else None
+
+
 def node_environment(domain_id: int | None = None, base: dict[str, str] | None = None) -> dict[str, str]:
-    """Environment for node processes: loopback-only discovery, unbuffered, plain ROS logs."""
+    """Environment for node processes: loopback-only discovery, unbuffered, plain ROS logs, and the
+    project's Fast DDS profile (unless the caller set a profile of their own)."""
     env = dict(os.environ if base is None else base)
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    profile = dds_profile_file()
+    if profile and not env.get("FASTRTPS_DEFAULT_PROFILES_FILE") and not env.get("FASTDDS_DEFAULT_PROFILES_FILE"):
+        env["FASTRTPS_DEFAULT_PROFILES_FILE"] = env["FASTDDS_DEFAULT_PROFILES_FILE"] = profile
     if domain_id is not None:
         env["ROS_DOMAIN_ID"] = str(domain_id)
     env["PYTHONUNBUFFERED"] = "1"
