@@ -30,7 +30,7 @@ from rclpy.node import Node
 from rclpy.task import Future
 from std_msgs.msg import String
 
-from decision_maker.topics import COMMAND_QOS, MANUAL_COMMAND, SUBMIT_COMMAND
+from decision_maker.topics import COMMAND_QOS, MANUAL_COMMAND, SERVICE_QOS, SUBMIT_COMMAND
 
 
 @dataclass(frozen=True)
@@ -74,7 +74,8 @@ class CommandClient:
         if not answer_timeout_s > 0:
             raise ValueError(f"answer_timeout_s must be > 0, got {answer_timeout_s}")
         self._node = node
-        self._client = node.create_client(SubmitCommand, service, callback_group=callback_group)
+        self._client = node.create_client(SubmitCommand, service, qos_profile=SERVICE_QOS,
+                                          callback_group=callback_group)
         self._pub = publisher if publisher is not None else node.create_publisher(String, MANUAL_COMMAND,
                                                                                    COMMAND_QOS)
         self._answer_timeout_s = answer_timeout_s

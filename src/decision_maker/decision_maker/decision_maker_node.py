@@ -50,7 +50,7 @@ from decision_maker.errors import ConfigError
 from decision_maker.execution import EngineConfig, ExecutionEngine, TaskState, TaskStatus
 from decision_maker.nl_planner import PlanningContext, make_planner
 from decision_maker.ros_robot import RosRobot
-from decision_maker.topics import CANCEL_QOS, COMMAND_QOS, HARDWARE_STOP, OBJECT_LIST_QOS, SUBMIT_COMMAND
+from decision_maker.topics import CANCEL_QOS, COMMAND_QOS, HARDWARE_STOP, OBJECT_LIST_QOS, SERVICE_QOS, SUBMIT_COMMAND
 
 #: Longest /object_list message parsed (characters); a longer one is ignored with a warning.
 MAX_OBJECT_LIST_CHARS = 1_000_000
@@ -146,7 +146,8 @@ class DecisionMakerNode(Node):
                                  callback_group=self._cancel_group)
         self.create_subscription(String, "manual_command", self._on_command, COMMAND_QOS,
                                  callback_group=self._input_group)
-        self.create_service(SubmitCommand, SUBMIT_COMMAND, self._on_submit, callback_group=self._input_group)
+        self.create_service(SubmitCommand, SUBMIT_COMMAND, self._on_submit, qos_profile=SERVICE_QOS,
+                            callback_group=self._input_group)
         self.create_subscription(String, "object_list", self._on_object_list, OBJECT_LIST_QOS,
                                  callback_group=self._input_group)
         self.get_logger().info(

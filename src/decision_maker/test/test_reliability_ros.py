@@ -89,7 +89,7 @@ def test_acknowledged_burst_spoofed_cancel_huge_command_and_spoken_stop(launch_n
     op.wait_connected()
 
     # 1. a burst through the service: every command gets an id or an explicit rejection, none lost
-    n = 300
+    n = 1000
     acks: list[Ack] = []
     lock = threading.Lock()
 
