@@ -234,8 +234,10 @@ def test_killed_nav_server_fails_the_goal_fast_and_keeps_the_queue(launch_nodes,
     moving = op.submit("go to the kitchen")
     queued = op.submit("go home")
     op.running(moving.id)
+    nav = sup.get("mock_nav_server")
+    assert wait_for(lambda: "goal: (" in nav.output(), 30.0), nav.output()  # the goal is active on the server
     t_kill = time.monotonic()
-    os.kill(sup.get("mock_nav_server").popen.pid, signal.SIGKILL)
+    os.kill(nav.popen.pid, signal.SIGKILL)
     final = op.final(moving.id, 40.0)
     took = time.monotonic() - t_kill
     print(f"\nnav server killed -> command failed after {took:.2f} s (nav_timeout_s 60 s)")
@@ -244,3 +246,12 @@ def test_killed_nav_server_fails_the_goal_fast_and_keeps_the_queue(launch_nodes,
     # the queue was kept: the next command ran, and failed on the missing server within its own wait
     nxt = op.final(queued.id, 40.0)
     assert nxt.state is TaskState.FAILED and "not available" in nxt.message, nxt
+
+    # the object database killed: the next object query fails with the reason within query_timeout_s
+    db = sup.get("object_query_server")
+    os.kill(db.popen.pid, signal.SIGKILL)
+    t_kill = time.monotonic()
+    grasp = op.submit("grasp:cup")
+    final = op.final(grasp.id, 40.0)
+    print(f"object database killed -> grasp:cup failed after {time.monotonic() - t_kill:.2f} s (query_timeout_s 5 s)")
+    assert final.state is TaskState.FAILED and "object query" in final.message, final
