@@ -11,7 +11,11 @@ Runs the simulated nav server and the decision maker as real processes on a leas
 Prints median / p90 / p99 / max over the trials, and the decision maker's own measurement of
 "command received → first goal sent" (its ``latency:`` log lines).
 
-Usage: ``source scripts/env.sh && python bench/decision_maker_cancel.py [--trials 200]``
+``--stop-via manual_command`` stops with a typed/spoken "stop" on ``/manual_command`` instead
+(the brain cancels it directly, never queued); ``--stop-via both`` alternates the two in one run
+and prints the ratio of the spoken stop's median to ``/cancel_command``'s (the baseline).
+
+Usage: ``source scripts/env.sh && python bench/decision_maker_cancel.py [--trials 200] [--stop-via both]``
 """
 
 from __future__ import annotations
@@ -103,6 +107,8 @@ class Bench:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--trials", type=int, default=200)
+    ap.add_argument("--stop-via", choices=("cancel_command", "manual_command", "both"), default="cancel_command",
+                    help="how the stop is sent: /cancel_command, the word 'stop' on /manual_command, or alternating")
     opts = ap.parse_args()
     with DomainLease() as lease:
         specs = [s for s in load_nodeset("sim_robot") if s.name in ("mock_nav_server", "decision_maker")]
@@ -118,7 +124,8 @@ def main() -> int:
                     and time.monotonic() < deadline:
                 time.sleep(0.05)
             time.sleep(0.5)
-            to_cancelled, to_task = [], []
+            to_cancelled: dict[str, list[float]] = {"cancel_command": [], "manual_command": []}
+            to_task: dict[str, list[float]] = {"cancel_command": [], "manual_command": []}
             known: set[bytes] = set()
             cid = 0
             failures = 0
@@ -133,19 +140,25 @@ def main() -> int:
                     raise SystemExit(f"trial {i}: no active nav goal")
                 known.add(goal)
                 time.sleep(0.02)  # let the goal run for a moment
+                via = opts.stop_via if opts.stop_via != "both" else ("cancel_command", "manual_command")[i % 2]
                 t0 = time.monotonic()
-                bench.cancel.publish(String(data="bench"))
+                if via == "cancel_command":
+                    bench.cancel.publish(String(data="bench"))
+                else:
+                    bench.cmd.publish(String(data="stop"))
                 with bench.cond:
                     done = bench.cond.wait_for(
                         lambda g=goal, c=cid: bench.goal_status[g][0] in ENDED and c in bench.task_final, 10.0)
                     status, t_goal = bench.goal_status[goal]
                     state, t_task = bench.task_final.get(cid, (None, 0.0))
+                if via == "manual_command":
+                    cid += 1  # the spoken stop has an id of its own
                 if not done or status != GoalStatus.STATUS_CANCELED or state is not TaskState.CANCELLED:
                     failures += 1
                     print(f"trial {i}: done={done} goal status={status} task state={state}")
                     continue
-                to_cancelled.append((t_goal - t0) * 1000)
-                to_task.append((t_task - t0) * 1000)
+                to_cancelled[via].append((t_goal - t0) * 1000)
+                to_task[via].append((t_task - t0) * 1000)
             sup_out = sup.get("decision_maker").output()
         finally:
             if bench is not None:
@@ -154,12 +167,18 @@ def main() -> int:
     first_goal = [float(m) for m in re.findall(r"received -> first goal sent \(navigation\): ([0-9.]+) ms", sup_out)]
     print(f"decision maker cancel benchmark ({opts.trials} trials, mock nav server + decision_maker processes, "
           f"loopback; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs)")
-    print(summary("/cancel_command published -> nav goal CANCELED (server status)", to_cancelled))
-    print(summary("/cancel_command published -> /task_status cancelled", to_task))
+    names = {"cancel_command": "/cancel_command", "manual_command": "'stop' on /manual_command"}
+    for via in ("cancel_command", "manual_command"):
+        if to_cancelled[via]:
+            print(summary(f"{names[via]} published -> nav goal CANCELED (server status)", to_cancelled[via]))
+            print(summary(f"{names[via]} published -> /task_status cancelled", to_task[via]))
+    if to_cancelled["cancel_command"] and to_cancelled["manual_command"]:
+        ratio = statistics.median(to_cancelled["manual_command"]) / statistics.median(to_cancelled["cancel_command"])
+        print(f"spoken stop / /cancel_command, median to CANCELED: {ratio:.2f}x")
     if first_goal:
         print(summary("command received -> first goal sent (decision maker's clock)", first_goal))
     print(f"failed trials (goal not CANCELED / status not cancelled): {failures}")
-    p99 = pct(to_cancelled, 99)
+    p99 = pct(to_cancelled["cancel_command"] or to_cancelled["manual_command"], 99)
     print(f"target p99 < 30 ms: {'met' if p99 < 30.0 else 'NOT met'} ({p99:.2f} ms)")
     return 0 if failures == 0 else 1
 
