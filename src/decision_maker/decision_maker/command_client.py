@@ -27,6 +27,7 @@ from dataclasses import dataclass
 from decision_maker_interfaces.srv import SubmitCommand
 from rclpy.callback_groups import CallbackGroup
 from rclpy.node import Node
+from rclpy.publisher import Publisher
 from rclpy.task import Future
 from std_msgs.msg import String
 
@@ -68,7 +69,7 @@ class CommandClient:
         log: where the one-time fallback warning goes (default: the node's logger).
     """
 
-    def __init__(self, node: Node, service: str = SUBMIT_COMMAND, publisher=None,
+    def __init__(self, node: Node, service: str = SUBMIT_COMMAND, publisher: Publisher | None = None,
                  callback_group: CallbackGroup | None = None, answer_timeout_s: float = 5.0,
                  log: Callable[[str], None] | None = None) -> None:
         if not answer_timeout_s > 0:

@@ -500,3 +500,22 @@ def test_sim_validation_of_goals_and_objects():
         ObjectWorld.from_mapping({"cup": [float("nan"), 0.0, 0.0]})
     with pytest.raises(ConfigError, match="64"):
         ObjectWorld.from_mapping({"x" * 100: [0.0, 0.0, 0.0]})
+
+
+def test_server_watch_fails_only_after_the_server_stays_gone():
+    from decision_maker.errors import ServerLost, ServerUnavailable
+    from decision_maker.ros_robot import LOST_AFTER_S, _Watch
+
+    present = [True]
+    watch = _Watch(lambda: present[0], "navigation server /navigate_to_pose")
+    watch.check()
+    present[0] = False
+    watch.check()  # first miss: not yet
+    present[0] = True
+    watch.check()  # back: the miss is forgotten
+    present[0] = False
+    watch.check()
+    time.sleep(LOST_AFTER_S + 0.05)
+    with pytest.raises(ServerLost, match="navigation server /navigate_to_pose disappeared") as err:
+        watch.check()
+    assert isinstance(err.value, ServerUnavailable)

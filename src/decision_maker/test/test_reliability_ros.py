@@ -255,3 +255,20 @@ def test_killed_nav_server_fails_the_goal_fast_and_keeps_the_queue(launch_nodes,
     final = op.final(grasp.id, 40.0)
     print(f"object database killed -> grasp:cup failed after {time.monotonic() - t_kill:.2f} s (query_timeout_s 5 s)")
     assert final.state is TaskState.FAILED and "object query" in final.message, final
+
+
+def test_nl_command_node_falls_back_to_the_topic_with_a_warning(ros_node, ros_domain):
+    """No brain (no submit_command service): the command still goes out on /manual_command, and says so."""
+    import subprocess
+
+    from home_robot_bringup.nodeset import find_executable
+    from home_robot_bringup.process import node_environment
+
+    got: list[str] = []
+    ros_node.create_subscription(String, "manual_command", lambda m: got.append(m.data), COMMAND_QOS)
+    proc = subprocess.run([find_executable("decision_maker", "nl_command_node"), "--no-wait", "--discovery-timeout",
+                           "3", "--brain", "test_client"], input="go home\n", env=node_environment(ros_domain),
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert "submit_command service is not available" in proc.stderr and "without acknowledgement" in proc.stderr
+    assert wait_for(lambda: got == ["go home"], 10.0), got
