@@ -3,8 +3,8 @@
 The base turns toward the goal and drives straight at ``speed`` (no obstacles), then turns to the
 goal heading. Feedback carries ``current_pose`` and ``distance_remaining``; the pose is published
 on ``robot_pose`` every tick. A new goal preempts (aborts) the running one. Cancel is honoured in
-the next executor iteration; ``/cancel_command`` stops the base at once and aborts the goal
-unless its client cancels it within ``stop_grace_s``.
+the next executor iteration; ``/cancel_command`` (or the brain's ``/hardware_stop``) stops the
+base at once and aborts the goal unless its client cancels it within ``stop_grace_s``.
 
 Parameters:
     speed (m/s, 1.0), turn_rate (rad/s, 2.0), rate_hz (simulation/feedback rate, 20),
