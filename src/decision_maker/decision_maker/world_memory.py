@@ -29,6 +29,17 @@ from object_query.memory import Belief, rank
 TRUST_THRESHOLD = 0.5
 #: Two candidates whose distances from the robot differ by less than this (m) are ambiguous.
 AMBIGUITY_MARGIN = 0.5
+#: Classes that are furniture or structure: "what do you see" lists them apart from the objects.
+FURNITURE = frozenset("floor wall ceiling door window counter table chair sofa couch fridge bin shelf cabinet bed "
+                      "desk stairs".split())
+
+
+def robot_or_home(robot: Pose2D | None, locations: Mapping[str, NamedLocation]) -> Pose2D | None:
+    """The robot's pose, or the home location's when unknown (the robot starts there)."""
+    if robot is not None:
+        return robot
+    home = locations.get("home")
+    return home.pose if home is not None else None
 
 
 @dataclass(frozen=True)
@@ -92,9 +103,7 @@ def choose_instance(memory: Sequence[Belief], name: str, robot: Pose2D | None, l
         note = (f"I'm not sure the {name} is still {place_phrase(b.position, locations, b.place)} "
                 f"({why}; confidence {b.confidence:.1f}); I'll look there again")
         return Choice(b, note)
-    if robot is None:
-        home = locations.get("home")
-        robot = home.pose if home is not None else None
+    robot = robot_or_home(robot, locations)
     if robot is None or len(trusted) == 1:
         return Choice(rank(trusted)[0])
     by_dist = sorted(trusted, key=lambda b: (b.distance_xy((robot.x, robot.y)), b.id))
@@ -132,7 +141,7 @@ def fetch_plan(belief: Belief, destination: str, locations: Mapping[str, NamedLo
     """``goto`` (approach pose next to the object), ``grasp:<class>``, ``place:<destination>``."""
     if belief.state == "held":
         return [f"place:{destination}"]
-    approach = approach_pose(belief.position, locations, robot, reach=reach)
+    approach = approach_pose(belief.position, locations, robot_or_home(robot, locations), reach=reach)
     return [approach.primitive(), f"grasp:{belief.name}", f"place:{destination}"]
 
 
@@ -141,14 +150,14 @@ def describe_belief(b: Belief, locations: Mapping[str, NamedLocation], trust: fl
     where = place_phrase(b.position, locations, b.place)
     x, y, z = b.position
     if b.state == "held":
-        how = f"I picked it up at {clock_time(b.last_seen)}"
+        how = f"picked up {clock_time(b.last_seen)}"
     elif b.source == "action":
         how = f"I put it there at {clock_time(b.last_seen)}"
     elif b.source == "user":
         how = f"I was told at {clock_time(b.last_seen)}"
     else:
-        how = f"I saw it there at {clock_time(b.last_seen)}"
-    text = f"{where} ({x:.2f}, {y:.2f}, {z:.2f}); {how}"
+        how = f"seen {clock_time(b.last_seen)}"
+    text = f"{where} (at {x:.2f}, {y:.2f}, {z:.2f}; {how})"
     if b.confidence < trust:
         text += f", but I'm not sure it is still there ({b.note or 'not seen since'})"
     return text
@@ -162,8 +171,8 @@ def where_answer(memory: Sequence[Belief], name: str, locations: Mapping[str, Na
         return f"I don't know where the {name} is: I have not seen one."
     if len(group) == 1:
         return f"The {name} is {describe_belief(group[0], locations, trust)}."
-    parts = [describe_belief(b, locations, trust) for b in group]
-    return f"I know {len(group)} {name}s: " + "; ".join(f"one {p}" for p in parts) + "."
+    parts = [f"one {describe_belief(b, locations, trust)}" for b in group]
+    return f"I know {len(group)} {name}s: " + ", ".join(parts[:-1]) + f" and {parts[-1]}."
 
 
 def inventory_answer(memory: Sequence[Belief], locations: Mapping[str, NamedLocation], limit: int = 12) -> str:
@@ -173,13 +182,18 @@ def inventory_answer(memory: Sequence[Belief], locations: Mapping[str, NamedLoca
     by_class: dict[str, list[Belief]] = {}
     for b in memory:
         by_class.setdefault(b.name, []).append(b)
+    objects = sorted(n for n in by_class if n not in FURNITURE)
     parts = []
-    for name in sorted(by_class)[:limit]:
+    for name in objects[:limit]:
         wheres = [place_phrase(b.position, locations, b.place) for b in rank(by_class[name])]
         count = f"{len(wheres)} {name}s" if len(wheres) > 1 else f"a {name}"
         parts.append(f"{count} ({', '.join(wheres)})")
-    more = f", and {len(by_class) - limit} more kinds" if len(by_class) > limit else ""
-    return "I know of " + "; ".join(parts) + more + "."
+    more = f", and {len(objects) - limit} more kinds" if len(objects) > limit else ""
+    text = ("I see " + "; ".join(parts) + more + ".") if parts else "I see no objects, only furniture."
+    furniture = sorted(n for n in by_class if n in FURNITURE)
+    if furniture:
+        text += " Furniture: " + ", ".join(furniture) + "."
+    return text
 
 
 def holding_answer(memory: Sequence[Belief], held: str | None) -> str:
