@@ -34,7 +34,7 @@ from typing import Any
 
 from decision_maker.approach import approach_pose, place_phrase
 from decision_maker.command_types import MAX_NAME_CHARS, Plan, normalize_name, parse_plan, shorten
-from decision_maker.errors import ConfigError, InvalidPrimitive, NoMatchingScenario, PlanningError
+from decision_maker.errors import ConfigError, InvalidPrimitive, NoMatchingScenario, PlanningError, Reply
 from decision_maker.nl_planner import Planner, PlanningContext, RegistryPlanner, register_planner
 
 VERBS = ("goto", "grasp", "place")
@@ -455,6 +455,13 @@ class TieredPlanner:
                     return self.llm.plan(text, context)
                 except LLMUnavailable as exc:
                     raise PlanningError(f"{no_match} — and the LLM planner is unavailable: {exc}") from exc
+            except Reply as guess:  # a "did you mean ...?": the LLM may understand it; if it is down, ask
+                if guess.kind != "did_you_mean":
+                    raise
+                try:
+                    return self.llm.plan(text, context)
+                except LLMUnavailable:
+                    raise guess from None
         try:  # llm_only
             return self.llm.plan(text, context)
         except LLMUnavailable as exc:

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
 
 from decision_maker.command_types import NamedLocation, Plan, Pose2D, parse_plan
-from decision_maker.errors import ConfigError, InvalidPrimitive, PlanningError, Reply
+from decision_maker.errors import ConfigError, InvalidPrimitive, NoMatchingScenario, PlanningError, Reply
 from decision_maker.scenario_library import (
     SCENARIO_REGISTRY,
     ScenarioFn,
@@ -159,6 +159,12 @@ class RegistryPlanner:
         for item in items:
             if item.startswith("grasp:"):
                 slots["item"] = item.partition(":")[2]
+        item = slots.get("item")
+        if match.said != match.phrase and item and item not in context.known_objects:
+            # another wording ("hand me", or a fuzzy match) plus an object nobody knows: too weak to act
+            # on (a planner tier behind this one, e.g. the LLM, may understand it)
+            known = ", ".join(sorted(context.known_objects)) or "none"
+            raise NoMatchingScenario(f"I don't know how to do that: {item!r} is no object I know (known: {known})")
         notes = list(match.utterance.notes)
         if match.score < 1.0:
             notes.insert(0, f"I read {match.said!r} as {match.phrase!r}")

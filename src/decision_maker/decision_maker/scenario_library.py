@@ -251,7 +251,7 @@ QUESTION_REGISTRY: dict[str, ScenarioFn] = {
 #: Other wordings of a phrase of :data:`SCENARIO_REGISTRY` / :data:`QUESTION_REGISTRY`.
 PHRASE_SYNONYMS: dict[str, tuple[str, ...]] = {
     "give me": ("gimme", "fetch me", "fetch", "get me", "hand me", "pass me", "grab me", "can i have", "could i have",
-                "may i have", "i want", "i need", "i would like", "bring"),
+                "may i have", "i want", "i need", "i would like"),
     "go home": ("go back home", "return home", "head home", "go home now", "back home", "go to home",
                 "go back to base", "go to base", "go to your dock", "dock", "park"),
     "clean table": ("clear the table", "clean up the table", "tidy the table", "tidy up the table",
@@ -262,8 +262,8 @@ PHRASE_SYNONYMS: dict[str, tuple[str, ...]] = {
     "what do you see": ("what can you see", "what objects do you know", "what do you know about", "what is around",
                         "what s around", "what objects are there", "what is in the room", "list objects",
                         "list the objects", "what have you seen"),
-    "what can you do": ("what do you do", "what are your commands", "what commands", "how do i use you", "help",
-                        "what do you understand"),
+    "what can you do": ("what do you do", "what are your commands", "what commands", "how do i use you",
+                        "what do you understand", "what can you help with"),
     "what are you holding": ("what are you carrying", "what do you hold", "what do you have",
                              "what s in your hand", "what is in your hand", "what s in your gripper"),
 }

@@ -72,37 +72,48 @@ def default_memory_path(map_path: str) -> str:
 
 
 def answer_query(memory: ObjectMemory, db: ObjectDatabase, name: str) -> QueryResult:
-    """``/object_query``'s answer from the memory: the current belief (the seed's contract kept).
+    """``/object_query``'s answer: the current belief, the seed's contract kept.
 
-    ``name`` may be an instance id (``cup#2``). A class the memory has no belief about is answered
-    by the map.
+    While every belief of the class is just what the map shows (source ``map``, state ``seen``),
+    the map answers as before (its ``query_position``, its messages). Once the robot or a person
+    changed something (held, placed, unseen after a failed grasp, set), the memory's best belief
+    answers. ``name`` may be an instance id (``cup#2``: the memory's ids equal the map's labels
+    until objects move).
     """
     label = _INSTANCE_ID.match(normalise_name(name)[:300])
-    belief: Belief | None = None
-    key = None
     if label is not None:
         key, _ = db.resolve(label.group(1))
-        belief = memory.get(f"{key or label.group(1)}#{int(label.group(2))}")
-    if belief is None and label is None:
-        key, note = db.resolve(name)
-        if key is None:
-            key = normalise_name(name)
-            if not memory.candidates(key):
-                return QueryResult(False, (0.0, 0.0, 0.0), note)
-        belief = memory.best(key)
-    if belief is None:
+        belief = memory.get(f"{key or normalise_name(label.group(1))}#{int(label.group(2))}")
+        if belief is None or _as_mapped(belief):
+            return db.query(name)
+        return _belief_answer(belief, f"{belief.id} at", memory)
+    key, note = db.resolve(name)
+    if key is None:
+        key = normalise_name(name)
+        if not memory.candidates(key):
+            return QueryResult(False, (0.0, 0.0, 0.0), note)
+    group = memory.candidates(key)
+    if not group or all(_as_mapped(b) for b in group):
         return db.query(name)
+    return _belief_answer(group[0], f"{key} at", memory)
+
+
+def _as_mapped(b: Belief) -> bool:
+    return b.source == "map" and b.state == "seen"
+
+
+def _belief_answer(belief: Belief, head: str, memory: ObjectMemory) -> QueryResult:
     x, y, z = belief.position
     at = f" at {belief.place}" if belief.place else ""
     where = {"held": "in the robot's gripper", "placed": f"put down by the robot{at}",
              "unseen": "not seen there lately", "seen": "seen in the map"}[belief.state]
-    msg = (f"{belief.name} at ({x:.3f}, {y:.3f}, {z:.3f}): {belief.id}, {where}; source {belief.source}, "
-           f"confidence {belief.confidence:.2f}")
+    msg = f"{head} ({x:.3f}, {y:.3f}, {z:.3f}): {belief.id}, {where}; source {belief.source}, " \
+          f"confidence {belief.confidence:.2f}"
     if belief.note:
         msg += f" ({belief.note})"
-    others = len(memory.candidates(belief.name)) - 1
-    if others > 0:
-        msg += f"; {others} other instance(s), see /object_memory"
+    n = len(memory.candidates(belief.name))
+    if n > 1:
+        msg += f"; {n} instances of {belief.name}, this is the current best belief; see /object_memory"
     return QueryResult(True, (x, y, z), msg)
 
 
