@@ -295,3 +295,22 @@ def test_engine_reports_a_failed_grasp_as_negative_evidence():
     assert state == TaskState.FAILED
     assert outcomes == [ActionOutcome("grasp_failed", "bottle", LOCS["kitchen"].pose,
                                       detail="no bottle within reach")]
+
+
+# --- the simulator: an object moved by hand -----------------------------------------------------------
+
+
+def test_sim_world_move_by_hand():
+    from decision_maker.command_types import Point3
+    from decision_maker.errors import SimError
+    from decision_maker.sim_world import ObjectWorld
+
+    world = ObjectWorld.from_mapping({"cup_2": [2.8, 2.6, 0.8], "bottle": [5.2, 0.3, 1.02]})
+    assert world.move("CUP_2", Point3(1.0, 4.5, 0.45)).position == Point3(1.0, 4.5, 0.45)
+    with pytest.raises(SimError, match="no object"):
+        world.move("unicorn", Point3(0, 0, 0))
+    with pytest.raises(SimError, match="finite"):
+        world.move("bottle", Point3(math.inf, 0, 0))
+    world.grasp(Pose2D(4.9, 1.1, 0.0), "bottle")
+    with pytest.raises(SimError, match="gripper"):
+        world.move("bottle", Point3(0, 0, 0))
