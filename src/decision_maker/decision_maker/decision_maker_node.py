@@ -164,7 +164,7 @@ class DecisionMakerNode(Node):
             objects = dict(self._objects)
         memory = self.memory.snapshot()
         known = frozenset(objects) | {b.name for b in memory}
-        return PlanningContext(known, self._locations, objects, memory=memory)
+        return PlanningContext(known, self._locations, objects, memory=memory, aliases=self.memory.aliases(known))
 
     def _publish_status(self, status: TaskStatus) -> None:
         self.get_logger().info(status.line() + (f" — {status.message}" if status.state.terminal else ""))

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Iterable
 
 from object_query_interfaces.msg import ObjectMemory as ObjectMemoryMsg
 from object_query_interfaces.srv import MemoryReport
@@ -18,6 +19,7 @@ from rclpy.callback_groups import CallbackGroup
 from rclpy.node import Node
 
 from decision_maker.execution import ActionOutcome
+from decision_maker.world_memory import aliases_for
 from object_query.memory import Belief
 from object_query.memory_ros import MEMORY_QOS, msg_to_belief
 
@@ -43,6 +45,11 @@ class MemoryLink:
         node.create_subscription(ObjectMemoryMsg, "object_memory", self._on_memory, MEMORY_QOS,
                                  callback_group=input_group)
         self._client = node.create_client(MemoryReport, "object_memory/report", callback_group=client_group)
+        self._synonym_groups = _bundled_synonym_groups(node)
+
+    def aliases(self, known: Iterable[str]) -> dict[str, str]:
+        """Other names of the ``known`` objects → their class, from the object database's synonyms."""
+        return aliases_for(known, self._synonym_groups)
 
     def snapshot(self) -> tuple[Belief, ...]:
         """The newest memory received (empty before the first)."""
@@ -93,3 +100,15 @@ class MemoryLink:
             return
         self._take(resp.memory)
         self._node.get_logger().info(f"memory: {resp.message}")
+
+
+def _bundled_synonym_groups(node: Node) -> tuple[tuple[str, ...], ...]:
+    """The object database's bundled synonym groups (empty, with a warning, when unreadable)."""
+    try:
+        from object_query.names import load_synonyms
+        from object_query.object_query_server import bundled_synonyms_path
+
+        return load_synonyms(bundled_synonyms_path()).groups
+    except Exception as exc:  # synonyms only help; never fatal
+        node.get_logger().warning(f"no object synonyms for slot filling: {exc}")
+        return ()

@@ -51,6 +51,7 @@ class PlanningContext:
         held_object: what the robot holds after its own last grasp/place (None = nothing known).
         memory: the object memory's beliefs (``/object_memory``): where each instance is now.
         robot_pose: where the robot is (its last reached goal); None = unknown.
+        aliases: other names of known objects → the class ("mug" → "cup"; from the synonyms file).
     """
 
     known_objects: frozenset[str] = frozenset()
@@ -60,10 +61,11 @@ class PlanningContext:
     held_object: str | None = None
     memory: tuple[Belief, ...] = ()
     robot_pose: Pose2D | None = None
+    aliases: Mapping[str, str] = field(default_factory=dict)
 
     def world(self) -> World:
         """The scenario library's view of this context."""
-        return World(self.memory, self.locations, self.robot_pose, self.held_object)
+        return World(self.memory, self.locations, self.robot_pose, self.held_object, self.aliases)
 
 
 @runtime_checkable

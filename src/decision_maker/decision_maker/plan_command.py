@@ -23,6 +23,7 @@ from decision_maker.command_types import MAX_TEXT_CHARS, load_locations, sanitiz
 from decision_maker.errors import ConfigError, PlanningError, Reply
 from decision_maker.llm_planner import TIERS, LLMConfig, LLMPlanner, TieredPlanner
 from decision_maker.nl_planner import PlanningContext, RegistryPlanner
+from decision_maker.world_memory import aliases_for
 from object_query.memory import Belief, MapObservation, ObjectMemory
 
 
@@ -46,6 +47,17 @@ def known_objects(args: argparse.Namespace) -> tuple[dict[str, tuple[float, floa
     memory = ObjectMemory()
     memory.merge_map(MapObservation(i.name, i.centre) for i in db.all_instances())
     return out, memory.snapshot()
+
+
+def synonym_groups() -> tuple[tuple[str, ...], ...]:
+    """The object database's bundled synonyms (none when not installed)."""
+    try:
+        from object_query.names import load_synonyms
+        from object_query.object_query_server import bundled_synonyms_path
+
+        return load_synonyms(bundled_synonyms_path()).groups
+    except Exception:  # only a help for names
+        return ()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -85,7 +97,9 @@ def main(argv: list[str] | None = None) -> int:
     except (ConfigError, OSError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    context = PlanningContext(frozenset(objects), locations, objects, held_object=args.holding, memory=memory)
+    aliases = aliases_for(objects, synonym_groups())
+    context = PlanningContext(frozenset(objects), locations, objects, held_object=args.holding, memory=memory,
+                              aliases=aliases)
     try:
         plan = planner.plan(text, context)
     except Reply as reply:  # a question, or a "did you mean": answered, no plan

@@ -73,12 +73,14 @@ class World:
         places: named locations (name → pose and drop point).
         robot: where the robot is (its last reached pose); None = unknown.
         held: what the robot holds after its own last grasp (None = nothing known).
+        aliases: other names of known objects → the class ("mug" → "cup", from the synonyms).
     """
 
     memory: tuple[Belief, ...] = ()
     places: Mapping[str, NamedLocation] = field(default_factory=dict)
     robot: Pose2D | None = None
     held: str | None = None
+    aliases: Mapping[str, str] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -110,9 +112,10 @@ class Utterance:
         Raises:
             MissingSlot: nothing names an object.
         """
-        found = _longest_name(self.rest, self.known_objects) or _longest_name(self.words, self.known_objects)
+        names = self.known_objects | set(self.world.aliases)
+        found = _longest_name(self.rest, names) or _longest_name(self.words, names)
         if found:
-            return found
+            return self.world.aliases.get(found, found)  # "mug" -> cup
         words = [w for w in self.rest if w not in STOP_WORDS]
         if not words:
             raise MissingSlot(f"which object? the {slot} is missing (e.g. 'give me the bottle')")

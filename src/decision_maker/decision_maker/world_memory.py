@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 from decision_maker.approach import DEFAULT_REACH, approach_pose, place_phrase
@@ -63,6 +63,24 @@ class Clarification:
         phrases = [f"the one {where}" for _, where in self.options]
         listed = ", ".join(phrases[:-1]) + f" or {phrases[-1]}" if len(phrases) > 1 else phrases[0]
         return f"Which {self.name}: {listed}?"
+
+
+def aliases_for(known: Iterable[str], groups: Iterable[Sequence[str]]) -> dict[str, str]:
+    """Spoken name → known class, from synonym groups (``[[cup, mug], ...]``): ``{"mug": "cup"}``.
+
+    A name that is itself known maps to nothing (it is its own class); a group maps to its first
+    known member.
+    """
+    known_set = set(known)
+    out: dict[str, str] = {}
+    for group in groups:
+        target = next((n for n in group if n in known_set), None)
+        if target is None:
+            continue
+        for name in group:
+            if name not in known_set:
+                out.setdefault(name, target)
+    return out
 
 
 def clock_time(t: float) -> str:

@@ -314,3 +314,15 @@ def test_sim_world_move_by_hand():
     world.grasp(Pose2D(4.9, 1.1, 0.0), "bottle")
     with pytest.raises(SimError, match="gripper"):
         world.move("bottle", Point3(0, 0, 0))
+
+
+def test_synonyms_of_known_objects_fill_the_slot():
+    from decision_maker.world_memory import aliases_for
+
+    aliases = aliases_for({"cup", "bottle"}, [("cup", "mug"), ("sofa", "couch"), ("bottle", "flask", "cup")])
+    assert aliases == {"mug": "cup", "flask": "bottle"}  # couch: no sofa known; cup is its own class
+    context = dataclasses.replace(ctx(), aliases=aliases)
+    with pytest.raises(Reply, match="I know 2 cups"):
+        RegistryPlanner().plan("where is the mug", context)
+    plan = RegistryPlanner().plan("could you bring me the mug", context)
+    assert plan.slots["item"] == "cup" and steps(plan)[1:] == ["grasp:cup", "place:user"]
