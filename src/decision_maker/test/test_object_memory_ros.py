@@ -222,3 +222,29 @@ def _point(p):
     from geometry_msgs.msg import Point
 
     return Point(x=float(p[0]), y=float(p[1]), z=float(p[2]))
+
+
+def test_a_grasp_that_finds_nothing_is_negative_evidence(launch_nodes, ros_node):
+    """A cup moved away unseen: the grasp fails, the memory doubts it, the next plan takes the other cup."""
+    launch_nodes(nodeset="sim_robot", set=FAST)
+    person = Person(ros_node)
+    assert wait_for(lambda: person.world is not None and person.world.get("robot") is not None
+                    and len(person.beliefs("cup")) == 2, 20.0), "no world state / memory"
+    res = person.call(person.move_client, MoveObject.Request(id="cup_1", position=_point(SOFA_SPOT)))
+    assert res.success, res.message  # the counter cup is gone; the map still shows it there
+    counter = max(person.beliefs("cup"), key=lambda m: m.position.x)  # the counter cup, x ~ 4.6
+
+    assert person.say("go to the kitchen").state is TaskState.SUCCEEDED
+    st = person.say("give me the cup")  # the counter cup is the nearest: the robot tries it
+    assert st.state is TaskState.FAILED and "nearest cup" in st.message, st
+    assert wait_for(lambda: next(m for m in person.beliefs("cup") if m.id == counter.id).confidence < 0.5, 5.0)
+    doubted = next(m for m in person.beliefs("cup") if m.id == counter.id)
+    assert doubted.state == "unseen" and "found nothing" in doubted.note
+
+    st = person.say("where is the cup")
+    assert st.state is TaskState.SUCCEEDED and "not sure it is still there" in st.sentence, st
+
+    st = person.say("give me the cup")  # not blindly the same cup again: the trusted table cup
+    assert st.state is TaskState.SUCCEEDED, st
+    assert math.dist(person.truth("cup_2"), USER_DROP) < 0.05
+    assert math.dist(person.truth("cup_1"), SOFA_SPOT) < 0.01
