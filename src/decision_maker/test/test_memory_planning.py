@@ -326,3 +326,20 @@ def test_synonyms_of_known_objects_fill_the_slot():
         RegistryPlanner().plan("where is the mug", context)
     plan = RegistryPlanner().plan("could you bring me the mug", context)
     assert plan.slots["item"] == "cup" and steps(plan)[1:] == ["grasp:cup", "place:user"]
+
+
+def test_the_llm_planner_gets_the_same_memory():
+    import json
+
+    from decision_maker.llm_planner import build_messages
+
+    mem = memory()
+    mem.grasped("bottle", (4.9, 1.1, 0.0))
+    mem.placed("bottle", (1.3, 3.95, 0.75), "user")
+    system = build_messages("I'm thirsty", ctx(mem), None, 8)[0]["content"]
+    world = json.loads(system.split("World: ", 1)[1])
+    entries = {e["id"]: e for e in world["object_memory"]}
+    assert entries["bottle#1"]["where"] == "with you" and entries["bottle#1"]["state"] == "placed"
+    assert entries["trash#1"]["approach"] == {"action": "goto", "target": "table"}
+    table_cup = next(e for e in entries.values() if e["object"] == "cup" and e["position"][0] < 3)
+    assert table_cup["approach"]["target"] == "" and len(table_cup["approach"]["pose"]) == 3

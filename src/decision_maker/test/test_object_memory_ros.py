@@ -149,8 +149,9 @@ def test_a_day_with_the_living_memory(launch_nodes, ros_node, tmp_path):
     person = Person(ros_node)
     assert wait_for(lambda: person.world is not None and person.world.get("robot") is not None
                     and person.beliefs("cup"), 20.0), "no world state / memory"
-    sim = yaml.safe_load(open(os.path.join(os.path.dirname(__file__), "..", "..", "home_robot_bringup", "config",
-                                           "params", "sim.yaml")))
+    with open(os.path.join(os.path.dirname(__file__), "..", "..", "home_robot_bringup", "config", "params",
+                           "sim.yaml"), encoding="utf-8") as fh:
+        sim = yaml.safe_load(fh)
     start = json.loads(sim["mock_grasp_server"]["ros__parameters"]["objects"])
 
     # 1. fetch the bottle: it is with the user, in the world and in the memory
