@@ -8,7 +8,8 @@ and updates it from three sources:
   to beliefs of the same class, nearest first: within ``match_radius`` they are the same object
   (it may have shifted a little), farther away but still unmatched on both sides they are the
   same object that *moved* (same id, new position). New instances get new ids; beliefs the map no
-  longer shows are marked ``unseen`` and lose confidence. A belief set by an action *after* the map
+  longer shows are marked ``unseen`` and lose confidence (and are forgotten after a few such
+  reloads). A belief set by an action *after* the map
   was observed (``observed_at``) is newer than the map and is kept as it is.
 * ``action``: the robot's own grasps and places (:meth:`ObjectMemory.grasped`,
   :meth:`ObjectMemory.placed`, :meth:`ObjectMemory.grasp_failed` — negative evidence: the object
@@ -30,7 +31,7 @@ import os
 import tempfile
 import threading
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, replace
 
 from object_query.errors import ObjectMemoryError
@@ -93,6 +94,7 @@ class MergeReport:
     added: tuple[str, ...] = ()
     unseen: tuple[str, ...] = ()
     newer_than_map: tuple[str, ...] = ()
+    forgotten: tuple[str, ...] = ()
 
     def summary(self) -> str:
         parts = [f"{len(v)} {k.replace('_', ' ')}" + (f" ({', '.join(v)})" if v and k != "kept" else "")
@@ -111,6 +113,8 @@ class MemoryConfig:
         unseen_factor: confidence multiplier for a belief the reloaded map no longer shows.
         failed_grasp_factor: confidence multiplier after a grasp found nothing there.
         trust_threshold: beliefs below this confidence are not trusted blindly by planners.
+        forget_below: a belief the reloaded map does not show is forgotten once its confidence
+            falls below this (after a few reloads without it).
     """
 
     match_radius: float = 0.5
@@ -118,13 +122,14 @@ class MemoryConfig:
     unseen_factor: float = 0.5
     failed_grasp_factor: float = 0.3
     trust_threshold: float = 0.5
+    forget_below: float = 0.05
 
     def __post_init__(self) -> None:
         for name in ("match_radius", "move_radius"):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {v!r}")
-        for name in ("unseen_factor", "failed_grasp_factor", "trust_threshold"):
+        for name in ("unseen_factor", "failed_grasp_factor", "trust_threshold", "forget_below"):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and 0.0 <= v <= 1.0):
                 raise ValueError(f"{name} must be in [0, 1], got {v!r}")
@@ -175,7 +180,7 @@ class ObjectMemory:
     """
 
     def __init__(self, config: MemoryConfig | None = None, beliefs: Iterable[Belief] = (),
-                 clock=time.time) -> None:
+                 clock: Callable[[], float] = time.time) -> None:
         self.config = config or MemoryConfig()
         self._clock = clock
         self._lock = threading.Lock()  # guards _beliefs, _revision
@@ -229,9 +234,10 @@ class ObjectMemory:
         """
         now = self._clock()
         seen_at = now if observed_at is None else float(observed_at)
-        obs = [MapObservation(o.name, tuple(float(v) for v in o.centre)) for o in observations]  # type: ignore[misc]
+        obs = [MapObservation(o.name, tuple(float(v) for v in o.centre)) for o in observations  # type: ignore[misc]
+               if len(o.centre) == 3 and all(math.isfinite(float(v)) for v in o.centre)]
         cfg = self.config
-        kept, moved, added, unseen, newer = [], [], [], [], []
+        kept, moved, added, unseen, newer, forgotten = [], [], [], [], [], []
         with self._lock:
             beliefs = dict(self._beliefs)
             for name in sorted({o.name for o in obs} | {b.name for b in beliefs.values()}):
@@ -264,6 +270,10 @@ class ObjectMemory:
                         continue
                     if b.state == "held":
                         continue  # the camera cannot see into the gripper
+                    if b.confidence * cfg.unseen_factor < cfg.forget_below:
+                        del beliefs[b.id]
+                        forgotten.append(b.id)
+                        continue
                     beliefs[b.id] = replace(b, confidence=b.confidence * cfg.unseen_factor, state="unseen",
                                             note="the map no longer shows it here")
                     unseen.append(b.id)
@@ -275,7 +285,7 @@ class ObjectMemory:
                     added.append(bid)
             self._beliefs = beliefs
             self._revision += 1
-        return MergeReport(tuple(kept), tuple(moved), tuple(added), tuple(unseen), tuple(newer))
+        return MergeReport(tuple(kept), tuple(moved), tuple(added), tuple(unseen), tuple(newer), tuple(forgotten))
 
     # -- updates from the robot's actions -----------------------------------------------------------
 
@@ -378,7 +388,8 @@ class ObjectMemory:
             raise
 
 
-def memory_from_json(text: str, config: MemoryConfig | None = None, clock=time.time) -> ObjectMemory:
+def memory_from_json(text: str, config: MemoryConfig | None = None,
+                     clock: Callable[[], float] = time.time) -> ObjectMemory:
     """Parse the file form.
 
     Raises:
@@ -393,7 +404,8 @@ def memory_from_json(text: str, config: MemoryConfig | None = None, clock=time.t
     return ObjectMemory(config, [belief_from_dict(d) for d in doc["beliefs"]], clock=clock)
 
 
-def load_memory(path: str, config: MemoryConfig | None = None, clock=time.time) -> tuple[ObjectMemory, str]:
+def load_memory(path: str, config: MemoryConfig | None = None,
+                clock: Callable[[], float] = time.time) -> tuple[ObjectMemory, str]:
     """The memory saved at ``path``; a missing file gives an empty memory.
 
     A corrupt file is renamed to ``<path>.corrupt-<unix time>`` (kept for inspection) and an empty

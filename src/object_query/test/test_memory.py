@@ -156,3 +156,16 @@ def test_config_validation() -> None:
         MemoryConfig(match_radius=-1)
     with pytest.raises(ValueError):
         MemoryConfig(trust_threshold=2)
+
+
+def test_vanished_objects_are_forgotten_after_a_few_reloads_and_bad_centres_ignored() -> None:
+    mem = fresh()
+    without_trash = [o for o in MAP if o.name != "trash"] + [MapObservation("cup", (float("nan"), 0.0, 0.0))]
+    confidences = []
+    for t in range(5):
+        report = mem.merge_map(without_trash, observed_at=901.0 + t)
+        b = mem.get("trash#1")
+        confidences.append(None if b is None else b.confidence)
+        assert not report.added  # the NaN cup is ignored
+    assert confidences == [0.5, 0.25, 0.125, 0.0625, None]
+    assert report.forgotten == ("trash#1",)
