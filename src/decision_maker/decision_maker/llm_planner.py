@@ -36,6 +36,7 @@ from decision_maker.approach import approach_pose, place_phrase
 from decision_maker.command_types import MAX_NAME_CHARS, Plan, normalize_name, parse_plan, shorten
 from decision_maker.errors import ConfigError, InvalidPrimitive, NoMatchingScenario, PlanningError, Reply
 from decision_maker.nl_planner import Planner, PlanningContext, RegistryPlanner, register_planner
+from decision_maker.scenario_library import answer_question
 
 VERBS = ("goto", "grasp", "place")
 DECISIONS = ("plan", "refuse", "clarify")
@@ -432,6 +433,7 @@ class TieredPlanner:
 
     * ``registry_first``: the scenario registry; the LLM only when no phrase matches.
     * ``llm_only``: the LLM; if the endpoint is down or slow, the registry (the status says so).
+      Questions ("where is the cup") are answered from the object memory without the model.
     * ``registry_only``: the registry alone (no request ever leaves the robot).
     """
 
@@ -462,6 +464,7 @@ class TieredPlanner:
                     return self.llm.plan(text, context)
                 except LLMUnavailable:
                     raise guess from None
+        answer_question(text, context.world(), context.known_objects, context.locations)  # no model needed
         try:  # llm_only
             return self.llm.plan(text, context)
         except LLMUnavailable as exc:

@@ -276,6 +276,24 @@ ACCEPT_SCORE = 0.86
 SUGGEST_SCORE = 0.6
 
 
+def answer_question(text: str, world: World, known_objects: Iterable[str] = (),
+                    locations: Iterable[str] = ()) -> None:
+    """Answer ``text`` if it is a question intent ("where is the cup"); return None otherwise.
+
+    For planners that do not use the registry (the LLM-only tier): questions are answered from the
+    memory here, without a model.
+
+    Raises:
+        Reply: the answer (kind ``answer``).
+    """
+    try:
+        match = match_scenario(text, known_objects, locations, registry={}, world=world)
+    except (NoMatchingScenario, Reply):
+        return None
+    if match.score == 1.0:
+        match.function(match.utterance)
+
+
 @dataclass(frozen=True)
 class ScenarioMatch:
     """A matched command.

@@ -343,3 +343,17 @@ def test_the_llm_planner_gets_the_same_memory():
     assert entries["trash#1"]["approach"] == {"action": "goto", "target": "table"}
     table_cup = next(e for e in entries.values() if e["object"] == "cup" and e["position"][0] < 3)
     assert table_cup["approach"]["target"] == "" and len(table_cup["approach"]["pose"]) == 3
+
+
+def test_llm_only_tier_answers_questions_without_the_model():
+    from decision_maker.llm_planner import TieredPlanner
+
+    class NoModel:
+        name = "llm"
+
+        def plan(self, text, context):
+            raise AssertionError("the model must not be asked")
+
+    planner = TieredPlanner(NoModel(), tier="llm_only")
+    with pytest.raises(Reply, match="The bottle is at the kitchen counter"):
+        planner.plan("where's the bottle", ctx())
