@@ -91,8 +91,9 @@ class Planner(Protocol):
         ...
 
 
-#: Words that accept a "did you mean ...?" suggestion.
+#: Words that accept a "did you mean ...?" suggestion / decline a pending question.
 _YES = frozenset({"yes", "yeah", "yep", "sure", "ok", "okay", "correct", "right", "exactly"})
+_NO = frozenset({"no", "nope", "neither", "none", "never", "mind", "forget", "it", "not", "that", "thanks"})
 
 
 class RegistryPlanner:
@@ -138,6 +139,8 @@ class RegistryPlanner:
 
     def _answer_pending(self, pending: object, text: str, context: PlanningContext) -> Plan | None:
         words = normalize_utterance(text)
+        if words and set(words) <= _NO and set(words) & {"no", "nope", "neither", "none", "never"}:
+            raise Reply("Okay, I won't do anything.")
         if isinstance(pending, str):  # a "did you mean" suggestion
             if words and set(words) <= _YES | {"please", "do", "it", "that"} and set(words) & _YES:
                 return self._plan(pending, context)

@@ -357,3 +357,13 @@ def test_llm_only_tier_answers_questions_without_the_model():
     planner = TieredPlanner(NoModel(), tier="llm_only")
     with pytest.raises(Reply, match="The bottle is at the kitchen counter"):
         planner.plan("where's the bottle", ctx())
+
+
+def test_no_declines_a_pending_question():
+    planner = RegistryPlanner()
+    with pytest.raises(Reply):
+        planner.plan("give ne the botle", ctx())
+    with pytest.raises(Reply, match="Okay, I won't"):
+        planner.plan("no", ctx())
+    with pytest.raises(NoMatchingScenario):
+        planner.plan("yes", ctx())  # declined: nothing pending
