@@ -12,6 +12,9 @@ Topics:
         once, like /cancel_command.
     /object_list (std_msgs/String JSON, in, transient local): known objects, for slot filling.
     /task_status (std_msgs/String JSON, out): one update per state change (see execution.TaskStatus).
+    /object_memory (object_query_interfaces/ObjectMemory, in, latched): where objects are now; plans
+        and answers to questions come from it. Grasps and places are reported to the
+        ``object_memory/report`` service (see memory_link.py).
 
 Actions / services used: ``navigate_to_pose`` (nav2_msgs/NavigateToPose), ``grasp`` and ``place``
 (decision_maker_interfaces), ``object_query`` (object_query_interfaces/ObjectQuery).
@@ -48,6 +51,7 @@ from std_msgs.msg import String
 from decision_maker.command_types import FrameTransform, load_locations
 from decision_maker.errors import ConfigError
 from decision_maker.execution import EngineConfig, ExecutionEngine, TaskState, TaskStatus
+from decision_maker.memory_link import MemoryLink
 from decision_maker.nl_planner import PlanningContext, make_planner
 from decision_maker.ros_robot import RosRobot
 from decision_maker.topics import CANCEL_QOS, COMMAND_QOS, HARDWARE_STOP, OBJECT_LIST_QOS, SERVICE_QOS, SUBMIT_COMMAND
@@ -141,7 +145,10 @@ class DecisionMakerNode(Node):
             on_goal_sent=self._on_goal_sent,
         )
         self._last_timed_id = 0  # command whose first goal was already logged (execution thread only)
-        self.engine = ExecutionEngine(self._planner, self.robot, config, self._publish_status, self._planning_context)
+        # the object memory: /object_memory in, the robot's own grasps/places reported out
+        self.memory = MemoryLink(self, self._input_group, self._client_group)
+        self.engine = ExecutionEngine(self._planner, self.robot, config, self._publish_status, self._planning_context,
+                                      on_outcome=self.memory.report)
         self.create_subscription(String, "cancel_command", self._on_cancel, CANCEL_QOS,
                                  callback_group=self._cancel_group)
         self.create_subscription(String, "manual_command", self._on_command, COMMAND_QOS,
@@ -167,7 +174,9 @@ class DecisionMakerNode(Node):
     def _planning_context(self) -> PlanningContext:
         with self._objects_lock:
             objects = dict(self._objects)
-        return PlanningContext(frozenset(objects), self._locations, objects)
+        memory = self.memory.snapshot()
+        known = frozenset(objects) | {b.name for b in memory}
+        return PlanningContext(known, self._locations, objects, memory=memory, aliases=self.memory.aliases(known))
 
     def _publish_status(self, status: TaskStatus) -> None:
         self.get_logger().info(status.line() + (f" — {status.message}" if status.state.terminal else ""))

@@ -55,3 +55,25 @@ class ObjectNotFound(ExecutionError):
 
 class SimError(DecisionMakerError):
     """The simulated world refuses an operation (out of reach, gripper full, nothing held...)."""
+
+
+class Reply(DecisionMakerError):
+    """Not a failure: the command is answered in words and nothing moves.
+
+    Raised by a planner for a question ("where is the bottle"), a request already fulfilled ("give
+    me the bottle" while the user has it), a clarification question ("which cup: ...?") or a
+    "did you mean ...?". The engine reports it on ``/task_status``: ``kind == "answer"`` as
+    ``succeeded``, ``"clarify"`` and ``"did_you_mean"`` as ``rejected`` (nothing was done).
+
+    Attributes:
+        sentence: what to tell the person.
+        kind: ``answer`` | ``clarify`` | ``did_you_mean``.
+        pending: what the planner keeps to understand the next utterance (the clarification
+            question's candidates, the suggested command), or None.
+    """
+
+    def __init__(self, sentence: str, kind: str = "answer", pending: object | None = None) -> None:
+        super().__init__(sentence)
+        self.sentence = sentence
+        self.kind = kind
+        self.pending = pending

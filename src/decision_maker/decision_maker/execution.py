@@ -50,6 +50,7 @@ from decision_maker.errors import (
     ConfigError,
     ExecutionError,
     PlanningError,
+    Reply,
 )
 from decision_maker.nl_planner import Planner, PlanningContext
 
@@ -242,6 +243,27 @@ YES_WORDS = frozenset({"yes", "y", "yeah", "yep", "ok", "okay", "confirm", "do i
 NO_WORDS = frozenset({"no", "n", "nope", "don't", "dont", "stop", "cancel", "never mind", "abort"})
 
 
+@dataclass(frozen=True)
+class ActionOutcome:
+    """What one of the robot's own actions did to an object (for the object memory).
+
+    Attributes:
+        event: ``grasped`` | ``grasp_failed`` | ``placed``.
+        name: object class ("" when a place's object is unknown).
+        robot: where the robot stood (its last reached goal), or None.
+        position: where the object was put (``placed``), or None.
+        place: the named location it was put at (``placed``), or "".
+        detail: the failure's reason (``grasp_failed``).
+    """
+
+    event: str
+    name: str
+    robot: Pose2D | None = None
+    position: Point3 | None = None
+    place: str = ""
+    detail: str = ""
+
+
 @dataclass
 class _Command:
     id: int
@@ -272,11 +294,14 @@ class ExecutionEngine:
         publish: receives every status update (called from the calling thread; must not block).
         context: returns the current planning context (object list, locations).
         clock: monotonic clock (seconds); injectable for tests.
+        on_outcome: told what the robot's own grasps and places did to objects (the object memory:
+            :class:`ActionOutcome`); called in the worker thread, may block briefly (with a deadline).
     """
 
     def __init__(self, planner: Planner, robot: RobotPort, config: EngineConfig,
                  publish: Callable[[TaskStatus], None], context: Callable[[], PlanningContext],
-                 clock: Callable[[], float] = time.monotonic) -> None:
+                 clock: Callable[[], float] = time.monotonic,
+                 on_outcome: Callable[[ActionOutcome], None] | None = None) -> None:
         self._planner = planner
         self._robot = robot
         self.config = config
@@ -290,6 +315,8 @@ class ExecutionEngine:
         self._stopping = False
         self._confirm: tuple[threading.Event, list[bool]] | None = None  # guarded by _cond: a plan awaiting yes/no
         self._held: str | None = None  # worker thread only: what the robot holds after our own grasp/place
+        self._on_outcome = on_outcome
+        self._pose: Pose2D | None = None  # worker thread only: the robot's last reached goal pose
 
     # --- input side (callbacks; never block) -------------------------------------------------
 
@@ -419,8 +446,15 @@ class ExecutionEngine:
         shown = shorten(text, 200)
         self._emit(cid, shown, TaskState.RUNNING, message="planning", sentence="Thinking about it...")
         try:
-            context = dataclasses.replace(self._context(), should_stop=token.is_set, held_object=self._held)
+            context = dataclasses.replace(self._context(), should_stop=token.is_set, held_object=self._held,
+                                          robot_pose=self._pose)
             plan = self._planner.plan(text, context)
+        except Reply as reply:  # a question, or nothing to do: answered in words, nothing moves
+            if reply.kind == "answer":
+                return self._final(cid, shown, TaskState.SUCCEEDED, 0, 0, "", f"answer: {reply.sentence}",
+                                   reply.sentence)
+            return self._final(cid, shown, TaskState.REJECTED, 0, 0, "", f"{reply.kind}: {reply.sentence}",
+                               reply.sentence)
         except PlanningError as exc:
             if token.is_set():
                 return self._final(cid, shown, TaskState.CANCELLED, 0, 0, "", token.reason, "Cancelled; I stopped.")
@@ -501,23 +535,42 @@ class ExecutionEngine:
     def _run_primitive(self, prim: Primitive, start: float, token: AbortToken, at: str | None) -> str | None:
         cfg, robot = self.config, self._robot
         if isinstance(prim, GoTo):
+            self._pose = None  # somewhere on the way
             robot.navigate(prim.pose, self._budget(start, cfg.nav_timeout_s, "navigation"), token)
+            self._pose = prim.pose
             return prim.location
         if isinstance(prim, Grasp):
             target = robot.locate(prim.object_name, self._budget(start, cfg.query_timeout_s, "object query"), token)
-            robot.grasp(prim.object_name, target, self._budget(start, cfg.grasp_timeout_s, "grasp"), token)
+            try:
+                robot.grasp(prim.object_name, target, self._budget(start, cfg.grasp_timeout_s, "grasp"), token)
+            except ActionFailed as exc:
+                self._report(ActionOutcome("grasp_failed", prim.object_name, self._pose, detail=str(exc)))
+                raise
             self._held = prim.object_name
+            self._report(ActionOutcome("grasped", prim.object_name, self._pose))
             return at
         if isinstance(prim, Place):
             loc = prim.location
             if at != loc.name:  # the placement sequence: approach the location first
+                self._pose = None
                 robot.navigate(loc.pose, self._budget(start, cfg.nav_timeout_s, "approach"), token)
+                self._pose = loc.pose
             if token.is_set():
                 raise ActionCancelled(token.reason)
             robot.place(loc, loc.drop_point(), self._budget(start, cfg.place_timeout_s, "place"), token)
-            self._held = None
+            held, self._held = self._held, None
+            self._report(ActionOutcome("placed", held or "", self._pose, loc.drop_point(), loc.name))
             return loc.name
         raise ActionFailed(f"unsupported primitive {prim!r}")
+
+    def _report(self, outcome: ActionOutcome) -> None:
+        """Tell the object memory (never fails the command: a report that fails is only printed)."""
+        if self._on_outcome is None:
+            return
+        try:
+            self._on_outcome(outcome)
+        except Exception as exc:  # the memory is advisory: the action itself succeeded/failed already
+            print(f"decision_maker: object memory report failed: {exc!r}", flush=True)
 
     # --- status ---------------------------------------------------------------------------------
 

@@ -7,6 +7,9 @@ a place needs a held object and a target within reach, and puts the object there
 rides with the robot. Each action takes ``grasp_duration_s`` / ``place_duration_s`` with feedback
 stages; cancel is honoured at once and leaves the world unchanged.
 
+Moving an object by hand (as a person would; tests of the object memory): service
+``sim/move_object`` (decision_maker_interfaces/MoveObject: id, position → success, message).
+
 World state for observers: ``sim/world_state`` (std_msgs/String JSON, transient local)::
 
     {"robot": {"x", "y", "theta"}, "held": "bottle" | null,
@@ -36,6 +39,7 @@ import time
 from dataclasses import dataclass
 
 from decision_maker_interfaces.action import Grasp, Place
+from decision_maker_interfaces.srv import MoveObject
 from geometry_msgs.msg import PoseStamped
 from rclpy.action.server import ServerGoalHandle
 from rclpy.node import Node
@@ -114,6 +118,7 @@ class MockGraspServer(Node):
         self.create_subscription(String, HARDWARE_STOP, self._on_stop, 10)  # the brain's own stop
         if v["objects_source"] == "object_list":
             self.create_subscription(String, "object_list", self._on_object_list, WORLD_QOS)
+        self.create_service(MoveObject, "sim/move_object", self._on_move_object)
         self.create_timer(1.0 / float(v["rate_hz"]), self._tick)
         self.create_timer(1.0 / float(v["world_rate_hz"]), self._publish_world)
         self._publish_world()
@@ -161,6 +166,19 @@ class MockGraspServer(Node):
         if job is not None and job.stop_deadline is None:
             job.stop_deadline = time.monotonic() + self._grace
         self.get_logger().warn(f"/cancel_command: arm stops ({msg.data[:80]!r})")
+
+    def _on_move_object(self, request: MoveObject.Request, response: MoveObject.Response) -> MoveObject.Response:
+        """A person moves an object by hand (the robot is not told)."""
+        p = request.position
+        try:
+            obj = self._world.move(request.id, Point3(p.x, p.y, p.z))
+        except SimError as exc:
+            response.success, response.message = False, str(exc)
+            return response
+        response.success, response.message = True, f"moved {obj.id} to ({p.x:.2f}, {p.y:.2f}, {p.z:.2f})"
+        self.get_logger().info(f"by hand: {response.message}")
+        self._publish_world()
+        return response
 
     # --- goals ------------------------------------------------------------------------------------
 

@@ -1,13 +1,16 @@
 """``plan_command``: show the plan a command would get, without moving anything (dry run).
 
-No ROS needed: the known objects come from a map (default: the bundled sample map) or a list::
+No ROS needed: the known objects come from a map (default: the bundled sample map) or a list;
+the object memory is the one a freshly started object database would have (the map's instances),
+so plans go to where each object is (``--holding`` says what the robot holds)::
 
     ros_run decision_maker plan_command "give me the cup please"
     ros_run decision_maker plan_command "I'm thirsty" --planner tiered --llm-url http://127.0.0.1:11434/v1 \\
         --llm-model llama3.2
     ros_run decision_maker plan_command "bring me the mug" --objects mug,plate --json
 
-Exit code: 0 a plan was made, 1 refused (reason printed), 2 bad arguments/configuration.
+Exit code: 0 a plan was made or a question answered, 1 refused (reason printed; also a "did you
+mean ...?" or a "which one?"), 2 bad arguments/configuration.
 """
 
 from __future__ import annotations
@@ -17,14 +20,17 @@ import json
 import sys
 
 from decision_maker.command_types import MAX_TEXT_CHARS, load_locations, sanitize_text
-from decision_maker.errors import ConfigError, PlanningError
+from decision_maker.errors import ConfigError, PlanningError, Reply
 from decision_maker.llm_planner import TIERS, LLMConfig, LLMPlanner, TieredPlanner
 from decision_maker.nl_planner import PlanningContext, RegistryPlanner
+from decision_maker.world_memory import aliases_for
+from object_query.memory import Belief, MapObservation, ObjectMemory
 
 
-def known_objects(args: argparse.Namespace) -> dict[str, tuple[float, float, float]]:
+def known_objects(args: argparse.Namespace) -> tuple[dict[str, tuple[float, float, float]], tuple[Belief, ...]]:
+    """Object names with positions, and the memory built from the map (empty for ``--objects``)."""
     if args.objects is not None:
-        return {n.strip().lower(): (0.0, 0.0, 0.0) for n in args.objects.split(",") if n.strip()}
+        return {n.strip().lower(): (0.0, 0.0, 0.0) for n in args.objects.split(",") if n.strip()}, ()
     from object_query.semantic_map import ObjectDatabase
 
     if args.map:
@@ -38,7 +44,20 @@ def known_objects(args: argparse.Namespace) -> dict[str, tuple[float, float, flo
     for name in db.names():
         res = db.query(name)
         out[name] = res.position
-    return out
+    memory = ObjectMemory()
+    memory.merge_map(MapObservation(i.name, i.centre) for i in db.all_instances())
+    return out, memory.snapshot()
+
+
+def synonym_groups() -> tuple[tuple[str, ...], ...]:
+    """The object database's bundled synonyms (none when not installed)."""
+    try:
+        from object_query.names import load_synonyms
+        from object_query.object_query_server import bundled_synonyms_path
+
+        return load_synonyms(bundled_synonyms_path()).groups
+    except Exception:  # only a help for names
+        return ()
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -67,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
             from decision_maker.decision_maker_node import default_locations_file
 
             locations = load_locations(default_locations_file())
-        objects = known_objects(args)
+        objects, memory = known_objects(args)
         cfg = LLMConfig(base_url=args.llm_url, model=args.llm_model, timeout_s=args.llm_timeout)
         if args.planner == "registry":
             planner = RegistryPlanner()
@@ -78,9 +97,14 @@ def main(argv: list[str] | None = None) -> int:
     except (ConfigError, OSError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    context = PlanningContext(frozenset(objects), locations, objects, held_object=args.holding)
+    aliases = aliases_for(objects, synonym_groups())
+    context = PlanningContext(frozenset(objects), locations, objects, held_object=args.holding, memory=memory,
+                              aliases=aliases)
     try:
         plan = planner.plan(text, context)
+    except Reply as reply:  # a question, or a "did you mean": answered, no plan
+        print(f"{'answer' if reply.kind == 'answer' else reply.kind}: {reply.sentence}")
+        return 0 if reply.kind == "answer" else 1
     except PlanningError as exc:
         print(f"refused: {exc}")
         return 1

@@ -223,6 +223,22 @@ class ObjectWorld:
         self.held = None
         return obj
 
+    def move(self, oid: str, position: Point3) -> SimObject:
+        """Move object ``oid`` by hand (not the robot's doing).
+
+        Raises:
+            SimError: unknown id, the object is in the gripper, or a non-finite position.
+        """
+        key = normalize_name(oid)
+        if key not in self.objects:
+            raise SimError(f"no object {key!r}; objects: {', '.join(sorted(self.objects))}")
+        if self.held == key:
+            raise SimError(f"{key} is in the gripper")
+        if not all(math.isfinite(v) for v in (position.x, position.y, position.z)):
+            raise SimError("position must be finite")
+        self.objects[key].position = position
+        return self.objects[key]
+
     def snapshot(self, robot: Pose2D | None) -> dict:
         """JSON-ready state: robot pose, held object id, every object's class and position."""
         return {

@@ -313,8 +313,10 @@ def run_plan_command(*args: str):
 
 
 def test_dry_run_command_line(endpoint):
-    out = run_plan_command("give me the cup please")  # registry, objects from the bundled map
-    assert out.returncode == 0 and "plan (give me): goto:kitchen, grasp:cup, place:user" in out.stdout, out.stderr
+    out = run_plan_command("give me the bottle please")  # registry, objects (and memory) from the bundled map
+    assert out.returncode == 0 and "plan (give me): goto:kitchen, grasp:bottle, place:user" in out.stdout, out.stderr
+    out = run_plan_command("where is the bottle")  # a question: answered from the memory
+    assert out.returncode == 0 and out.stdout.startswith("answer: The bottle is at the kitchen counter"), out.stdout
     ep = endpoint((200, completion(PLAN_DRINK)))
     out = run_plan_command("I am thirsty", "--planner", "tiered", "--llm-url", ep.url, "--json")
     assert out.returncode == 0, out.stdout + out.stderr

@@ -4,11 +4,14 @@ Brings up the whole simulated robot (node set ``sim_robot``: the object database
 sample map, the simulated base and arm, the decision maker) on a freshly leased ROS_DOMAIN_ID
 with loopback-only discovery, then says to it, as a person would:
 
-    "give me the bottle", "go home", "clean table"
+    "give me the bottle", "go home", "clean table", "where is the bottle",
+    "could you bring me the bottle"
 
 prints every ``/task_status`` update as it arrives and finally the simulated world: the bottle is
-with the user, the trash in the bin. Exit code 0 when all commands succeeded and the world is as
-expected.
+with the user, the trash in the bin. The last two show the living object memory: the answer comes
+from what the robot did, and the second request for the bottle — which a static map would send to
+the kitchen counter, where it would fail — is answered "already with you" without moving. Exit
+code 0 when all commands succeeded and the world is as expected.
 
 Options::
 
@@ -34,7 +37,8 @@ from home_robot_bringup.launcher import apply_overrides
 from home_robot_bringup.nodeset import load_nodeset
 from home_robot_bringup.process import Supervisor, node_environment
 
-DEFAULT_COMMANDS = ("give me the bottle", "go home", "clean table")
+DEFAULT_COMMANDS = ("give me the bottle", "go home", "clean table", "where is the bottle",
+                    "could you bring me the bottle")
 
 
 class Operator:
@@ -223,6 +227,11 @@ def main(argv: list[str] | None = None) -> int:
                     trash = world["objects"]["trash"]["position"]
                     ok = ok and math.dist(bottle, (user.x, user.y, user.z)) < 0.15 \
                         and math.dist(trash, (bin_.x, bin_.y, bin_.z)) < 0.15
+                    # the memory: the second request was answered, not driven to the kitchen
+                    again = op.finals.get(keys[-1])
+                    ok = ok and again is not None and "already with you" in again.sentence
+                    where = op.finals.get(keys[-2])
+                    ok = ok and where is not None and "with you" in where.sentence
             if opts.interactive:
                 _interactive(op, locations, opts.timeout)
         finally:
@@ -230,7 +239,8 @@ def main(argv: list[str] | None = None) -> int:
                 op.close()
             sup.stop()
         if commands:
-            print("demo: " + ("OK - the bottle is with the user and the table is clean"
+            print("demo: " + ("OK - the bottle is with the user, the table is clean, and asked again the robot "
+                              "knew the bottle was already with the user"
                               if ok and not opts.command else "OK" if ok else "FAILED"), flush=True)
         return 0 if ok else 1
 

@@ -11,3 +11,7 @@ class MapLoadError(ObjectQueryError):
 
 class SynonymsError(ObjectQueryError):
     """The synonyms YAML file is missing or malformed."""
+
+
+class ObjectMemoryError(ObjectQueryError):
+    """A memory update or memory file is invalid."""

@@ -20,12 +20,21 @@ Parameters (see docs/object_query.md):
     auto_reload (bool, true): reload when the files change on disk (polled every
     reload_poll_period seconds; a file must be unchanged for one period before it is read).
     frame_id (str): frame of the markers.
+    memory_path (str): the object memory's file; empty = next to the map (``<map>.memory.json``)
+    when ``map_path`` is set, not persisted for the bundled sample map; ``none`` = not persisted.
+    memory_match_radius (m): a reloaded map's instance this close to a remembered one of its class
+    is the same object (farther, it may have moved: see docs/object_query.md).
+
+The living object memory (``/object_memory``, ``/object_memory/query``, ``/object_memory/report``)
+is served by :class:`object_query.memory_ros.MemoryInterface`; ``/object_query`` and
+``/object_list`` answer from it (the current belief), the map only for classes it holds nothing of.
 """
 
 from __future__ import annotations
 
 import colorsys
 import hashlib
+import json
 import os
 import threading
 
@@ -43,6 +52,8 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
 from object_query.errors import MapLoadError, SynonymsError
+from object_query.memory import MemoryConfig
+from object_query.memory_ros import MemoryInterface, answer_query, default_memory_path
 from object_query.names import load_synonyms
 from object_query.semantic_map import DatabaseConfig, FileSignature, ObjectDatabase
 
@@ -126,6 +137,10 @@ class ObjectQueryServer(Node):
         self.declare_parameter("auto_reload", True)
         self.declare_parameter("reload_poll_period", 1.0, ParameterDescriptor(read_only=True))
         self.declare_parameter("frame_id", "map")
+        self.declare_parameter("memory_path", "", ParameterDescriptor(
+            read_only=True, description="object memory file; empty = next to map_path (none for the bundled map)"))
+        self.declare_parameter("memory_match_radius", MemoryConfig().match_radius,
+                               ParameterDescriptor(read_only=True, dynamic_typing=True))
 
         self._lock = threading.Lock()  # guards _db, _signature, _failed_signature, _seen_signature, _pending
         self._reload_lock = threading.Lock()  # one reload at a time (service, timer, parameter change)
@@ -137,6 +152,7 @@ class ObjectQueryServer(Node):
 
         self._list_pub = self.create_publisher(String, "object_list", OBJECT_LIST_QOS)
         self._marker_pub = self.create_publisher(MarkerArray, "object_markers", OBJECT_LIST_QOS)
+        self.memory = self._make_memory()
         # Raises MapLoadError/SynonymsError/ValueError, reported by main(): nothing to serve without a map.
         self._load_initial()
 
@@ -220,8 +236,32 @@ class ObjectQueryServer(Node):
             self.get_logger().warning(warning)
         self.get_logger().info(f"{verb} {self._paths()[0]}: {db.summary()}")
 
+    def _make_memory(self) -> MemoryInterface:
+        """The object memory, loaded from its file (see the memory_path parameter)."""
+        raw = str(self.get_parameter("memory_path").value).strip()
+        map_path = str(self.get_parameter("map_path").value)
+        path = None if raw.lower() == "none" else (raw or (default_memory_path(map_path) if map_path else None))
+        config = MemoryConfig(match_radius=float(self.get_parameter("memory_match_radius").value))
+        return MemoryInterface(self, path, str(self.get_parameter("frame_id").value), self._publish_object_list,
+                               config=config)
+
+    def _publish_object_list(self) -> None:
+        """``/object_list`` from the memory: each class's current best position (the map's for the rest)."""
+        with self._lock:
+            db = self._db
+        if db is None:
+            return
+        doc = json.loads(db.to_json())
+        for name in list(doc):
+            best = self.memory.memory.best(name)
+            if best is not None:
+                doc[name] = [round(v, 4) for v in best.position]
+        self._list_pub.publish(String(data=json.dumps(doc)))
+
     def _publish(self, db: ObjectDatabase) -> None:
-        self._list_pub.publish(String(data=db.to_json()))
+        mtime = [m for (_, m, _) in self._signature_now().entries[:1] if m >= 0]
+        summary = self.memory.map_loaded(db, mtime[0] / 1e9 if mtime else None)  # also republishes /object_list
+        self.get_logger().info(summary)
         frame = self.get_parameter("frame_id").value
         self._marker_pub.publish(database_markers(db, frame, self.get_clock().now().to_msg()))
 
@@ -260,7 +300,7 @@ class ObjectQueryServer(Node):
     # -- callbacks -------------------------------------------------------------------------------
 
     def _on_query(self, request: ObjectQuery.Request, response: ObjectQuery.Response) -> ObjectQuery.Response:
-        result = self._snapshot().query(request.name)
+        result = answer_query(self.memory.memory, self._snapshot(), request.name)
         response.found = result.found
         response.position.x, response.position.y, response.position.z = result.position
         response.message = result.message

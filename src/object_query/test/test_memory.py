@@ -1,0 +1,171 @@
+"""The living object memory's core, without ROS: map merges, action evidence, persistence."""
+
+from __future__ import annotations
+
+import json
+import os
+
+import pytest
+
+from object_query.errors import ObjectMemoryError
+from object_query.memory import (
+    Belief,
+    MapObservation,
+    MemoryConfig,
+    ObjectMemory,
+    load_memory,
+    memory_from_json,
+)
+
+
+class Clock:
+    def __init__(self, t: float = 1000.0) -> None:
+        self.t = t
+
+    def __call__(self) -> float:
+        return self.t
+
+
+MAP = [MapObservation("bottle", (5.2, 0.3, 1.0)), MapObservation("cup", (4.6, 0.35, 0.95)),
+       MapObservation("cup", (2.8, 2.6, 0.8)), MapObservation("trash", (2.3, 2.5, 0.8))]
+
+
+def fresh(clock: Clock | None = None) -> ObjectMemory:
+    mem = ObjectMemory(clock=clock or Clock())
+    mem.merge_map(MAP, observed_at=900.0)
+    return mem
+
+
+def by_pos(mem: ObjectMemory, name: str, x: float) -> Belief:
+    return min(mem.candidates(name), key=lambda b: abs(b.position[0] - x))
+
+
+def test_first_map_creates_beliefs_with_ids_confidence_source() -> None:
+    mem = fresh()
+    snap = mem.snapshot()
+    assert [b.id for b in snap] == ["bottle#1", "cup#1", "cup#2", "trash#1"]
+    assert all(b.source == "map" and b.confidence == 1.0 and b.last_seen == 900.0 and b.state == "seen"
+               for b in snap)
+
+
+def test_reload_keeps_ids_moves_moved_and_marks_vanished_unseen() -> None:
+    mem = fresh()
+    cup_table = by_pos(mem, "cup", 2.8).id
+    cup_counter = by_pos(mem, "cup", 4.6).id
+    report = mem.merge_map([MapObservation("bottle", (5.25, 0.3, 1.0)),      # shifted 5 cm: same
+                            MapObservation("cup", (4.6, 0.35, 0.95)),        # same
+                            MapObservation("cup", (1.3, 3.9, 0.75)),         # the table cup moved to the sofa
+                            MapObservation("chair", (2.5, 1.7, 0.4))],       # new
+                           observed_at=950.0)
+    assert set(report.kept) == {"bottle#1", cup_counter}
+    assert report.moved == (cup_table,)
+    assert report.added == ("chair#1",)
+    assert report.unseen == ("trash#1",)
+    assert mem.get(cup_table).position == (1.3, 3.9, 0.75)
+    trash = mem.get("trash#1")
+    assert trash.state == "unseen" and trash.confidence == pytest.approx(0.5) and trash.position == (2.3, 2.5, 0.8)
+    assert mem.get("bottle#1").last_seen == 950.0
+
+
+def test_grasp_then_place_follows_the_object_and_wins_over_an_older_map() -> None:
+    clock = Clock(1000.0)
+    mem = fresh(clock)
+    held = mem.grasped("cup", near=(2.2, 2.5))  # robot at the table: the table cup
+    assert held.state == "held" and held.source == "action" and held.place == "gripper"
+    assert held.position == (2.8, 2.6, 0.8)  # the table cup, not the counter one
+    assert mem.best("cup").id == held.id  # held objects answer first
+    clock.t = 1010.0
+    placed = mem.placed("cup", (1.3, 3.95, 0.75), "user")
+    assert placed.id == held.id and placed.place == "user" and placed.state == "placed"
+    # the old map (observed before the place) still shows the cup on the table: the action is newer
+    report = mem.merge_map(MAP, observed_at=900.0)
+    assert held.id in report.newer_than_map
+    assert mem.get(held.id).position == (1.3, 3.95, 0.75)
+    assert len(mem.candidates("cup")) == 2  # no duplicate created for the stale map blob
+    # a newer map shows the cup at the user: confirmed by the map
+    mem.merge_map([*MAP[:2], MapObservation("cup", (1.32, 3.93, 0.75)), MAP[3]], observed_at=1020.0)
+    assert mem.get(held.id).source == "map" and mem.get(held.id).state == "seen"
+
+
+def test_failed_grasp_lowers_confidence_and_best_prefers_a_trusted_one() -> None:
+    mem = fresh()
+    counter = by_pos(mem, "cup", 4.6)
+    after = mem.grasp_failed("cup", near=(4.9, 1.1), reason="no cup within reach")
+    assert after.id == counter.id
+    assert after.confidence == pytest.approx(0.3) and "found nothing" in after.note and after.state == "unseen"
+    assert mem.best("cup").id != counter.id
+    assert mem.grasp_failed("sofa", near=(0, 0)) is None
+
+
+def test_revision_increases_with_every_change() -> None:
+    mem = fresh()
+    r = mem.revision
+    mem.grasped("bottle", near=(4.9, 1.1))
+    assert mem.revision == r + 1
+
+
+def test_set_position_by_user_and_bad_input() -> None:
+    mem = fresh()
+    b = mem.set_position("trash#1", (5.6, 4.5, 0.5), source="user", place="bin")
+    assert b.source == "user" and b.place == "bin"
+    with pytest.raises(ObjectMemoryError):
+        mem.set_position("trash#1", (float("nan"), 0, 0))
+    with pytest.raises(ObjectMemoryError):
+        mem.set_position("trash#1", (0, 0, 0), source="rumour")
+
+
+def test_save_is_atomic_and_roundtrips(tmp_path) -> None:
+    mem = fresh()
+    mem.grasped("bottle", near=(4.9, 1.1))
+    path = str(tmp_path / "maps" / "home.memory.json")
+    mem.save(path)
+    assert not [f for f in os.listdir(tmp_path / "maps") if f.endswith(".tmp")]
+    back, message = load_memory(path)
+    assert back.snapshot() == mem.snapshot()
+    assert "4 belief(s)" in message
+
+
+@pytest.mark.parametrize("content", ["{not json", json.dumps({"version": 99, "beliefs": []}),
+                                     json.dumps({"version": 1, "beliefs": [{"id": "x"}]}),
+                                     json.dumps({"version": 1, "beliefs": [
+                                         {"id": "cup#1", "name": "cup", "position": [0, 0, "nan"],
+                                          "confidence": 1, "last_seen": 0, "source": "map"}]}),
+                                     "\udcff"])
+def test_corrupt_file_is_reported_and_set_aside(tmp_path, content) -> None:
+    path = tmp_path / "m.json"
+    path.write_bytes(content.encode("utf-8", "surrogateescape"))
+    mem, message = load_memory(str(path), clock=Clock(1234.0))
+    assert mem.snapshot() == ()
+    assert "corrupt" in message and "set aside" in message
+    assert not path.exists() and (tmp_path / "m.json.corrupt-1234").exists()
+
+
+def test_missing_file_starts_empty(tmp_path) -> None:
+    mem, message = load_memory(str(tmp_path / "none.json"))
+    assert mem.snapshot() == () and "starting empty" in message
+
+
+def test_duplicate_ids_rejected() -> None:
+    b = Belief("cup#1", "cup", (0.0, 0.0, 0.0), 1.0, 0.0, "map")
+    with pytest.raises(ObjectMemoryError):
+        memory_from_json(json.dumps({"version": 1, "beliefs": [b.__dict__, b.__dict__]}))
+
+
+def test_config_validation() -> None:
+    with pytest.raises(ValueError):
+        MemoryConfig(match_radius=-1)
+    with pytest.raises(ValueError):
+        MemoryConfig(trust_threshold=2)
+
+
+def test_vanished_objects_are_forgotten_after_a_few_reloads_and_bad_centres_ignored() -> None:
+    mem = fresh()
+    without_trash = [o for o in MAP if o.name != "trash"] + [MapObservation("cup", (float("nan"), 0.0, 0.0))]
+    confidences = []
+    for t in range(5):
+        report = mem.merge_map(without_trash, observed_at=901.0 + t)
+        b = mem.get("trash#1")
+        confidences.append(None if b is None else b.confidence)
+        assert not report.added  # the NaN cup is ignored
+    assert confidences == [0.5, 0.25, 0.125, 0.0625, None]
+    assert report.forgotten == ("trash#1",)
