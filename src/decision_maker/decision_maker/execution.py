@@ -53,6 +53,7 @@ from decision_maker.errors import (
     Reply,
 )
 from decision_maker.nl_planner import Planner, PlanningContext
+from decision_maker.scenario_library import answer_question
 
 
 class TaskState(str, enum.Enum):
@@ -348,6 +349,9 @@ class ExecutionEngine:
             n = self.cancel(f"spoken stop ({shorten(text, 40)!r})")
             return self._emit(cid, shown, TaskState.SUCCEEDED, message=f"stop: cancelled {n} command(s)",
                               sentence="Stopped." if n else "Nothing to stop.")
+        answered = self._answer_now(text, shown)
+        if answered is not None:
+            return answered
         with self._cond:
             cid = next(self._ids)
             if not text:
@@ -379,6 +383,30 @@ class ExecutionEngine:
                                 sentence=f"Okay: {shorten(text, 60)!r}{after}")
             self._cond.notify_all()
             return status
+
+    def _answer_now(self, text: str, shown: str) -> TaskStatus | None:
+        """A question ("where is the cup") asked while the robot is busy: answered at once.
+
+        Questions move nothing, so they never wait behind a running command. Only exact question
+        intents are answered here (a pure look-up in the memory, no model, no waiting); anything
+        else, or a question while idle, takes the normal queued path. Returns the final status, or
+        None when ``text`` is not answered here.
+        """
+        with self._cond:
+            busy = self._current is not None or bool(self._queue)
+        if not busy or not text:
+            return None
+        try:
+            context = self._context()
+            answer_question(text, context.world(), context.known_objects, context.locations)
+        except Reply as reply:
+            with self._cond:
+                cid = next(self._ids)
+            return self._emit(cid, shown, TaskState.SUCCEEDED, message=f"answer: {reply.sentence}",
+                              sentence=reply.sentence)
+        except Exception:  # a failing look-up must not lose the command: the queued path reports it
+            return None
+        return None
 
     def cancel(self, reason: str = "cancel requested") -> int:
         """Clear the queue and stop the running batch. Returns how many commands it cancelled."""

@@ -270,6 +270,19 @@ def test_engine_answers_questions_without_moving():
     assert statuses[-1].message.startswith("answer: ")
 
 
+def test_a_question_while_busy_is_answered_at_once_not_queued():
+    statuses = []
+    eng = ExecutionEngine(RegistryPlanner(), Robot(), EngineConfig(), statuses.append, lambda: ctx(memory()))
+    eng._current = (99, 0.0)  # a command is running (no worker thread here: nothing would dequeue)
+    first = eng.submit("where is the bottle")
+    assert first.state == TaskState.SUCCEEDED and first.message.startswith("answer: ")
+    assert first.sentence.startswith("The bottle is at the kitchen counter")
+    assert eng.queue_length() == 0
+    # a command (not a question) still queues behind the running one
+    assert eng.submit("give me the bottle").state == TaskState.QUEUED
+    assert eng.queue_length() == 1
+
+
 def test_engine_reports_a_clarification_as_rejected():
     mem = memory()
     eng_ctx = dataclasses.replace(ctx(mem), robot_pose=Pose2D(3.7, 1.5, 0.0))
