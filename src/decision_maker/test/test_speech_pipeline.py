@@ -26,7 +26,7 @@ class EchoTranscriber:
         self.lock = threading.Lock()  # guards calls
         self.calls: list[tuple[int, str]] = []
 
-    def __call__(self, audio: np.ndarray, prompt: str, vad_filter: bool) -> Transcript:
+    def __call__(self, audio: np.ndarray, prompt: str, vad_filter: bool, grammar=None) -> Transcript:  # noqa: ANN001
         with self.lock:
             self.calls.append((audio.size, prompt))
         threading.Event().wait(self.delay_s)

@@ -84,3 +84,46 @@ def test_pipeline_with_wake_word(transcriber, tmp_path):
                                                                                         pacing=0))
     assert [r.command for r in results] == ["go home", None], [r.to_json() for r in results]
     assert results[1].dropped == "no_wake_word" and matches(results[1].text, "stop")
+
+
+#: Voices/speeds outside ta.VOICES where the vocabulary prompt pulls "give me" towards "clean"
+#: ("good, clean the cup": en-gb and en-gb-x-rp at 190 words per minute, measured).
+HELD_OUT = [("en-gb", 190), ("en-gb-x-rp", 190)]
+
+
+@pytest.mark.parametrize(("voice", "speed"), HELD_OUT)
+def test_grammar_rescoring_recovers_a_command_the_prompt_pulled_away(transcriber, voice, speed):
+    audio = np.concatenate([PAD, ta.speak("give me the cup", voice, speed), PAD])
+    plain = transcriber.transcribe(audio, VOCAB.prompt())
+    tr = transcriber.transcribe(audio, VOCAB.prompt(), grammar=VOCAB.in_grammar)
+    assert tr.text.lower().rstrip(".") == "give me the cup", (plain.text, tr.text)
+    if not VOCAB.in_grammar(plain.text):  # the failure reproduced: say what replaced it
+        assert tr.rescored_from == plain.text and tr.hypotheses > 0
+    assert tr.avg_logprob > FilterConfig().min_avg_logprob  # the filter keeps it
+
+
+def test_grammar_path_equals_faster_whisper_when_in_grammar(transcriber):
+    """The one-window decoder reproduces WhisperModel.transcribe (text and score) for commands."""
+    for i, command in enumerate(COMMANDS):
+        voice, speed = ta.VOICES[i % len(ta.VOICES)]
+        audio = np.concatenate([PAD, ta.speak(command, voice, speed), PAD])
+        plain = transcriber.transcribe(audio, VOCAB.prompt())
+        tr = transcriber.transcribe(audio, VOCAB.prompt(), grammar=VOCAB.in_grammar)
+        if VOCAB.in_grammar(plain.text):
+            assert (tr.text, tr.rescored_from, tr.hypotheses) == (plain.text, "", 0)
+            assert tr.avg_logprob == pytest.approx(plain.avg_logprob, abs=1e-4)
+            assert tr.no_speech_prob == pytest.approx(plain.no_speech_prob, abs=1e-4)
+
+
+def test_grammar_leaves_other_speech_and_noise_alone(transcriber):
+    """Speech that is no command stays what Whisper heard; noise and silence still give nothing."""
+    for text in ("what time is it", "the weather is nice today"):
+        audio = np.concatenate([PAD, ta.speak(text, "en-us", 170), PAD])
+        tr = transcriber.transcribe(audio, VOCAB.prompt(), grammar=VOCAB.in_grammar)
+        assert not VOCAB.in_grammar(tr.text) and tr.rescored_from == "", tr
+    for name, audio in [("silence", ta.silence(2.0)), ("pink", ta.noise("pinknoise", 2.0, 0.1)),
+                        ("white", ta.noise("whitenoise", 2.0, 0.05))]:
+        tr = transcriber.transcribe(audio, VOCAB.prompt(), grammar=VOCAB.in_grammar)
+        verdict = judge(tr.text, tr.no_speech_prob, tr.avg_logprob, tr.compression_ratio, FilterConfig(),
+                        VOCAB.prompt_words())
+        assert not verdict.kept, f"{name} gave {tr.text!r}"
