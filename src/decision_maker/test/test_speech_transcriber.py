@@ -86,20 +86,38 @@ def test_pipeline_with_wake_word(transcriber, tmp_path):
     assert results[1].dropped == "no_wake_word" and matches(results[1].text, "stop")
 
 
-#: Voices/speeds outside ta.VOICES where the vocabulary prompt pulls "give me" towards "clean"
-#: ("good, clean the cup": en-gb and en-gb-x-rp at 190 words per minute, measured).
-HELD_OUT = [("en-gb", 190), ("en-gb-x-rp", 190)]
+#: Held-out voices/speeds (not in ta.VOICES) where the vocabulary prompt pulls "give me" towards
+#: "clean" ("good, clean the cup": en-gb and en-gb-x-rp at 190 words per minute, 0.3 s of silence
+#: around the speech, measured).
+HELD_OUT = [("give me the cup", "en-gb", 190), ("give me the cup", "en-gb-x-rp", 190)]
 
 
-@pytest.mark.parametrize(("voice", "speed"), HELD_OUT)
-def test_grammar_rescoring_recovers_a_command_the_prompt_pulled_away(transcriber, voice, speed):
-    audio = np.concatenate([PAD, ta.speak("give me the cup", voice, speed), PAD])
-    plain = transcriber.transcribe(audio, VOCAB.prompt())
+def test_grammar_rescoring_recovers_commands_the_prompt_pulled_away(transcriber):
+    pad = ta.silence(0.3)
+    rescored = []
+    for command, voice, speed in HELD_OUT:
+        audio = np.concatenate([pad, ta.speak(command, voice, speed), pad])
+        plain = transcriber.transcribe(audio, VOCAB.prompt())
+        tr = transcriber.transcribe(audio, VOCAB.prompt(), grammar=VOCAB.in_grammar)
+        assert tr.text.lower().rstrip(".") == command, (voice, speed, plain.text, tr.text)
+        assert tr.avg_logprob > FilterConfig().min_avg_logprob  # the filter keeps it
+        if not VOCAB.in_grammar(plain.text):  # the failure reproduced: it says what it replaced
+            assert tr.rescored_from == plain.text and tr.hypotheses > 0
+            rescored.append(plain.text)
+    # the failures of the issue reproduce here (else this test no longer tests the rescoring)
+    assert len(rescored) >= 2, rescored
+
+
+def test_grammar_does_not_pull_a_misheard_word_to_another_object(transcriber):
+    """en-gb at 160 wpm: "chair" → "cab"; the beam's "bring me the cup" is 0.36 lower: not taken."""
+    audio = np.concatenate([PAD, ta.speak("bring me the chair", "en-gb", 160), PAD])
     tr = transcriber.transcribe(audio, VOCAB.prompt(), grammar=VOCAB.in_grammar)
-    assert tr.text.lower().rstrip(".") == "give me the cup", (plain.text, tr.text)
-    if not VOCAB.in_grammar(plain.text):  # the failure reproduced: say what replaced it
-        assert tr.rescored_from == plain.text and tr.hypotheses > 0
-    assert tr.avg_logprob > FilterConfig().min_avg_logprob  # the filter keeps it
+    assert tr.text.lower().rstrip(".") != "bring me the cup", tr
+    loose = Transcriber.__new__(Transcriber)  # same loaded model, a wide margin: the danger it guards against
+    loose.__dict__.update(transcriber.__dict__, config=TranscriberConfig(grammar_max_drop=5.0))
+    loose.__dict__.pop("_window_decoder", None)
+    wide = loose.transcribe(audio, VOCAB.prompt(), grammar=VOCAB.in_grammar)
+    assert VOCAB.in_grammar(wide.text) and wide.text.lower().rstrip(".") != "bring me the chair", wide
 
 
 def test_grammar_path_equals_faster_whisper_when_in_grammar(transcriber):
