@@ -123,7 +123,7 @@ def test_grammar_does_not_pull_a_misheard_word_to_another_object(transcriber):
 
 def test_grammar_path_equals_faster_whisper_when_in_grammar(transcriber):
     """The one-window decoder reproduces WhisperModel.transcribe (text and score) for commands."""
-    for i, command in enumerate(COMMANDS):
+    for i, command in enumerate(COMMANDS[:4]):  # 4 voices/speeds, 4 commands (CPU time)
         voice, speed = ta.VOICES[i % len(ta.VOICES)]
         audio = np.concatenate([PAD, ta.speak(command, voice, speed), PAD])
         plain = transcriber.transcribe(audio, VOCAB.prompt())
