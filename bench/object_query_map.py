@@ -44,3 +44,25 @@ def make_big_map(n_points: int = 10_000_000, n_classes: int = 100, seed: int = 0
         means, sem, opac = means[perm], sem[perm], opac[perm]
     classes = {i: f"object {i:03d}" for i in range(1, n_classes + 1)}
     return means, sem, opac, classes, n_inst
+
+
+def make_blob_map(n_points: int = 10_000_000, n_classes: int = 100, seed: int = 1, label_dtype: str = "int32"
+                  ) -> tuple[np.ndarray, np.ndarray, dict[int, str]]:
+    """Dense Gaussian blobs: each class 1-3 blobs (sigma 0.05-0.3 m) in a 30 m x 30 m x 2 m space, points in
+    random order, no opacities — a map unlike :func:`make_big_map` (no surfaces, no floaters).
+
+    Returns:
+        ``(means [N, 3] float32, semantic_ids [N] label_dtype, classes)``.
+    """
+    rng = np.random.default_rng(seed)
+    n_blob_per_class = 1 + rng.integers(0, 3, n_classes)
+    n_blobs = int(n_blob_per_class.sum())
+    centres = rng.uniform([0, 0, 0.2], [30, 30, 1.8], (n_blobs, 3))
+    sigma = rng.uniform(0.05, 0.3, n_blobs)
+    per = rng.multinomial(n_points, np.full(n_blobs, 1.0 / n_blobs))
+    blob = np.repeat(np.arange(n_blobs), per)  # [N]
+    means = (centres[blob] + rng.standard_normal((n_points, 3)) * sigma[blob, None]).astype(np.float32)
+    ids = (np.repeat(np.arange(n_classes), n_blob_per_class) + 1)[blob]
+    perm = rng.permutation(n_points)
+    classes = {i: f"object {i:03d}" for i in range(1, n_classes + 1)}
+    return means[perm], ids[perm].astype(label_dtype), classes

@@ -66,6 +66,8 @@ _PARAMS: dict[str, tuple[object, bool]] = {
     "compute_type": ("int8", True),
     "cpu_threads": (0, True),
     "beam_size": (5, True),
+    "grammar_hypotheses": (5, True),  # out-of-grammar transcript: look at this many hypotheses; 0 = off
+    "grammar_max_drop": (0.3, True),  # ... and take one at most this much lower in mean log-probability
     "language": ("en", True),
     "object_list_topic": ("object_list", True),  # empty = no object names in the vocabulary
     "command_phrases": (list(DEFAULT_COMMAND_PHRASES), False),
@@ -105,7 +107,8 @@ class AudioCommandNode(Node):
         self._pipeline_config = self._make_pipeline_config(p)
         self._transcriber = Transcriber(TranscriberConfig(
             model=p("model"), device=p("device"), compute_type=p("compute_type"), cpu_threads=p("cpu_threads"),
-            beam_size=p("beam_size"), language=p("language")))
+            beam_size=p("beam_size"), language=p("language"), grammar_hypotheses=p("grammar_hypotheses"),
+            grammar_max_drop=float(p("grammar_max_drop"))))
         warm_s = self._transcriber.warm_up()
         self.get_logger().info(f"Whisper model {self._transcriber.model_path} loaded in "
                                f"{self._transcriber.load_s:.2f} s, warmed up in {warm_s:.2f} s ({p('device')}, "

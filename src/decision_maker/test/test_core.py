@@ -51,6 +51,16 @@ CTX = PlanningContext(OBJECTS, LOCS)
 # --- primitives ------------------------------------------------------------------------------------
 
 
+def wait_until(predicate, timeout_s: float, poll_s: float = 0.01) -> bool:
+    """Poll ``predicate`` until it is true or ``timeout_s`` (monotonic) has passed."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        threading.Event().wait(poll_s)
+    return bool(predicate())
+
+
 def test_parse_primitives_valid():
     assert parse_primitive("goto:1.5, 2, 3.14159", LOCS) == GoTo(Pose2D(1.5, 2.0, math.remainder(3.14159, 2 * math.pi)))
     assert parse_primitive(" GOTO: Kitchen ", LOCS) == GoTo(LOCS["kitchen"].pose, "kitchen")
@@ -280,17 +290,11 @@ def test_engine_worker_cancel_while_navigating():
     try:
         eng.submit("give me the bottle")
         eng.submit("go home")
-        deadline = threading.Event()
-        for _ in range(200):
-            if robot.calls:
-                break
-            deadline.wait(0.01)
+        # generous deadlines (a busy CI machine may not run the worker thread for seconds)
+        assert wait_until(lambda: robot.calls, 30.0), "the worker never started navigating"
         assert eng.busy()
         assert eng.cancel("operator") == 2
-        for _ in range(200):
-            if any(s.id == 1 and s.state.terminal for s in st):
-                break
-            deadline.wait(0.01)
+        assert wait_until(lambda: any(s.id == 1 and s.state.terminal for s in st), 30.0)
         assert final(st, 1).state is TaskState.CANCELLED and final(st, 2).state is TaskState.CANCELLED
         assert robot.cancels == 1 and [c[0] for c in robot.calls] == ["nav"]
     finally:
@@ -405,10 +409,7 @@ def test_worker_survives_a_port_bug_and_stdin_lines():
     try:
         eng.submit("go home")
         eng.submit("clean table")
-        for _ in range(500):
-            if sum(s.state.terminal for s in st) >= 2:
-                break
-            threading.Event().wait(0.01)
+        assert wait_until(lambda: sum(s.state.terminal for s in st) >= 2, 30.0)
         assert final(st, 1).state is TaskState.FAILED and "internal error" in final(st, 1).message
         assert final(st, 2).state is TaskState.FAILED
     finally:

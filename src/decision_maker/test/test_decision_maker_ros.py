@@ -36,10 +36,11 @@ class Robot:
     """The test's view of the robot: sends commands/cancels, records statuses, cancels, world state."""
 
     def __init__(self, node) -> None:
-        self._lock = threading.Lock()  # guards statuses, cancels, world
+        self._lock = threading.Lock()  # guards statuses, cancels, world, world_count
         self.statuses: list[TaskStatus] = []
         self.cancels: list[tuple[float, str]] = []
         self.world: dict | None = None
+        self.world_count = 0  # world states received
         self.status_times: list[float] = []
         self._cmd = node.create_publisher(String, "manual_command", COMMAND_QOS)
         self._cancel = node.create_publisher(String, "cancel_command", QoSProfile(depth=10))
@@ -61,6 +62,15 @@ class Robot:
     def _on_world(self, msg: String) -> None:
         with self._lock:
             self.world = json.loads(msg.data)
+            self.world_count += 1
+
+    def fresh_world(self, n: int = 2, timeout: float = 15.0) -> dict:
+        """The world state once ``n`` more have arrived: published after this call, whatever the
+        load (a fixed sleep may still see a state that was in flight before)."""
+        with self._lock:
+            start = self.world_count
+        assert wait_for(lambda: self.world_count >= start + n, timeout), f"fewer than {n} world states in {timeout} s"
+        return self.snapshot()
 
     def wait_connected(self) -> None:
         assert wait_for(lambda: self._cmd.get_subscription_count() > 0 and self._cancel.get_subscription_count() > 0,
@@ -148,11 +158,9 @@ def test_cancel_during_navigation_then_batch_watchdog(launch_nodes, ros_node, ro
     for text in ("go home", "clean table"):
         assert robot.final(text, 5.0).state is TaskState.CANCELLED
         assert not [s for s in robot.of(text) if s.state is TaskState.RUNNING]
-    # the robot stopped where it was (the world state comes at 2 Hz: let a fresh one arrive first)
-    time.sleep(0.6)
-    x0 = robot.snapshot()["robot"]["x"]
-    time.sleep(1.0)
-    pose = robot.snapshot()["robot"]
+    # the robot stopped where it was (the world state comes at 2 Hz: compare two fresh ones, >= 1 s apart)
+    x0 = robot.fresh_world(2)["robot"]["x"]
+    pose = robot.fresh_world(2)["robot"]
     assert abs(pose["x"] - x0) < 0.05 and pose["x"] < 4.0, pose
 
     # it takes new commands after a cancel
@@ -216,7 +224,7 @@ def test_nav_hang_timeout_and_object_query_absent(launch_nodes, ros_node, ros_do
 def test_bad_inputs_and_flood(launch_nodes, ros_node, ros_domain):
     # (this robot's world is made from the object database's /object_list instead of sim.yaml)
     launch_nodes(nodes=robot_specs(), set=[*FAST, "decision_maker.max_queue=3",
-                                           "mock_grasp_server.grasp_duration_s=2.0",
+                                           "mock_grasp_server.grasp_duration_s=4.0",
                                            "mock_grasp_server.objects_source=object_list"])
     robot = Robot(ros_node)
     robot.wait_connected()
@@ -230,7 +238,8 @@ def test_bad_inputs_and_flood(launch_nodes, ros_node, ros_domain):
     robot.cancel("cancel while grasping")
     final = robot.final("give me the bottle", 10.0)
     assert final.state is TaskState.CANCELLED and final.step == 2, final
-    time.sleep(2.0)  # longer than the grasp would have taken
+    # longer than the grasp would have taken (4 s: the cancel, 0.5 s in, has 3.5 s to land even on a busy machine)
+    time.sleep(4.0)
     assert robot.snapshot()["held"] is None and robot.snapshot()["objects"]["bottle"]["position"] == bottle
     cases = {
         "dance for me": (TaskState.REJECTED, "don't know how"),

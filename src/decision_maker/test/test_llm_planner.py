@@ -150,11 +150,13 @@ def test_refusals_and_questions_become_messages(endpoint, context, decision, pre
 
 
 def test_timeouts_are_bounded_and_reported(endpoint, context):
-    ep = endpoint(("sleep", 3.0, (200, completion(PLAN_DRINK))))
+    # the server would answer after 30 s: giving up at all (2 x 0.3 s + backoff) shows the bound;
+    # the 25 s margin only guards against a hang, so a busy machine cannot fail this test
+    ep = endpoint(("sleep", 30.0, (200, completion(PLAN_DRINK))))
     t0 = time.monotonic()
     with pytest.raises(LLMUnavailable, match="timed out.*2 attempt"):
         planner_for(ep, timeout_s=0.3, retries=1).plan("drink", context)
-    assert time.monotonic() - t0 < 2.9  # gave up before the server would have answered once
+    assert time.monotonic() - t0 < 25.0  # gave up before the server would have answered once
     assert len(ep.requests) == 2
 
 
@@ -164,7 +166,7 @@ def test_a_trickling_answer_is_bounded_too(endpoint, context):
     t0 = time.monotonic()
     with pytest.raises(LLMUnavailable, match="timed out"):
         planner_for(ep, timeout_s=0.5, retries=0).plan("drink", context)
-    assert time.monotonic() - t0 < 5.0  # the whole answer would take ~40 s
+    assert time.monotonic() - t0 < 20.0  # the whole answer would take ~40 s (generous: a busy machine)
 
 
 def test_server_errors_are_retried_then_succeed(endpoint, context):

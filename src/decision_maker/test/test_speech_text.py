@@ -90,3 +90,16 @@ def test_parse_object_list():
         parse_object_list("{nope")
     with pytest.raises(ConfigError, match="JSON object"):
         parse_object_list('["bottle"]')
+
+
+def test_command_grammar_from_the_vocabulary():
+    v = Vocabulary(objects=("cup", "coffee_mug"), places=("kitchen",), wake_word="robot")
+    sentences = v.grammar_sentences()
+    assert {"give me the cup", "give me the coffee mug", "bring me the kitchen", "go home", "stop"} <= sentences
+    assert "give me the" not in sentences and "go home cup" not in sentences
+    assert len(sentences) == 2 * 3 + 5  # 2 phrases x 3 names + 5 whole commands
+    for text in ("Give me the cup.", "robot, give me the cup", "hey robot go home", "please stop", "stop please"):
+        assert v.in_grammar(text), text
+    for text in ("good clean the cup", "give me the teapot", "give me the", "what time is it", "", "robot"):
+        assert not v.in_grammar(text), text
+    assert not Vocabulary().in_grammar("give me the cup")  # no object names: no object commands

@@ -84,3 +84,69 @@ def test_pipeline_with_wake_word(transcriber, tmp_path):
                                                                                         pacing=0))
     assert [r.command for r in results] == ["go home", None], [r.to_json() for r in results]
     assert results[1].dropped == "no_wake_word" and matches(results[1].text, "stop")
+
+
+#: Held-out voices/speeds (not in ta.VOICES) where the vocabulary prompt pulls "give me" towards
+#: "clean" ("good, clean the cup": en-gb and en-gb-x-rp at 190 words per minute, 0.3 s of silence
+#: around the speech, measured).
+HELD_OUT = [("give me the cup", "en-gb", 190), ("give me the cup", "en-gb-x-rp", 190)]
+
+
+def test_grammar_rescoring_recovers_commands_the_prompt_pulled_away(transcriber):
+    pad = ta.silence(0.3)
+    rescored = []
+    for command, voice, speed in HELD_OUT:
+        audio = np.concatenate([pad, ta.speak(command, voice, speed), pad])
+        plain = transcriber.transcribe(audio, VOCAB.prompt())
+        tr = transcriber.transcribe(audio, VOCAB.prompt(), grammar=VOCAB.in_grammar)
+        assert tr.text.lower().rstrip(".") == command, (voice, speed, plain.text, tr.text)
+        assert tr.avg_logprob > FilterConfig().min_avg_logprob  # the filter keeps it
+        if not VOCAB.in_grammar(plain.text):  # the failure reproduced: it says what it replaced
+            assert tr.rescored_from == plain.text and tr.hypotheses > 0
+            rescored.append(plain.text)
+    # the failure of the issue reproduces here (else this test no longer tests the rescoring); which
+    # case it is varies: CTranslate2 int8 on a busy CPU does not always give the same best transcript
+    assert rescored, "neither held-out case reproduced the failure"
+
+
+def test_grammar_does_not_pull_a_misheard_word_to_another_object(transcriber):
+    """en-gb at 160 wpm: "chair" → "cab"; the beam's "bring me the cup" is 0.36 lower: not taken."""
+    audio = np.concatenate([PAD, ta.speak("bring me the chair", "en-gb", 160), PAD])
+    plain = transcriber.transcribe(audio, VOCAB.prompt())
+    if VOCAB.in_grammar(plain.text):
+        pytest.skip(f"Whisper heard {plain.text!r} on this machine: no misheard word to guard")
+    tr = transcriber.transcribe(audio, VOCAB.prompt(), grammar=VOCAB.in_grammar)
+    assert tr.text.lower().rstrip(".") != "bring me the cup", tr
+    loose = Transcriber.__new__(Transcriber)  # same loaded model, a wide margin: the danger it guards against
+    loose.__dict__.update(transcriber.__dict__, config=TranscriberConfig(grammar_max_drop=5.0))
+    loose.__dict__.pop("_window_decoder", None)
+    wide = loose.transcribe(audio, VOCAB.prompt(), grammar=VOCAB.in_grammar)
+    if wide.text.lower().rstrip(".") != "bring me the chair":  # without the margin: a wrong command...
+        assert tr.text != wide.text, (tr, wide)  # ...which the default margin does not publish
+
+
+def test_grammar_path_equals_faster_whisper_when_in_grammar(transcriber):
+    """The one-window decoder reproduces WhisperModel.transcribe (text and score) for commands."""
+    for i, command in enumerate(COMMANDS[:4]):  # 4 voices/speeds, 4 commands (CPU time)
+        voice, speed = ta.VOICES[i % len(ta.VOICES)]
+        audio = np.concatenate([PAD, ta.speak(command, voice, speed), PAD])
+        plain = transcriber.transcribe(audio, VOCAB.prompt())
+        tr = transcriber.transcribe(audio, VOCAB.prompt(), grammar=VOCAB.in_grammar)
+        if VOCAB.in_grammar(plain.text):
+            assert (tr.text, tr.rescored_from, tr.hypotheses) == (plain.text, "", 0)
+            assert tr.avg_logprob == pytest.approx(plain.avg_logprob, abs=1e-4)
+            assert tr.no_speech_prob == pytest.approx(plain.no_speech_prob, abs=1e-4)
+
+
+def test_grammar_leaves_other_speech_and_noise_alone(transcriber):
+    """Speech that is no command stays what Whisper heard; noise and silence still give nothing."""
+    for text in ("what time is it", "the weather is nice today"):
+        audio = np.concatenate([PAD, ta.speak(text, "en-us", 170), PAD])
+        tr = transcriber.transcribe(audio, VOCAB.prompt(), grammar=VOCAB.in_grammar)
+        assert not VOCAB.in_grammar(tr.text) and tr.rescored_from == "", tr
+    for name, audio in [("silence", ta.silence(2.0)), ("pink", ta.noise("pinknoise", 2.0, 0.1)),
+                        ("white", ta.noise("whitenoise", 2.0, 0.05))]:
+        tr = transcriber.transcribe(audio, VOCAB.prompt(), grammar=VOCAB.in_grammar)
+        verdict = judge(tr.text, tr.no_speech_prob, tr.avg_logprob, tr.compression_ratio, FilterConfig(),
+                        VOCAB.prompt_words())
+        assert not verdict.kept, f"{name} gave {tr.text!r}"

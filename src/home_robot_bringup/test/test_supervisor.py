@@ -23,8 +23,9 @@ def prefix(tmp_path):
     programs = {
         "ready_then_wait": """
             import signal, sys, time
-            print("starting", flush=True); time.sleep(0.2); print("ready: serving", flush=True)
+            # the handler before "ready:": a SIGINT right after it must not hit the default handler
             signal.signal(signal.SIGINT, lambda *a: (print("bye", flush=True), sys.exit(0)))
+            print("starting", flush=True); time.sleep(0.2); print("ready: serving", flush=True)
             while True: time.sleep(0.05)
         """,
         "stubborn": """

@@ -9,6 +9,10 @@ Services:
 
 Topics (transient local: late subscribers get the last message):
     ``/object_list`` (std_msgs/String): ``{"chair": [x, y, z], ...}``.
+    ``/object_query_server/status`` (std_msgs/String, JSON): ``{"state": "provisional" | "ready" |
+    "build_failed", "objects", "instances", "provisional_s", "build_s", "message"}``. At start the
+    server answers from class centroids (``provisional``, said in every answer's message) while
+    the instances are built in a background thread, then ``ready``.
     ``/object_markers`` (visualization_msgs/MarkerArray): a labelled box per instance.
 
 Parameters (see docs/object_query.md):
@@ -55,12 +59,15 @@ from object_query.errors import MapLoadError, SynonymsError
 from object_query.memory import MemoryConfig
 from object_query.memory_ros import MemoryInterface, answer_query, default_memory_path
 from object_query.names import load_synonyms
-from object_query.semantic_map import DatabaseConfig, FileSignature, ObjectDatabase
+from object_query.semantic_map import DatabaseConfig, FileSignature, ObjectDatabase, load_semantic_map
+from object_query.staged import StagedBuild
 
 #: Latched: a node that subscribes later still receives the last message.
 OBJECT_LIST_QOS = QoSProfile(
     depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE
 )
+#: Smaller maps are built fully before the first answer (they take milliseconds): no provisional stage.
+PROVISIONAL_MIN_POINTS = 500_000
 #: Parameters that change what the database holds: setting one reloads the map.
 _BUILD_PARAMS = ("map_path", "semantic_path", "synonyms_path", "voxel_size", "min_instance_points", "min_opacity",
                  "centre_method", "trim_fraction", "query_position")
@@ -141,6 +148,9 @@ class ObjectQueryServer(Node):
             read_only=True, description="object memory file; empty = next to map_path (none for the bundled map)"))
         self.declare_parameter("memory_match_radius", MemoryConfig().match_radius,
                                ParameterDescriptor(read_only=True, dynamic_typing=True))
+        self.declare_parameter("provisional_min_points", PROVISIONAL_MIN_POINTS, ParameterDescriptor(
+            read_only=True, description="maps with at least this many Gaussians are served from class centroids "
+                                        "while their instances are built; 0 = always"))
 
         self._lock = threading.Lock()  # guards _db, _signature, _failed_signature, _seen_signature, _pending
         self._reload_lock = threading.Lock()  # one reload at a time (service, timer, parameter change)
@@ -149,12 +159,14 @@ class ObjectQueryServer(Node):
         self._failed_signature: FileSignature | None = None
         self._seen_signature: FileSignature | None = None
         self._pending: str | None = None  # reason of a reload requested by a parameter change
+        self._staged_started = False  # the start-up map's instances are built in the background
 
         self._list_pub = self.create_publisher(String, "object_list", OBJECT_LIST_QOS)
         self._marker_pub = self.create_publisher(MarkerArray, "object_markers", OBJECT_LIST_QOS)
         self.memory = self._make_memory()
+        self._status_pub = self.create_publisher(String, "~/status", OBJECT_LIST_QOS)
         # Raises MapLoadError/SynonymsError/ValueError, reported by main(): nothing to serve without a map.
-        self._load_initial()
+        staged = self._load_initial()
 
         # answers read an immutable snapshot taken under the lock: no lock is held while answering
         self._query_srv = self.create_service(ObjectQuery, "object_query", self._on_query)
@@ -170,7 +182,11 @@ class ObjectQueryServer(Node):
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
         db = self._snapshot()
-        self.get_logger().info(f"ready: {len(db.names())} objects from {self._paths()[0]} ({', '.join(db.names())})")
+        self.get_logger().info(f"ready: {len(db.names())} objects from {self._paths()[0]} ({', '.join(db.names())})"
+                               f"{'; provisional class centroids, instances being built' if db.provisional else ''}")
+        if not staged.done:
+            self._staged_started = True
+            staged.start()  # after the services exist: answers never wait for the instances
 
     # -- settings --------------------------------------------------------------------------------
 
@@ -224,12 +240,58 @@ class ObjectQueryServer(Node):
         db = ObjectDatabase.from_files(map_path, sem_path, self._config(), load_synonyms(syn_path))
         return db, signature
 
-    def _load_initial(self) -> None:
-        db, signature = self._build()
+    def _load_initial(self) -> StagedBuild:
+        """Read the map and serve its class centroids; the returned build (not started yet) makes
+        the full database in a background thread and swaps it in (:meth:`_on_initial_build`)."""
+        map_path, sem_path, syn_path = self._paths()
+        signature = self._signature_now()
+        semantic_map = load_semantic_map(map_path, sem_path)
+        staged = StagedBuild(semantic_map, self._config(), load_synonyms(syn_path), self._on_initial_build,
+                             self._on_initial_build_failed)
+        if len(semantic_map.means) < int(self.get_parameter("provisional_min_points").value):
+            staged.run_now()  # a small map: the full database before the first answer
+            db = staged.final
+            if db is None:  # the build failed (reported by _on_initial_build_failed): nothing to serve
+                raise MapLoadError(str(staged.error))
+            with self._lock:
+                self._db, self._signature, self._seen_signature = db, signature, signature
+            self._publish(db)
+            self._log_loaded(db, "loaded")
+            return staged
+        db = staged.provisional
         with self._lock:
             self._db, self._signature, self._seen_signature = db, signature, signature
-        self._publish(db)
-        self._log_loaded(db, "loaded")
+        self._list_pub.publish(String(data=db.to_json()))
+        self._publish_status(db, "provisional", f"class centroids in {staged.provisional_s:.3f} s; "
+                                                "instances being built")
+        return staged
+
+    def _on_initial_build(self, db: ObjectDatabase) -> None:
+        """Build thread: the full database of the start-up map replaces the provisional one."""
+        if not self._staged_started:
+            return  # run_now() in __init__: _load_initial installs it
+        with self._lock:
+            current = self._db
+            replace = current is not None and current.provisional  # a reload may have come first
+            if replace:
+                self._db = db
+        if replace:
+            self._publish(db)
+            self._log_loaded(db, "instances built for")
+
+    def _on_initial_build_failed(self, exc: Exception) -> None:
+        if not self._staged_started:
+            return  # run_now() in __init__: _load_initial raises
+        message = f"building instances failed, answering from class centroids: {exc}"
+        self.get_logger().error(message)
+        self._publish_status(self._snapshot(), "build_failed", message)
+
+    def _publish_status(self, db: ObjectDatabase, state: str, message: str) -> None:
+        doc = {"state": state, "objects": len(db.names()), "instances": db.instance_count(),
+               "provisional_s": None, "build_s": round(db.stats.build_s, 4), "message": message}
+        if db.provisional:
+            doc["provisional_s"], doc["build_s"] = doc["build_s"], None
+        self._status_pub.publish(String(data=json.dumps(doc)))
 
     def _log_loaded(self, db: ObjectDatabase, verb: str) -> None:
         for warning in db.warnings:
@@ -262,6 +324,7 @@ class ObjectQueryServer(Node):
         mtime = [m for (_, m, _) in self._signature_now().entries[:1] if m >= 0]
         summary = self.memory.map_loaded(db, mtime[0] / 1e9 if mtime else None)  # also republishes /object_list
         self.get_logger().info(summary)
+        self._publish_status(db, "ready", db.summary())
         frame = self.get_parameter("frame_id").value
         self._marker_pub.publish(database_markers(db, frame, self.get_clock().now().to_msg()))
 

@@ -24,7 +24,7 @@ import numpy as np
 
 from object_query.errors import MapLoadError
 from object_query.instances import _Ticker, split_instances
-from object_query.kernels import bin_sums
+from object_query.kernels import bin_sums, bin_sums_chunked
 from object_query.names import (
     MAX_NAME_LENGTH,
     Synonyms,
@@ -40,6 +40,8 @@ CENTRE_METHODS = ("mean", "median", "trimmed_mean")
 #: ``chair#2`` / ``chair #2``: one instance of a class.
 _INSTANCE_LABEL = re.compile(r"^(.+?)\s*#\s*(\d{1,6})$")
 QUERY_POSITIONS = ("largest", "class")
+#: Appended to every answer of a provisional database.
+PROVISIONAL_NOTE = "provisional: the centre of all of the class's points; instances are still being built"
 
 
 @dataclass(frozen=True)
@@ -373,10 +375,16 @@ class ObjectDatabase:
         synonyms: Synonyms | None = None,
         warnings: tuple[str, ...] = (),
         stats: MapStats | None = None,
+        class_centroids: dict[str, tuple[float, float, float]] | None = None,
+        provisional: bool = False,
     ) -> None:
         self._positions = {normalise_name(n): _tuple3(np.asarray(c, dtype=np.float64)) for n, c in centroids.items()}
         if instances is None:
             instances = {n: (ObjectInstance(n, 1, p, p, p, 0),) for n, p in self._positions.items()}
+        #: the mean of each class's used points (all its instances together)
+        self.class_centroids = dict(class_centroids) if class_centroids is not None else dict(self._positions)
+        #: True for the quick database of class centroids served while the instances are built
+        self.provisional = provisional
         self._instances = dict(instances)
         self._synonyms = synonyms or Synonyms()
         self.warnings = tuple(warnings)
@@ -392,6 +400,59 @@ class ObjectDatabase:
             MapLoadError: a file is missing or malformed.
         """
         return cls.from_map(load_semantic_map(map_path, semantic_path), config, synonyms)
+
+    @classmethod
+    def provisional_from_map(cls, semantic_map: SemanticMap, config: DatabaseConfig | None = None,
+                             synonyms: Synonyms | None = None) -> ObjectDatabase:
+        """The quick database: one position per class, the mean of its points, in one fused pass.
+
+        Served while :meth:`from_map` splits the instances (seconds on a 10 M map). The points
+        used are those :meth:`from_map` uses before instance splitting (finite, opaque enough,
+        id in the table), so a class's position here equals ``class_centroids`` of the full
+        database up to the points that the split drops as noise (components smaller than
+        ``min_instance_points``). Answers say that they are provisional.
+        """
+        t0 = time.perf_counter()
+        config = config or DatabaseConfig()
+        smap = semantic_map
+        ids, means, opac = smap.semantic_ids, smap.means, smap.logit_opacities  # [N], [N, 3], [N] or None
+        check_finite = means.dtype.kind == "f"
+        logit_min = (math.log(config.min_opacity / (1.0 - config.min_opacity))
+                     if opac is not None and config.min_opacity > 0 else None)
+
+        def valid(start: int, stop: int) -> np.ndarray:  # [stop - start] bool
+            ok = np.isfinite(means[start:stop]).all(axis=1) if check_finite else np.ones(stop - start, bool)
+            if logit_min is not None:
+                ok &= opac[start:stop] >= logit_min  # NaN opacity is transparent
+            return ok
+
+        use_valid = check_finite or logit_min is not None
+        if len(ids) == 0:
+            centroids: dict[str, np.ndarray] = {}
+            used = 0
+        else:
+            small_unsigned = ids.dtype.kind == "u" and ids.dtype.itemsize <= 2
+            lo = 0 if small_unsigned else int(ids.min())
+            size = (1 << (8 * ids.dtype.itemsize)) if small_unsigned else int(ids.max()) - lo + 1
+            if size > 1 << 22:  # sparse huge ids: the compact-label path
+                step = 1 << 20
+                mask = np.concatenate([valid(s, min(s + step, len(ids))) for s in range(0, len(ids), step)])
+                finite_means = np.where(mask[:, None], means, 0).astype(means.dtype) if check_finite else means
+                centroids = compute_centroids(SemanticMap(finite_means, ids, smap.classes, None), mask)
+                used = int(np.count_nonzero(mask))
+            else:
+                counts, sums = bin_sums_chunked(ids, means, lo, size, valid if use_valid else None)
+                total: dict[str, list] = {}
+                for sid, name in smap.classes.items():
+                    b = sid - lo
+                    if 0 <= b < size and counts[b] > 0:
+                        acc = total.setdefault(name, [np.zeros(3), 0])
+                        acc[0] = acc[0] + sums[b]
+                        acc[1] += int(counts[b])
+                centroids = {name: acc[0] / acc[1] for name, acc in total.items()}
+                used = sum(acc[1] for acc in total.values())
+        stats = MapStats(points=len(ids), used=used, build_s=time.perf_counter() - t0)
+        return cls(centroids, None, synonyms, smap.warnings, stats, provisional=True)
 
     @classmethod
     def from_map(cls, semantic_map: SemanticMap, config: DatabaseConfig | None = None,
@@ -475,18 +536,17 @@ class ObjectDatabase:
             warnings.append(f"class(es) in the table without (usable) points in the map: {', '.join(empty)}")
 
         positions: dict[str, tuple[float, float, float]] = {}
+        class_centroids: dict[str, tuple[float, float, float]] = {}
         for name, group in by_class.items():
-            if config.query_position == "class":
-                total = sum(g.point_count for g in group)
-                positions[name] = _tuple3(class_sum[name] / max(total, 1))
-            else:
-                positions[name] = group[0].centre
+            total = sum(g.point_count for g in group)
+            class_centroids[name] = _tuple3(class_sum[name] / max(total, 1))
+            positions[name] = class_centroids[name] if config.query_position == "class" else group[0].centre
         if timings is not None:
             timings["centres and tables"] = time.perf_counter() - t0 - sum(timings.values())
         stats = MapStats(points=n, used=int(counts.sum()), non_finite=non_finite, transparent=transparent,
                          unlabelled=unlabelled, noise=split.noise_points, build_s=time.perf_counter() - t0)
         instances = {name: tuple(group) for name, group in by_class.items()}
-        return cls(positions, instances, synonyms, tuple(warnings), stats)
+        return cls(positions, instances, synonyms, tuple(warnings), stats, class_centroids)
 
     # -- queries ---------------------------------------------------------------------------------
 
@@ -576,6 +636,8 @@ class ObjectDatabase:
             msg += f"; {len(group)} instances of {key}, this is {what}; see /object_instances"
         if note:
             msg += f" ({note})"
+        if self.provisional:
+            msg += f"; {PROVISIONAL_NOTE}"
         return QueryResult(True, (x, y, z), msg)
 
     def instances(self, name: str, reference: tuple[float, float, float] | None = None) -> InstancesResult:
@@ -598,6 +660,8 @@ class ObjectDatabase:
         msg = f"{len(group)} instance(s) of {key}{where}"
         if note:
             msg += f" ({note})"
+        if self.provisional:
+            msg += f"; {PROVISIONAL_NOTE}"
         return InstancesResult(True, key, msg, tuple(ordered), tuple(dists))
 
     def to_json(self) -> str:
@@ -609,6 +673,9 @@ class ObjectDatabase:
     def summary(self) -> str:
         """One line for logs: names with instance counts and what was skipped."""
         s = self.stats
+        if self.provisional:
+            return (f"{len(self._names)} objects (provisional class centroids, instances being built); "
+                    f"{s.used}/{s.points} points used; built in {s.build_s:.3f} s")
         parts = [f"{n}x{len(self._instances.get(n, ()))}" if len(self._instances.get(n, ())) > 1 else n
                  for n in self._names]
         return (f"{len(self._names)} objects, {self.instance_count()} instances ({', '.join(parts)}); "

@@ -32,8 +32,9 @@ from decision_maker.speech.vocabulary import Vocabulary
 
 SEGMENTATIONS = ("vad", "fixed")
 
-#: ``transcribe(audio [n] float32, prompt, vad_filter) -> Transcript`` (Transcriber.transcribe).
-TranscribeFn = Callable[[np.ndarray, str, bool], Transcript]
+#: ``transcribe(audio [n] float32, prompt, vad_filter, grammar) -> Transcript`` (Transcriber.transcribe);
+#: ``grammar(text) -> bool`` says whether a transcript is a command the vocabulary can form.
+TranscribeFn = Callable[[np.ndarray, str, bool, Callable[[str], bool] | None], Transcript]
 
 
 @dataclass(frozen=True)
@@ -48,6 +49,8 @@ class PipelineConfig:
         filter: hallucination filter thresholds.
         wake_word: required wake word; empty = off.
         wake_word_timeout_s: how long a lone wake word opens the gate.
+        grammar_rescoring: pass the vocabulary's command grammar to the transcriber, so that a
+            transcript outside it can be replaced by an in-grammar beam hypothesis.
     """
 
     segmentation: str = "vad"
@@ -57,6 +60,7 @@ class PipelineConfig:
     filter: FilterConfig = field(default_factory=FilterConfig)
     wake_word: str = ""
     wake_word_timeout_s: float = 5.0
+    grammar_rescoring: bool = True
 
     def __post_init__(self) -> None:
         if self.segmentation not in SEGMENTATIONS:
@@ -83,6 +87,7 @@ class Result:
         cut: the audio was cut by a chunk boundary or the maximum utterance length.
         mode: segmentation mode.
         utterance: running number.
+        rescored_from: Whisper's best text when an in-grammar hypothesis replaced it, else "".
     """
 
     command: str | None
@@ -99,6 +104,7 @@ class Result:
     cut: bool
     mode: str
     utterance: int
+    rescored_from: str = ""
 
     def to_json(self) -> str:
         d = asdict(self)
@@ -217,9 +223,10 @@ class VoicePipeline:
     def _submit(self, audio: np.ndarray, vad_filter: bool) -> Future[Transcript]:
         with self._lock:
             prompt = self._prompt
+            grammar = self._vocabulary.in_grammar if self.config.grammar_rescoring else None
         if self._worker is None:
             raise RuntimeError("_submit outside run()")
-        fut = self._worker.submit(self._transcribe, audio, prompt, vad_filter)
+        fut = self._worker.submit(self._transcribe, audio, prompt, vad_filter, grammar)
         self._inflight = [f for f in self._inflight if not f.done()] + [fut]
         return fut
 
@@ -267,4 +274,5 @@ class VoicePipeline:
         return Result(command=command, text=verdict.text, raw=tr.text, dropped=dropped, confidence=tr.confidence,
                       no_speech_prob=tr.no_speech_prob, avg_logprob=tr.avg_logprob, audio_s=tr.audio_s,
                       transcribe_s=tr.elapsed_s, latency_s=self._clock() - ev.speech_end_time,
-                      speculative=speculative, cut=ev.cut, mode=self.config.segmentation, utterance=ev.utterance)
+                      speculative=speculative, cut=ev.cut, mode=self.config.segmentation, utterance=ev.utterance,
+                      rescored_from=tr.rescored_from)

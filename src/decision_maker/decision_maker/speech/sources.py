@@ -15,12 +15,12 @@ import queue
 import shutil
 import subprocess
 import time
-import wave
 from typing import BinaryIO, Protocol
 
 import numpy as np
 
 from decision_maker.speech.errors import AudioDeviceError, AudioSourceError
+from decision_maker.speech.wavfile import read_wav_file
 
 SAMPLE_RATE = 16000
 
@@ -75,32 +75,26 @@ def pcm_to_float(raw: bytes, sample_width: int, channels: int) -> np.ndarray:
 
 
 class WavFileSource:
-    """A PCM WAV file, paced like a live stream.
+    """A WAV file, paced like a live stream.
 
     Args:
-        path: the WAV file (PCM 8/16/32-bit, any rate, any channel count).
+        path: the WAV file: PCM 8/16/24/32-bit or IEEE float 32/64-bit, plain or
+            ``WAVE_FORMAT_EXTENSIBLE`` (:mod:`decision_maker.speech.wavfile`), any rate, any
+            channel count.
         pacing: speed relative to real time (1.0 = real time, 4.0 = four times faster,
             0 = as fast as possible).
         block_s: block length in seconds.
 
     Raises:
-        AudioSourceError: missing or unreadable file, or not PCM WAV.
+        AudioSourceError: missing or unreadable file, or a WAV format that is not supported.
     """
 
     def __init__(self, path: str, pacing: float = 1.0, block_s: float = 0.032) -> None:
         if pacing < 0:
             raise AudioSourceError(f"pacing must be >= 0, got {pacing}")
         self.name = f"wav:{path}"
-        try:
-            with wave.open(path, "rb") as wf:
-                rate, width, channels = wf.getframerate(), wf.getsampwidth(), wf.getnchannels()
-                raw = wf.readframes(wf.getnframes())
-        except FileNotFoundError as exc:
-            raise AudioSourceError(f"WAV file not found: {path}") from exc
-        except (wave.Error, EOFError, OSError) as exc:
-            raise AudioSourceError(f"cannot read WAV file {path}: {exc} (PCM WAV expected; "
-                                   f"convert with: sox in.xxx -r 16000 -c 1 -b 16 out.wav)") from exc
-        self.audio = resample(pcm_to_float(raw, width, channels), rate)  # [n] float32, 16 kHz
+        samples, self.info = read_wav_file(path)  # [n] float32 mono at info.sample_rate
+        self.audio = resample(samples, self.info.sample_rate)  # [n] float32, 16 kHz
         self.pacing = pacing
         self.block = max(1, int(round(block_s * SAMPLE_RATE)))
         self._pos = 0

@@ -67,6 +67,48 @@ class Vocabulary:
         items = ([self.wake_word] if self.wake_word else []) + phrases + list(self.objects) + list(self.places)
         return ", ".join(i.lower() for i in items)
 
+    def grammar_sentences(self) -> frozenset[str]:
+        """Every normalised command the vocabulary can form (the command grammar).
+
+        A phrase that ends in an article (``"give me the"``) takes an object or a place name
+        (``"give me the cup"``); any other phrase is a whole command (``"go home"``). With
+        ``k`` phrases and ``m`` names this is at most ``k * (m + 1)`` sentences.
+        """
+        names = [normalise(n) for n in (*self.objects, *self.places)]
+        out: set[str] = set()
+        for phrase in self.command_phrases:
+            p = normalise(phrase)
+            if not p:
+                continue
+            if p.split(" ")[-1] in {"the", "a", "an"}:
+                out.update(f"{p} {n}" for n in names if n)
+            else:
+                out.add(p)
+        return frozenset(out)
+
+    def in_grammar(self, text: str) -> bool:
+        """Whether a transcript is one of :meth:`grammar_sentences` (after normalisation, with the
+        wake word, optionally after one filler word such as "hey", and a trailing "please" ignored)."""
+        ws = normalise(text).split(" ")
+        wake = normalise(self.wake_word).split(" ") if self.wake_word else []
+        if wake:
+            for start in (0, 1):
+                if ws[start:start + len(wake)] == wake:
+                    ws = ws[start + len(wake):]
+                    break
+        if ws and ws[0] == "please":
+            ws = ws[1:]
+        if ws and ws[-1] == "please":
+            ws = ws[:-1]
+        return " ".join(ws) in self._sentences()
+
+    def _sentences(self) -> frozenset[str]:
+        cached = self.__dict__.get("_grammar_cache")
+        if cached is None:
+            cached = self.grammar_sentences()
+            object.__setattr__(self, "_grammar_cache", cached)  # frozen: computed once per vocabulary
+        return cached
+
     def prompt_words(self) -> list[str]:
         """The prompt's words after normalisation (for the prompt-echo filter)."""
         n = normalise(self.prompt())
