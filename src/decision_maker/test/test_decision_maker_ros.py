@@ -77,6 +77,22 @@ class Robot:
                         20.0), "decision maker not subscribed"
         assert wait_for(lambda: (self.snapshot() or {}).get("robot") is not None, 20.0), "no world state"
 
+    def wait_knows(self, name: str, timeout: float = 40.0) -> None:
+        """Until the brain knows where ``name`` is (its object memory/list has arrived): asks
+        "where is the <name>" (a question: nothing moves) until the answer is not "I don't know".
+        Discovery of the latched object topics can lag the brain's readiness on a loaded machine."""
+        text = f"where is the {name}"
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            before = len([s for s in self.of(text) if s.state.terminal])
+            self.send(text)
+            wait_for(lambda: len([s for s in self.of(text) if s.state.terminal]) > before, 15.0)
+            finals = [s for s in self.of(text) if s.state.terminal]
+            if len(finals) > before and "don't know" not in finals[-1].sentence:
+                return
+            time.sleep(0.5)
+        raise AssertionError(f"the decision maker never learnt where the {name} is: {self.of(text)}")
+
     def send(self, text: str) -> None:
         self._cmd.publish(String(data=text))
 

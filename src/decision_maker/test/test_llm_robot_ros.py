@@ -43,6 +43,7 @@ def test_llm_plans_move_the_robot_only_when_valid(launch_nodes, ros_node):
         assert robot.final("go home").state is TaskState.SUCCEEDED
         assert ep.requests == []
 
+        robot.wait_knows("bottle")  # the LLM's plan is checked against the objects the brain knows
         robot.send("I'm thirsty, could you help?")
         done = robot.final("I'm thirsty, could you help?", 60.0)
         assert done.state is TaskState.SUCCEEDED, done

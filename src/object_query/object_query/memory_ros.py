@@ -90,8 +90,17 @@ def answer_query(memory: ObjectMemory, db: ObjectDatabase, name: str) -> QueryRe
     key, note = db.resolve(name)
     if key is None:
         key = normalise_name(name)
-        if not memory.candidates(key):
+        group = memory.candidates(key)
+        if not group:
             return QueryResult(False, (0.0, 0.0, 0.0), note)
+        if all(b.source == "map" and b.state == "unseen" for b in group):
+            # the map no longer has the class at all and nothing since says where it is: not found
+            # (a stale position must not send the robot there), with where it was last seen
+            b = group[0]
+            x, y, z = b.position
+            return QueryResult(False, (0.0, 0.0, 0.0),
+                               f"{note}; {key} was last seen at ({x:.3f}, {y:.3f}, {z:.3f}) ({b.id}), "
+                               "but the current map no longer shows it")
     group = memory.candidates(key)
     if not group or all(_as_mapped(b) for b in group):
         return db.query(name)

@@ -169,3 +169,29 @@ def test_vanished_objects_are_forgotten_after_a_few_reloads_and_bad_centres_igno
         assert not report.added  # the NaN cup is ignored
     assert confidences == [0.5, 0.25, 0.125, 0.0625, None]
     assert report.forgotten == ("trash#1",)
+
+
+def _blob_db(classes: dict[int, str], centres: dict[int, tuple[float, float, float]]):
+    import numpy as np
+
+    from object_query.semantic_map import ObjectDatabase, SemanticMap
+    rng = np.random.default_rng(0)
+    means = np.concatenate([rng.normal(centres[k], 0.02, (200, 3)) for k in centres]).astype(np.float32)
+    ids = np.concatenate([np.full(200, k) for k in centres])
+    return ObjectDatabase.from_map(SemanticMap(means, ids, classes))
+
+
+def test_object_query_does_not_send_the_robot_to_a_class_the_new_map_no_longer_has() -> None:
+    from object_query.memory_ros import answer_query
+    old = _blob_db({1: "placeholder", 2: "chair"}, {1: (1.0, 1.0, 0.5), 2: (3.0, 1.0, 0.5)})
+    new = _blob_db({2: "chair"}, {2: (3.0, 1.0, 0.5)})
+    mem = ObjectMemory(clock=Clock())
+    mem.merge_map((MapObservation(i.name, i.centre) for i in old.all_instances()), observed_at=900.0)
+    assert answer_query(mem, old, "placeholder").found
+    mem.merge_map((MapObservation(i.name, i.centre) for i in new.all_instances()), observed_at=950.0)
+    gone = answer_query(mem, new, "placeholder")
+    assert not gone.found and "no longer shows it" in gone.message and "last seen at (0.99" in gone.message
+    assert answer_query(mem, new, "chair").found
+    # what the robot itself did still counts when the map lacks the class: the held object is found
+    mem.grasped("placeholder", (1.0, 1.0, 0.0))
+    assert answer_query(mem, new, "placeholder").found
