@@ -86,7 +86,7 @@ class Robot:
         while time.monotonic() < deadline:
             before = len([s for s in self.of(text) if s.state.terminal])
             self.send(text)
-            wait_for(lambda: len([s for s in self.of(text) if s.state.terminal]) > before, 15.0)
+            wait_for(lambda n=before: len([s for s in self.of(text) if s.state.terminal]) > n, 15.0)
             finals = [s for s in self.of(text) if s.state.terminal]
             if len(finals) > before and "don't know" not in finals[-1].sentence:
                 return
