@@ -111,6 +111,10 @@ class Operator:
         self._ros.close()
 
 
+def _is_question(text: str) -> bool:
+    return text.lower().lstrip().startswith(("where", "what", "which", "who", "how", "do you", "have you"))
+
+
 def describe_world(world: dict, locations: dict) -> list[str]:
     """Readable lines: robot pose, gripper, each object and the named place it is at (if any)."""
     r = world.get("robot") or {}
@@ -207,10 +211,15 @@ def main(argv: list[str] | None = None) -> int:
                 return 1
             print(f"demo: {len(specs)} nodes ready in {time.monotonic() - t0:.1f} s", flush=True)
             print("demo: the world now:\n" + "\n".join(describe_world(op.snapshot(), locations)), flush=True)
-            for text in commands:
+            sent: list[str] = []
+            for text, key in zip(commands, keys, strict=True):
+                if _is_question(text) and sent:
+                    # a question is answered at once, even while the robot is busy: ask it once the
+                    # earlier commands are done, as a person watching the robot would
+                    op.wait_finals(sent, opts.timeout)
                 print(f"demo: you say: {text!r}", flush=True)
-            for text in commands:
                 op.send(text)
+                sent.append(key)
             ok = True
             if commands:
                 if not op.wait_finals(keys, opts.timeout):
