@@ -20,6 +20,7 @@ setup(
         "console_scripts": [
             "sim_camera_node = home_robot_exploration.sim_camera_node:main",
             "explorer_node = home_robot_exploration.explorer_node:main",
+            "demo_explore = home_robot_exploration.demo_explore:main",
         ]
     },
 )

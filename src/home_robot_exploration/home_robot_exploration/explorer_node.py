@@ -67,7 +67,8 @@ def quat_to_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
 
 
 def seen_percent(states: np.ndarray) -> float:
-    """Known cells / cells of the known area's bounding box, in percent (a closed room's estimate)."""
+    """Known cells / cells of the known area's bounding box, in percent: a rough estimate for a closed
+    home (it cannot know the rooms it has not seen yet)."""
     known = states != UNKNOWN
     if not known.any():
         return 0.0
@@ -263,7 +264,8 @@ class ExplorerNode(Node):
             msg.data = states.reshape(-1).tolist()
             self._map_pub.publish(msg)
         p = self.core.progress(now)
-        doc = {"state": p.state, "explored_m2": round(p.explored_m2, 2), "seen_percent": round(seen_percent(states), 1),
+        seen = seen_percent(states) if p.frames else 0.0
+        doc = {"state": p.state, "explored_m2": round(p.explored_m2, 2), "seen_percent": round(seen, 1),
                "frontiers_left": p.frontiers_left, "elapsed_s": round(p.elapsed_s, 1), "goals": p.goals,
                "frames": p.frames, "reason": p.reason}
         self._progress_pub.publish(String(data=json.dumps(doc)))
