@@ -168,6 +168,7 @@ class ExplorerNode(Node):
         for stamp in sorted(set(self._depths) & set(self._poses)):
             depth, c2w = self._depths.pop(stamp), self._poses.pop(stamp)
             if self._k is None:
+                self.get_logger().warn("frame skipped: no usable camera_info yet")
                 continue
             try:
                 self.core.integrate(depth, self._k, c2w, stamp * 1e-9)

@@ -14,7 +14,7 @@ time the pose was taken) and ``frame_id``:
 
 Rendering runs on one worker thread (the callbacks never wait on it); a tick that finds the worker
 still busy is skipped (counted in the log), so the real rate is at most what the CPU renders. A
-300 x 170 frame takes about 1.6 s on one core here, hence the 0.5 Hz default.
+300 x 170 frame takes 0.47 s on an idle core here (1.6 s at load 10 on 2 cores), hence the 1 Hz default.
 
 The code defaults below are config/params/sim_camera.yaml's values (a test compares them).
 """
@@ -43,7 +43,7 @@ IMAGE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
 #: Parameters and their defaults (= config/params/sim_camera.yaml).
 DEFAULTS: dict[str, object] = {
     "width": 300, "height": 170, "hfov_deg": 90.0, "mount_height": 1.0, "tilt_deg": 20.0,
-    "forward_offset": 0.0, "rate_hz": 0.5, "pose_topic": "robot_pose", "frame_id": "camera",
+    "forward_offset": 0.0, "rate_hz": 1.0, "pose_topic": "robot_pose", "frame_id": "camera",
     "map_frame": "map", "seed": 0, "supersample": 1,
 }
 
