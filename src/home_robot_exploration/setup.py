@@ -21,6 +21,7 @@ setup(
             "sim_camera_node = home_robot_exploration.sim_camera_node:main",
             "explorer_node = home_robot_exploration.explorer_node:main",
             "demo_explore = home_robot_exploration.demo_explore:main",
+            "live_view_node = home_robot_exploration.live_view_node:main",
         ]
     },
 )
