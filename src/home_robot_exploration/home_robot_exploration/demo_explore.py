@@ -11,7 +11,8 @@ and each object's error (the object database's position vs the simulator's truth
 Not yet in the loop (see docs/exploration.md): the SLAM map is not rebuilt from the explorer's
 frames, so the object positions come from the bundled map.
 
-Options: ``--set NODE.PARAM=VALUE`` (e.g. ``sim_camera.width=150``), ``--timeout`` (s), ``--verbose``.
+Options: ``--set NODE.PARAM=VALUE`` (e.g. ``sim_camera.width=150``), ``--timeout`` (s), ``--verbose``,
+``--view`` (also serve the live 3-D view, viser, at the printed URL; ``--view-port``).
 """
 
 from __future__ import annotations
@@ -140,6 +141,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE",
                     help="override a parameter, e.g. sim_camera.width=150")
     ap.add_argument("--verbose", action="store_true", help="show the nodes' log lines too")
+    ap.add_argument("--view", action="store_true", help="also serve the live 3-D view (viser) in a browser")
+    ap.add_argument("--view-port", type=int, default=8080, help="port of the live view (loopback)")
     ap.add_argument("--ready-timeout", type=float, default=120.0)
     ap.add_argument("--timeout", type=float, default=540.0, help="seconds for exploration and the command")
     opts = ap.parse_args(argv)
@@ -150,6 +153,11 @@ def main(argv: list[str] | None = None) -> int:
 
     locations = load_locations(default_locations_file())
     specs = load_nodeset("sim_robot") + [s for s in load_nodeset("explore") if s.name in ("sim_camera", "explorer")]
+    if opts.view:
+        from home_robot_bringup.nodeset import NodeSpec
+
+        specs.append(NodeSpec("live_view", "home_robot_exploration", "live_view_node",
+                              parameters={"port": opts.view_port}, ready="ready:"))
     specs = apply_overrides(specs, ["decision_maker.exploration_mode=queue", *opts.set])
     with DomainLease() as lease:
         env = node_environment(lease.domain_id)
@@ -173,6 +181,10 @@ def main(argv: list[str] | None = None) -> int:
                 print("demo: error: the decision maker did not connect", file=sys.stderr)
                 return 1
             print(f"demo: {len(specs)} nodes ready in {time.monotonic() - t0:.1f} s", flush=True)
+            if opts.view:
+                ready = [ln for ln in sup.get("live_view").output().splitlines() if "ready: live view at" in ln]
+                url = ready[-1].split("ready: live view at ")[1].split(" ")[0] if ready else "?"
+                print(f"demo: watch it in a browser: {url}", flush=True)
             print(f"demo: you say: {COMMAND!r}", flush=True)
             t_cmd = time.monotonic()
             op.send(COMMAND)

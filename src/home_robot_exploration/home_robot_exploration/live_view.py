@@ -81,10 +81,14 @@ class LiveView:
         self._labels: dict[str, object] = {}
         self.splats = 0
         self.server.scene.set_up_direction("+z")
-        self.server.initial_camera.position = (3.0, -3.0, 6.5)  # above the home's south wall
-        self.server.initial_camera.look_at = (3.0, 2.5, 0.0)
-        self.server.initial_camera.up = (0.0, 0.0, 1.0)
+        self.server.on_client_connect(self._place_camera)
         self.server.scene.add_grid("/floor_grid", width=12.0, height=12.0, position=(3.0, 2.5, -0.01))
+
+    @staticmethod
+    def _place_camera(client) -> None:
+        """A new browser looks at the home from above its south side."""
+        client.camera.look_at = (3.0, 2.5, 0.0)
+        client.camera.position = (3.0, -4.0, 7.0)
 
     def clients(self) -> int:
         return len(self.server.get_clients())
