@@ -4,13 +4,16 @@ SHELL := /bin/bash
 ENV := source scripts/env.sh >/dev/null &&
 PYTEST_ARGS ?= -n 2
 
-.PHONY: setup demo test lint clean bench bench-object-query bench-decision-maker bench-voice bench-slam bench-slam-streaming
+.PHONY: setup demo demo-explore test lint clean bench bench-object-query bench-decision-maker bench-voice bench-slam bench-slam-streaming
 
 setup:
 	@bash scripts/setup.sh
 
 demo: setup
 	@$(ENV) ros_run home_robot_bringup demo
+
+demo-explore: setup
+	@$(ENV) ros_run home_robot_exploration demo_explore
 
 test: setup
 	@$(ENV) python -m pytest $(PYTEST_ARGS)

@@ -73,9 +73,9 @@ fi
 PY="$VENV/bin/python"
 
 # --- 2. Python packages (skipped while the requirement files are unchanged) ---------------------
-# dev.in (test tools) and the feature files (voice.in, slam.in) in both worlds; the ROS wheels and
+# dev.in (test tools) and the feature files (voice.in, slam.in, viewer.in) in both worlds; the ROS wheels and
 # numpy/yaml (python.in) only in the wheel world.
-reqs=(requirements/dev.in requirements/voice.in requirements/slam.in)
+reqs=(requirements/dev.in requirements/voice.in requirements/slam.in requirements/viewer.in)
 if [ "$WORLD" = wheels ]; then reqs=(requirements/ros-jazzy.in requirements/python.in "${reqs[@]}"); fi
 for extra in ${HOME_ROBOT_EXTRAS:-}; do
   [ -f "requirements/$extra.in" ] || die "unknown extra '$extra' (no requirements/$extra.in)"

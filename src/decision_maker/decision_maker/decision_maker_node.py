@@ -29,7 +29,10 @@ Parameters (read at start; see config/params/decision_maker.yaml for the default
     grasp_timeout_s, place_timeout_s, query_timeout_s, server_wait_s, cancel_wait_s,
     confirm_llm_plans, confirm_timeout_s (LLM plans wait for "yes"/"no" on /manual_command),
     frame_id, frame_offset ([x, y, yaw] of the map in the command frame: Isaac Sim and co.),
-    nav_action, grasp_action, place_action, query_service.
+    nav_action, grasp_action, place_action, query_service,
+    exploration_mode ("off" | "queue" | "reject", Stage 0: while ``exploration/progress`` says the robot
+    explores, commands wait and run when it is done, or are refused; a stop also publishes
+    ``exploration/cancel``), exploration_timeout_s (the hold ends by itself after this long).
 """
 
 from __future__ import annotations
@@ -48,12 +51,13 @@ from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from std_msgs.msg import String
 
-from decision_maker.command_types import FrameTransform, load_locations
+from decision_maker.command_types import FrameTransform, load_locations, sanitize_text
 from decision_maker.errors import ConfigError
-from decision_maker.execution import EngineConfig, ExecutionEngine, TaskState, TaskStatus
+from decision_maker.execution import EngineConfig, ExecutionEngine, TaskState, TaskStatus, is_stop_command
 from decision_maker.memory_link import MemoryLink
 from decision_maker.nl_planner import PlanningContext, make_planner
 from decision_maker.ros_robot import RosRobot
+from decision_maker.stage0 import ExplorationGate
 from decision_maker.topics import CANCEL_QOS, COMMAND_QOS, HARDWARE_STOP, OBJECT_LIST_QOS, SERVICE_QOS, SUBMIT_COMMAND
 
 #: Longest /object_list message parsed (characters); a longer one is ignored with a warning.
@@ -93,6 +97,7 @@ class DecisionMakerNode(Node):
             "frame_id": "map", "frame_offset": [0.0, 0.0, 0.0],
             "nav_action": "navigate_to_pose", "grasp_action": "grasp", "place_action": "place",
             "query_service": "object_query",
+            "exploration_mode": "off", "exploration_timeout_s": 900.0,  # Stage 0 (decision_maker.stage0)
         }
         for name, default in p.items():
             self.declare_parameter(name, default)
@@ -149,6 +154,7 @@ class DecisionMakerNode(Node):
         self.memory = MemoryLink(self, self._input_group, self._client_group)
         self.engine = ExecutionEngine(self._planner, self.robot, config, self._publish_status, self._planning_context,
                                       on_outcome=self.memory.report)
+        self._setup_stage0(str(v["exploration_mode"]), float(v["exploration_timeout_s"]))
         self.create_subscription(String, "cancel_command", self._on_cancel, CANCEL_QOS,
                                  callback_group=self._cancel_group)
         self.create_subscription(String, "manual_command", self._on_command, COMMAND_QOS,
@@ -162,6 +168,40 @@ class DecisionMakerNode(Node):
             f"{locations_file}, queue {config.max_queue}, batch {config.batch_timeout_s:g} s, "
             f"nav {config.nav_timeout_s:g} s, frame {frames.frame_id})"
         )
+
+    def _setup_stage0(self, mode: str, timeout_s: float) -> None:
+        """Stage 0: hold (or refuse) commands while ``exploration/progress`` says the robot explores."""
+        self._gate = ExplorationGate(mode, timeout_s)  # raises ConfigError
+        self._exploration_cancel = self.create_publisher(String, "exploration/cancel", CANCEL_QOS)
+        if mode == "off":
+            return
+        self.engine.set_gate(self._gate.hold)
+        self.create_subscription(String, "exploration/progress", self._on_exploration_progress, OBJECT_LIST_QOS,
+                                 callback_group=self._input_group)
+        self.create_timer(1.0, self._check_exploration_deadline, callback_group=self._input_group)
+        self.get_logger().info(f"stage 0: commands are {'queued' if mode == 'queue' else 'refused'} while exploring "
+                               f"(at most {timeout_s:g} s)")
+
+    def _on_exploration_progress(self, msg: String) -> None:
+        try:
+            ended = self._gate.on_progress(msg.data)
+        except ValueError as exc:
+            self.get_logger().warn(f"ignoring exploration progress: {exc}")
+            return
+        if ended:
+            self.get_logger().info(f"stage 0 done ({self._gate.done_reason}): "
+                                   f"{self.engine.queue_length()} queued command(s) run now")
+            self.engine.gate_changed()
+
+    def _check_exploration_deadline(self) -> None:
+        if self._gate.timed_out():
+            self.get_logger().warn(f"stage 0: {self._gate.done_reason}; taking commands now")
+            self.engine.gate_changed()
+
+    def _stop_exploration(self, text: str) -> None:
+        """A stop (``/cancel_command`` or a spoken one) also ends exploration, as it cancels any goal."""
+        if self._gate.mode != "off" and self._gate.hold() is not None:
+            self._exploration_cancel.publish(String(data=text[:200]))
 
     def _on_goal_sent(self, what: str) -> None:
         current = self.engine.current()
@@ -183,9 +223,13 @@ class DecisionMakerNode(Node):
         self._status_pub.publish(String(data=status.to_json()))
 
     def _on_command(self, msg: String) -> None:
+        if is_stop_command(sanitize_text(msg.data[:200])):
+            self._stop_exploration(msg.data)
         self.engine.submit(msg.data)
 
     def _on_submit(self, request: SubmitCommand.Request, response: SubmitCommand.Response) -> SubmitCommand.Response:
+        if is_stop_command(sanitize_text(request.text[:200])):
+            self._stop_exploration(request.text)
         status = self.engine.submit(request.text)  # never blocks: bounded, then queued or rejected
         response.accepted = status.state is not TaskState.REJECTED
         response.id = status.id
@@ -196,6 +240,7 @@ class DecisionMakerNode(Node):
     def _on_cancel(self, msg: String) -> None:
         # Every message cancels, whoever sent it (the brain's own stop goes to /hardware_stop).
         reason = " ".join(msg.data[:400].split())[:200] or "operator"
+        self._stop_exploration(reason)
         n = self.engine.cancel(f"/cancel_command ({reason})")
         self.get_logger().warn(f"/cancel_command ({reason}): cancelled {n} command(s)")
 

@@ -54,6 +54,7 @@ from decision_maker.errors import (
 )
 from decision_maker.nl_planner import Planner, PlanningContext
 from decision_maker.scenario_library import answer_question
+from decision_maker.stage0 import Hold
 
 
 class TaskState(str, enum.Enum):
@@ -318,6 +319,7 @@ class ExecutionEngine:
         self._held: str | None = None  # worker thread only: what the robot holds after our own grasp/place
         self._on_outcome = on_outcome
         self._pose: Pose2D | None = None  # worker thread only: the robot's last reached goal pose
+        self._gate: Callable[[], Hold | None] = lambda: None  # Stage 0: why commands wait (set_gate)
 
     # --- input side (callbacks; never block) -------------------------------------------------
 
@@ -376,16 +378,21 @@ class ExecutionEngine:
                                   message=f"queue full ({len(self._queue)} commands waiting)",
                                   sentence=f"I am busy with {len(self._queue)} waiting commands; "
                                            "please try again later.")
+            hold = self._gate()
+            if hold is not None and hold.reject:
+                return self._emit(cid, shown, TaskState.REJECTED, message=f"{hold.reason}: not taking commands yet",
+                                  sentence=f"{hold.sentence}; please ask me again when I am done.")
             ahead = len(self._queue) + (1 if self._current else 0)
             self._queue.append(_Command(cid, text, self._clock()))
             after = f" ({ahead} ahead of it)." if ahead else "."
             status = self._emit(cid, shown, TaskState.QUEUED, message=f"queued, {ahead} ahead",
-                                sentence=f"Okay: {shorten(text, 60)!r}{after}")
+                                sentence=f"Okay: {shorten(text, 60)!r}{after}" if hold is None else
+                                f"{hold.sentence}; I will do it after.")
             self._cond.notify_all()
             return status
 
     def _answer_now(self, text: str, shown: str) -> TaskStatus | None:
-        """A question ("where is the cup") asked while the robot is busy: answered at once.
+        """A question ("where is the cup") asked while the robot is busy (or exploring): answered at once.
 
         Questions move nothing, so they never wait behind a running command. Only exact question
         intents are answered here (a pure look-up in the memory, no model, no waiting); anything
@@ -393,7 +400,7 @@ class ExecutionEngine:
         None when ``text`` is not answered here.
         """
         with self._cond:
-            busy = self._current is not None or bool(self._queue)
+            busy = self._current is not None or bool(self._queue) or self._gate() is not None  # or exploring
         if not busy or not text:
             return None
         try:
@@ -427,6 +434,18 @@ class ExecutionEngine:
                        sentence="Cancelled before it started.")
         return len(dropped)
 
+    def set_gate(self, gate: Callable[[], Hold | None]) -> None:
+        """Stage 0: while ``gate()`` returns a :class:`~decision_maker.stage0.Hold`, queued commands wait
+        (or, for a rejecting hold, new ones are refused). Call :meth:`gate_changed` when it may have opened."""
+        with self._cond:
+            self._gate = gate
+            self._cond.notify_all()
+
+    def gate_changed(self) -> None:
+        """Wake the worker: the gate may have opened (queued commands run now)."""
+        with self._cond:
+            self._cond.notify_all()
+
     def queue_length(self) -> int:
         with self._cond:
             return len(self._queue)
@@ -453,8 +472,8 @@ class ExecutionEngine:
         """The worker loop: one command at a time until :meth:`stop`."""
         while True:
             with self._cond:
-                while not self._queue and not self._stopping:
-                    self._cond.wait()
+                while (not self._queue or self._gate() is not None) and not self._stopping:
+                    self._cond.wait(1.0 if self._queue else None)  # a held queue: the gate's deadline opens it
                 if self._stopping:
                     return
                 cmd = self._queue.popleft()

@@ -39,6 +39,9 @@ NODES = {
                            "semantic_gs_slam_ros.run_gs_slam_server:SlamServer"),
     "run_gs_slam_client": ("semantic_gs_slam_ros", "run_gs_slam_client",
                            "semantic_gs_slam_ros.run_gs_slam_client:SlamClient"),
+    "sim_camera": ("home_robot_exploration", "sim_camera_node", "home_robot_exploration.sim_camera_node:SimCameraNode"),
+    "explorer": ("home_robot_exploration", "explorer_node", "home_robot_exploration.explorer_node:ExplorerNode"),
+    "live_view": ("home_robot_exploration", "live_view_node", "home_robot_exploration.live_view_node:LiveViewNode"),
 }
 #: parameters every rclpy node has (not ours to document)
 BUILTIN = {"use_sim_time", "start_type_description_service"}
