@@ -32,7 +32,7 @@ from torch import Tensor
 
 from semantic_gs_slam.config import Intrinsics, RendererConfig
 from semantic_gs_slam.geometry import quat_to_rotmat
-from semantic_gs_slam.render_gsplat import render_gsplat
+from semantic_gs_slam.render_gsplat import gsplat_available, render_gsplat, require_gsplat
 from semantic_gs_slam.render_types import (
     ALPHA_MIN,
     BLUR_PX2,
@@ -58,16 +58,21 @@ def _check_inputs(g: Gaussians, w2c: Tensor) -> None:
         raise ValueError(f"w2c is on {w2c.device} but the Gaussians are on {g.means.device}")
 
 
-def select_backend(cfg: RendererConfig) -> RenderBackend:
-    """The renderer back-end named by ``cfg.backend`` (chosen once; the engine keeps the result).
+def select_backend(cfg: RendererConfig, device: torch.device | str = "cpu") -> RenderBackend:
+    """The renderer back-end ``cfg.backend`` names (chosen once; the engine keeps the result).
+
+    Args:
+        cfg: renderer settings; ``backend="auto"`` picks gsplat when ``device`` is CUDA and gsplat
+            imports, else the torch tiles.
+        device: the device the Gaussians live on.
 
     Raises:
         BackendUnavailableError: ``gsplat`` asked for where gsplat or CUDA is missing.
     """
     if cfg.backend == "gsplat":
-        from semantic_gs_slam.render_gsplat import require_gsplat
-
         require_gsplat()
+        return render_gsplat
+    if cfg.backend == "auto" and torch.device(device).type == "cuda" and gsplat_available():
         return render_gsplat
     return render_torch
 
@@ -85,7 +90,7 @@ def render(g: Gaussians, w2c: Tensor, k: Intrinsics, cfg: RendererConfig | None 
         :class:`RenderOutput`.
     """
     cfg = cfg or RendererConfig()
-    return select_backend(cfg)(g, w2c, k, cfg)
+    return select_backend(cfg, g.means.device)(g, w2c, k, cfg)
 
 
 def jacobian_limits(k: Intrinsics) -> tuple[float, float, float, float]:

@@ -56,7 +56,7 @@ def gsplat_inputs(g: Gaussians) -> tuple[torch.Tensor, torch.Tensor, torch.Tenso
 
 
 def render_gsplat(g: Gaussians, w2c: torch.Tensor, k: Intrinsics, cfg: RendererConfig) -> RenderOutput:
-    """Render with ``gsplat.rasterization`` (CUDA tensors expected). Arguments as :func:`~semantic_gs_slam.render.render`.
+    """Render with ``gsplat.rasterization`` (CUDA tensors). Arguments as :func:`semantic_gs_slam.render.render`.
 
     Raises:
         BackendUnavailableError: gsplat is not installed or there is no CUDA device.
