@@ -111,7 +111,24 @@ def project(g: Gaussians, w2c: Tensor, k: Intrinsics, near: float) -> dict[str, 
     """
     pc = g.means @ w2c[:3, :3].T + w2c[:3, 3]  # [N, 3]
     idx = torch.nonzero(pc[:, 2].detach() > near).squeeze(1)
-    pc = pc.index_select(0, idx)
+    ls = g.log_scales.index_select(0, idx)
+    quats = g.quats.index_select(0, idx) if ls.shape[1] == 3 else None
+    out = project_rows(pc.index_select(0, idx), ls, quats, g.logit_opacities.index_select(0, idx), w2c, k)
+    out["idx"] = idx
+    return out
+
+
+def project_rows(pc: Tensor, log_scales: Tensor, quats: Tensor | None, logit_opacities: Tensor, w2c: Tensor,
+                 k: Intrinsics) -> dict[str, Tensor]:
+    """The projection maths of :func:`project` on given rows (fixed shapes: no culling, no host sync).
+
+    Args:
+        pc: [M, 3] camera-frame centres (z > 0). log_scales: [M, 1] or [M, 3]. quats: [M, 4] (anisotropic
+            scales only) or None. logit_opacities: [M, 1]. w2c: [4, 4]. k: intrinsics.
+
+    Returns:
+        dict with ``uv`` [M, 2], ``conic`` [M, 3], ``cov`` [M, 3], ``log_o`` [M], ``z`` [M].
+    """
     x, y, z = pc.unbind(-1)
     # clamp the Jacobian's x/z, y/z to the view plus a margin (as gsplat / 3DGS), else near off-screen
     # Gaussians blow up
@@ -120,13 +137,13 @@ def project(g: Gaussians, w2c: Tensor, k: Intrinsics, near: float) -> dict[str, 
     ty = (y / z).clamp(-yn, yp) * z
     zero = torch.zeros_like(z)
     j = torch.stack([k.fx / z, zero, -k.fx * tx / (z * z), zero, k.fy / z, -k.fy * ty / (z * z)], -1).reshape(-1, 2, 3)
-    ls = g.log_scales.index_select(0, idx)
+    ls = log_scales
     if ls.shape[1] == 1:
         s2 = torch.exp(2 * ls[:, 0])  # isotropic: covariance s^2 I in every frame
         jj = j @ j.transpose(1, 2)  # [M, 2, 2]
         cov2 = s2[:, None, None] * jj
     else:
-        r = quat_to_rotmat(g.quats[idx])  # [M, 3, 3]
+        r = quat_to_rotmat(quats)  # [M, 3, 3]
         m = w2c[:3, :3] @ r * torch.exp(ls)[:, None, :]  # camera-frame R S
         cov2 = j @ m @ m.transpose(1, 2) @ j.transpose(1, 2)
     cxx = cov2[:, 0, 0] + BLUR_PX2
@@ -135,8 +152,8 @@ def project(g: Gaussians, w2c: Tensor, k: Intrinsics, near: float) -> dict[str, 
     det = (cxx * cyy - cxy * cxy).clamp_min(1e-12)
     conic = torch.stack([cyy / det, -cxy / det, cxx / det], -1)
     uv = torch.stack([k.fx * x / z + k.cx, k.fy * y / z + k.cy], -1)
-    log_o = math.log(OPACITY_CAP) + torch.nn.functional.logsigmoid(g.logit_opacities.index_select(0, idx)[:, 0])
-    return {"idx": idx, "uv": uv, "conic": conic, "cov": torch.stack([cxx, cxy, cyy], -1), "log_o": log_o, "z": z}
+    log_o = math.log(OPACITY_CAP) + torch.nn.functional.logsigmoid(logit_opacities[:, 0])
+    return {"uv": uv, "conic": conic, "cov": torch.stack([cxx, cxy, cyy], -1), "log_o": log_o, "z": z}
 
 
 class _Composite(torch.autograd.Function):

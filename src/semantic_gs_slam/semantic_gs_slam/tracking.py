@@ -245,8 +245,8 @@ def icp(model_depth: Tensor, model_valid: Tensor, guess_c2w: Tensor, live_depth:
             a += 1e-9 * eye6 * a.diagonal().mean()
             xi = torch.linalg.solve(a, b)
             est = se3_exp(xi) @ est
-            res_rms = float(torch.sqrt((r * r).mean()))
-            if float(xi.abs().max()) < 1e-6:
+            res_rms, step = torch.stack([torch.sqrt((r * r).mean()), xi.abs().max()]).tolist()  # one host copy
+            if step < 1e-6:
                 break
     return TrackResult(est, res_rms, n_in)
 
@@ -276,7 +276,7 @@ def photometric_loss_of(out: RenderOutput, rgb: Tensor, depth: Tensor, min_silho
 
 def w2c_from_quat_trans(q: Tensor, t: Tensor) -> Tensor:
     """[4, 4] world-to-camera pose from an (unnormalised) quaternion [4] (wxyz) and a translation [3]."""
-    bottom = q.new_tensor([[0.0, 0.0, 0.0, 1.0]])
+    bottom = torch.nn.functional.pad(torch.ones_like(t[:1]), (3, 0))[None]  # [[0, 0, 0, 1]], no host copy
     return torch.cat([torch.cat([quat_to_rotmat(q), t[:, None]], 1), bottom], 0)
 
 
