@@ -44,7 +44,7 @@ from semantic_gs_slam.render_types import (
     RenderOutput,
 )
 
-__all__ = ["ALPHA_MIN", "OPACITY_CAP", "Gaussians", "RenderBackend", "RenderOutput", "project", "render",
+__all__ = ["ALPHA_MIN", "OPACITY_CAP", "Gaussians", "RenderBackend", "RenderOutput", "footprint", "project", "render",
            "render_reference", "render_torch", "select_backend"]
 
 EXP_FLOOR = -20.0  # exp() of smaller inputs is slow on CPU and below ALPHA_MIN anyway
@@ -156,6 +156,24 @@ def project_rows(pc: Tensor, log_scales: Tensor, quats: Tensor | None, logit_opa
     return {"uv": uv, "conic": conic, "cov": torch.stack([cxx, cxy, cyy], -1), "log_o": log_o, "z": z}
 
 
+def footprint(log_o: Tensor, cov: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Exact pixel box where a projected Gaussian's alpha is >= 1/255.
+
+    ``alpha >= 1/255  <=>  d^2 <= 2 ln(255 o)`` (Mahalanobis ``d``); the box's half extents are that
+    radius times the marginal standard deviations. gsplat's box is ``ceil(min(3.33, that radius) sigma)``,
+    never smaller (0.99 * 255 gives a radius of 3.327), so both back-ends blend the same pixels.
+
+    Args:
+        log_o: [M] log-opacities. cov: [M, 3] 2-D covariances (xx, xy, yy) with the low-pass added.
+
+    Returns:
+        keep [M] (opacity >= 1/255), half extents hx [M] and hy [M] in pixels.
+    """
+    r2 = 2 * (log_o + math.log(255.0))
+    rad = torch.sqrt(r2.clamp_min(0))
+    return r2 > 0, rad * torch.sqrt(cov[:, 0]), rad * torch.sqrt(cov[:, 2])
+
+
 class _Composite(torch.autograd.Function):
     """Front-to-back alpha compositing of a batch of tiles with a hand-written backward.
 
@@ -235,11 +253,7 @@ def render_torch(g: Gaussians, w2c: Tensor, k: Intrinsics, cfg: RendererConfig) 
     feats_all = torch.cat(feats, -1)  # [M, C]
     c_out = feats_all.shape[1]
     with torch.no_grad():
-        # footprint: alpha >= 1/255  <=>  d^2 <= 2 ln(255 o); box from the marginal std devs
-        r2 = 2 * (log_o + math.log(255.0))
-        keep = r2 > 0
-        rad = torch.sqrt(r2.clamp_min(0))
-        hx, hy = rad * torch.sqrt(cov[:, 0]), rad * torch.sqrt(cov[:, 2])
+        keep, hx, hy = footprint(log_o, cov)
         x0 = torch.floor((uv[:, 0] - hx + 0.5) / ts).long()
         x1 = torch.floor((uv[:, 0] + hx + 0.5) / ts).long()
         y0 = torch.floor((uv[:, 1] - hy + 0.5) / ts).long()
