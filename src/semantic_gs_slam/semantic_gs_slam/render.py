@@ -194,6 +194,7 @@ class _Composite(torch.autograd.Function):
         fx = torch.cat([feats, feats.new_ones(b, kk, 1)], -1)  # [B, K, C+1]
         out = feats.new_zeros(b, c + 1, p)
         t_run = feats.new_ones(b, 1, p)
+        on_cpu = feats.device.type == "cpu"
         alphas, weights = [], []
         done = 0
         for s in range(0, kk, chunk):
@@ -203,14 +204,18 @@ class _Composite(torch.autograd.Function):
             a = a.masked_fill_(a < ALPHA_MIN, 0.0)
             tc = t_run * torch.cumprod(1 - a, dim=1)  # transmittance behind each Gaussian
             t_ex = torch.cat([t_run, tc[:, :-1]], 1)  # transmittance in front of each Gaussian
-            a = a.masked_fill_(tc <= stop, 0.0)  # gsplat: the pixel ends before this Gaussian
+            t_run = tc[:, -1:]
+            # on the CPU a look at the chunk's last transmittance (free there) skips the masking pass
+            # when no pixel ends in this chunk; elsewhere it always runs (no host sync)
+            lo, hi = t_run.aminmax() if on_cpu else (None, None)
+            if not on_cpu or float(lo) <= stop:
+                a = a.masked_fill_(tc <= stop, 0.0)  # gsplat: the pixel ends before this Gaussian
             w = t_ex.mul_(a)  # blending weights (t_ex is not needed afterwards)
             out += fx[:, s:e].transpose(1, 2) @ w
-            t_run = tc[:, -1:]
             alphas.append(a)
             weights.append(w)
             done = e
-            if e < kk and float(t_run.max()) <= stop:  # a host sync per chunk, none for a single chunk
+            if e < kk and float(hi if on_cpu else t_run.max()) <= stop:  # a host sync per chunk (none for one)
                 break
         cat = (lambda xs: xs[0]) if len(alphas) == 1 else (lambda xs: torch.cat(xs, 1))
         ctx.save_for_backward(fx, mono, cat(alphas), cat(weights))
