@@ -4,7 +4,8 @@ SHELL := /bin/bash
 ENV := source scripts/env.sh >/dev/null &&
 PYTEST_ARGS ?= -n 2
 
-.PHONY: setup demo demo-explore test lint clean bench bench-object-query bench-decision-maker bench-voice bench-slam bench-slam-streaming
+.PHONY: setup demo demo-explore test lint clean bench bench-object-query bench-decision-maker bench-voice bench-slam bench-slam-streaming \
+	setup-gpu bench-gpu gpu-wheels
 
 setup:
 	@bash scripts/setup.sh
@@ -38,6 +39,17 @@ bench-slam: setup
 
 bench-slam-streaming: setup
 	@$(ENV) python bench/slam_streaming.py
+
+# CUDA machine (docs/slam.md "On a GPU"): no venv needed, the machine's CUDA torch is used (PYTHON=...).
+# gpu-wheels runs where a package index is reachable and fills .whl/ for a machine without network.
+gpu-wheels:
+	@bash bench/gpu.sh --download
+
+setup-gpu:
+	@bash bench/gpu.sh --setup-only
+
+bench-gpu:
+	@bash bench/gpu.sh
 
 clean:
 	rm -rf build install log

@@ -25,7 +25,7 @@ import time
 import numpy as np
 import torch
 
-from semantic_gs_slam.config import MappingConfig, SlamConfig
+from semantic_gs_slam.config import MappingConfig, RendererConfig, SlamConfig
 from semantic_gs_slam.datasets import load_dataset
 from semantic_gs_slam.evaluate import evaluate, format_table
 from semantic_gs_slam.render import render
@@ -35,7 +35,7 @@ from semantic_gs_slam.synthetic import generate
 
 def renderer_timing(eng: SLAM, c2w: np.ndarray, reps: int = 7) -> tuple[float, float]:
     """Median forward and forward+backward milliseconds of a full render at ``c2w``."""
-    w2c = torch.as_tensor(np.linalg.inv(c2w), dtype=torch.float32)
+    w2c = torch.as_tensor(np.linalg.inv(c2w), dtype=torch.float32, device=eng.device)
     fwd, both = [], []
     for _ in range(reps):
         t0 = time.perf_counter()
@@ -62,6 +62,10 @@ def main() -> int:
     ap.add_argument("--data", help="existing dataset folder (default: generate into a temp folder)")
     ap.add_argument("--out", help="where to save the map (default: temp folder)")
     ap.add_argument("--renderer-only", action="store_true")
+    ap.add_argument("--device", default="auto", help="torch device: auto (CUDA when present), cpu, cuda, cuda:N")
+    ap.add_argument("--backend", default="auto", choices=["auto", "torch", "gsplat"], help="renderer back-end")
+    ap.add_argument("--count-syncs", action="store_true",
+                    help="print host synchronisations per frame (device_guard.DeviceGuard; slows the run)")
     ap.add_argument("--refine-iters", type=int, default=0, help="also evaluate after an offline map refinement")
     ap.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE",
                     help="config override, e.g. --set mapping.radius_factor=0.45 (repeatable)")
@@ -75,7 +79,8 @@ def main() -> int:
         print(f"generated {a.frames} frames {a.width}x{a.height} in {time.perf_counter() - t:.1f} s", file=sys.stderr)
     ds = load_dataset(data)
     cfg = SlamConfig(intrinsics=ds.intrinsics, mapping=MappingConfig(keyframe_every=a.keyframe_every,
-                                                                     iters=a.mapping_iters), threads=a.threads)
+                                                                     iters=a.mapping_iters), threads=a.threads,
+                     device=a.device, renderer=RendererConfig(backend=a.backend))
     d = cfg.to_dict()
     for item in a.set:
         key, val = item.split("=", 1)
@@ -93,14 +98,26 @@ def main() -> int:
           f"forward+backward {both:.1f} ms (median of 7, {a.threads} threads)")
     if a.renderer_only:
         return 0
+    guard = None
+    if a.count_syncs:
+        from semantic_gs_slam.device_guard import DeviceGuard
+
+        guard = DeviceGuard()
+        guard.__enter__()
     t0 = time.perf_counter()
     for i in range(1, n):
         f = frames[i]
         eng.add_frame(f.rgb, f.depth, f.semantics, f.timestamp, f.gt_c2w)
         lg = eng.logs[-1]
+        syncs = f" host syncs {guard.end_frame()}" if guard else ""
         print(f"frame {i:3d}{' KF' if lg.keyframe else '   '} gaussians {lg.n_gaussians:6d} "
-              f"track {lg.track_s:.2f} s map {lg.map_s:.2f} s", file=sys.stderr, flush=True)
+              f"track {lg.track_s:.2f} s map {lg.map_s:.2f} s{syncs}", file=sys.stderr, flush=True)
     wall = time.perf_counter() - t0
+    if guard:
+        guard.__exit__(None, None, None)
+        print(f"host synchronisations per frame: mean {statistics.mean(guard.syncs_per_frame):.1f}, "
+              f"max {max(guard.syncs_per_frame)}; where: {guard.sync_sites.most_common(5)} (timings include "
+              "the guard's overhead)")
     res = evaluate(eng, ds, list(range(n)), every=max(1, n // 20))
     res["fps"] = (n - 1) / wall
     track = [lg.track_s for lg in eng.logs[1:]]

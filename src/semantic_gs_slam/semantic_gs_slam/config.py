@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
@@ -46,13 +47,14 @@ class RendererConfig:
     chunk: int = 128  # Gaussians composited per step (early stop between chunks)
     stop_transmittance: float = 1e-4  # a tile stops once every pixel's transmittance is below this
     batch_elements: int = 1_000_000  # bound on tiles x pixels x Gaussians per batch (memory)
-    backend: str = "torch"  # "torch" (CPU/any) or "gsplat" (CUDA only)
+    backend: str = "auto"  # "torch" (pure PyTorch, any device: the reference), "gsplat" (CUDA fast path) or
+    # "auto" (gsplat when the engine runs on CUDA and gsplat imports, else torch)
 
     def check(self) -> None:
         if self.tile not in (4, 8, 16, 32):
             raise ConfigError(f"renderer.tile must be 4, 8, 16 or 32, got {self.tile}")
-        if self.backend not in ("torch", "gsplat"):
-            raise ConfigError(f"renderer.backend must be 'torch' or 'gsplat', got {self.backend!r}")
+        if self.backend not in ("auto", "torch", "gsplat"):
+            raise ConfigError(f"renderer.backend must be 'auto', 'torch' or 'gsplat', got {self.backend!r}")
         if self.chunk <= 0 or self.batch_elements <= 0:
             raise ConfigError("renderer.chunk and renderer.batch_elements must be positive")
 
@@ -145,7 +147,7 @@ class SlamConfig:
     checkpoint_dir: str = ""
     threads: int = 0  # torch.set_num_threads when > 0 (the CLI and benchmark use 2); 0 leaves torch's setting
     seed: int = 0
-    device: str = "cpu"
+    device: str = "auto"  # torch device of every tensor: "auto" (CUDA when present, else CPU), "cpu", "cuda[:N]"
 
     def check(self) -> None:
         """Validate all parts; raise :class:`ConfigError` naming the bad field."""
@@ -159,6 +161,8 @@ class SlamConfig:
             raise ConfigError("checkpoint_every > 0 needs checkpoint_dir")
         if self.threads < 0:
             raise ConfigError("threads must be >= 0")
+        if not re.match(r"^(auto|cpu|cuda(:\d+)?)$", str(self.device)):
+            raise ConfigError(f"device must be 'auto', 'cpu', 'cuda' or 'cuda:N', got {self.device!r}")
 
     def to_dict(self) -> dict[str, Any]:
         """Plain dict (JSON-serialisable)."""

@@ -32,11 +32,11 @@ def evaluate(eng, ds: Dataset, frame_idx: list[int], every: int = 1) -> dict:
     for n in range(0, len(frame_idx), every):
         f = ds[frame_idx[n]]
         out = eng.render_view(eng.poses[n])
-        rgb = torch.as_tensor(f.rgb)
+        rgb = torch.as_tensor(f.rgb, device=eng.device)
         img = out.rgb.clamp(0, 1)
         ps.append(psnr(img, rgb))
         ss.append(float(ssim(img, rgb)))
-        dl.append(depth_l1(out.depth, torch.as_tensor(f.depth)))
+        dl.append(depth_l1(out.depth, torch.as_tensor(f.depth, device=eng.device)))
         if f.semantics is not None and out.semantic is not None:
             have_sem = True
             sem = out.semantic / out.silhouette.clamp_min(1e-6)[..., None]  # class scores, not scores x coverage

@@ -61,16 +61,21 @@ def _seed_normals(depth: Tensor, k: Intrinsics, smooth: int = 5) -> Tensor:
 class GaussianMap:
     """Semantic Gaussian map with parameters as torch leaf tensors."""
 
-    def __init__(self, device: str = "cpu") -> None:
+    def __init__(self, device: str | torch.device = "cpu") -> None:
         self.device = torch.device(device)
-        z = torch.zeros
+        dev = self.device
+
+        def z(*shape: int) -> Tensor:
+            return torch.zeros(shape, device=dev)
+
         self.params: dict[str, Tensor] = {
             "means3D": z(0, 3), "rgb_colors": z(0, 3), "unnorm_rotations": z(0, 4),
             "logit_opacities": z(0, 1), "log_scales": z(0, 1), "semantic_features": z(0, 0)}
         self.class_slots: list[int] = []  # class id of each semantic_features column
-        self.semantic_ids = torch.zeros(0, dtype=torch.int64)
-        self.timestep = torch.zeros(0, dtype=torch.int64)
-        self.normals = torch.zeros(0, 3)
+        self.semantic_ids = torch.zeros(0, dtype=torch.int64, device=dev)  # [N] seed label
+        self.timestep = torch.zeros(0, dtype=torch.int64, device=dev)  # [N] creating frame
+        self.normals = torch.zeros(0, 3, device=dev)  # [N, 3] world unit normals (zero: unknown)
+        self.has_normals = False  # some row of normals was ever non-zero (kept on the host: no sync per render)
         for v in self.params.values():
             v.requires_grad_(True)
 
@@ -86,7 +91,8 @@ class GaussianMap:
 
     def ensure_classes(self, ids: Tensor | np.ndarray) -> None:
         """Add a (zero) feature column for every class id > 0 in ``ids`` that has none yet."""
-        new = sorted({int(i) for i in np.unique(np.asarray(ids)) if i > 0} - set(self.class_slots))
+        found = torch.unique(ids).tolist() if isinstance(ids, Tensor) else np.unique(ids).tolist()  # one host copy
+        new = sorted({int(i) for i in found if i > 0} - set(self.class_slots))
         if not new:
             return
         self.class_slots.extend(new)
@@ -111,7 +117,7 @@ class GaussianMap:
     def labels_from_features(self, feats: Tensor) -> Tensor:
         """Class id of each row of ``feats`` [..., C] (largest column; 0 when it is below MIN_CLASS_SCORE)."""
         if not self.class_slots:
-            return torch.zeros(feats.shape[:-1], dtype=torch.int64)
+            return torch.zeros(feats.shape[:-1], dtype=torch.int64, device=feats.device)
         best, arg = feats.detach().max(-1)
         ids = torch.tensor(self.class_slots, dtype=torch.int64, device=feats.device)[arg]
         return torch.where(best >= MIN_CLASS_SCORE, ids, torch.zeros_like(ids))
@@ -139,17 +145,23 @@ class GaussianMap:
         m = means.shape[0]
         if m == 0:
             return 0
-        self.ensure_classes(sem_ids.cpu())
-        sem_col = self.one_hot(sem_ids.cpu())
+        dev = self.device
+        means, rgb, sem_ids, radius = (t.to(dev) for t in (means, rgb, sem_ids, radius))
+        self.ensure_classes(sem_ids)
+        sem_col = self.one_hot(sem_ids)
+        quat = torch.zeros(m, 4, device=dev)
+        quat[:, 0] = 1.0
         new = {
-            "means3D": means.float(), "rgb_colors": rgb.float(),
-            "unnorm_rotations": torch.tensor([[1.0, 0, 0, 0]]).repeat(m, 1),
-            "logit_opacities": torch.full((m, 1), float(logit_opacity)),
+            "means3D": means.float(), "rgb_colors": rgb.float(), "unnorm_rotations": quat,
+            "logit_opacities": torch.full((m, 1), float(logit_opacity), device=dev),
             "log_scales": torch.log(radius.float().clamp_min(1e-4))[:, None], "semantic_features": sem_col}
-        cat = {k: torch.cat([self.params[k].detach(), new[k].to(self.device)]) for k in PARAM_KEYS}
-        self._set(cat, torch.cat([self.semantic_ids, sem_ids.long().cpu()]),
-                  torch.cat([self.timestep, torch.full((m,), frame, dtype=torch.int64)]))
-        self.normals = torch.cat([self.normals, torch.zeros(m, 3) if normals is None else normals.float().cpu()])
+        cat = {k: torch.cat([self.params[k].detach(), new[k]]) for k in PARAM_KEYS}
+        self._set(cat, torch.cat([self.semantic_ids, sem_ids.long()]),
+                  torch.cat([self.timestep, torch.full((m,), frame, dtype=torch.int64, device=dev)]))
+        nrm = torch.zeros(m, 3, device=dev) if normals is None else normals.float().to(dev)
+        self.normals = torch.cat([self.normals, nrm])
+        if normals is not None and not self.has_normals:
+            self.has_normals = bool(nrm.abs().sum() > 0)
         return m
 
     def add_from_frame(self, rgb: Tensor, depth: Tensor, sem: Tensor | None, c2w: Tensor, k: Intrinsics,
@@ -179,7 +191,7 @@ class GaussianMap:
         normals = _seed_normals(depth, k)[sel] @ c2w[:3, :3].T  # [M, 3] world (zero: unknown)
         f = 0.5 * (k.fx + k.fy)
         radius = depth[sel] / f * radius_factor * torch.where(small, 1.0, float(stride))
-        ids = sem[sel] if sem is not None else torch.zeros(world.shape[0], dtype=torch.int64)
+        ids = sem[sel] if sem is not None else torch.zeros(world.shape[0], dtype=torch.int64, device=world.device)
         return self.add(world, rgb[sel], ids, radius, frame, logit_opacity, normals)
 
     def prune(self, min_opacity: float, max_scale: float) -> int:
@@ -197,8 +209,8 @@ class GaussianMap:
     def class_ids(self) -> np.ndarray:
         """Semantic id of each Gaussian [N] = its largest optimised class column (0: none)."""
         if not self.class_slots or len(self) == 0:
-            return self.semantic_ids.numpy().copy()
-        return self.labels_from_features(self.params["semantic_features"].cpu()).numpy()
+            return self.semantic_ids.cpu().numpy().copy()
+        return self.labels_from_features(self.params["semantic_features"]).cpu().numpy()
 
     # ------------------------------------------------------------------ files
     def to_arrays(self) -> dict[str, np.ndarray]:
@@ -209,12 +221,12 @@ class GaussianMap:
         out["semantic_colors"] = palette(ids).astype(np.float32)
         out["semantic_feature_ids"] = np.array(self.class_slots, np.int64)
         out["semantic_ids"] = ids.astype(np.uint8) if (ids.size == 0 or ids.max() < 256) else ids.astype(np.int64)
-        out["timestep"] = self.timestep.numpy().astype(np.float32)
-        out["normals"] = self.normals.numpy().astype(np.float32)
+        out["timestep"] = self.timestep.cpu().numpy().astype(np.float32)
+        out["normals"] = self.normals.cpu().numpy().astype(np.float32)
         return out
 
     @staticmethod
-    def from_arrays(a: dict[str, np.ndarray], device: str = "cpu") -> GaussianMap:
+    def from_arrays(a: dict[str, np.ndarray], device: str | torch.device = "cpu") -> GaussianMap:
         """Build a map from arrays (our files or SplaTAM / SGS-SLAM ``params.npz``).
 
         Raises:
@@ -230,7 +242,8 @@ class GaussianMap:
             m.class_slots = [int(i) for i in np.asarray(a["semantic_feature_ids"]).reshape(-1)]
         else:  # SplaTAM / SGS-SLAM file (or an older one of ours): one-hot of the stored ids
             m.class_slots = sorted({int(i) for i in np.unique(ids) if i > 0})
-        one_hot = m.one_hot(torch.as_tensor(ids)).numpy() if len(ids) == n else np.zeros((n, len(m.class_slots)))
+        one_hot = m.one_hot(torch.as_tensor(ids, device=m.device)).cpu().numpy() if len(ids) == n \
+            else np.zeros((n, len(m.class_slots)))
         defaults = {"rgb_colors": np.full((n, 3), 0.5), "unnorm_rotations": np.tile([1.0, 0, 0, 0], (n, 1)),
                     "logit_opacities": np.full((n, 1), 3.0), "log_scales": np.full((n, 1), np.log(0.01)),
                     "semantic_features": one_hot}
@@ -240,7 +253,7 @@ class GaussianMap:
                 else defaults[k]
             if v.shape[0] != n:
                 raise MapFormatError(f"'{k}' has {v.shape[0]} rows but means3D has {n}")
-            params[k] = torch.as_tensor(np.asarray(v, dtype=np.float32)).to(m.device)
+            params[k] = torch.as_tensor(np.asarray(v, dtype=np.float32), device=m.device)
         if params["semantic_features"].shape != (n, len(m.class_slots)):
             raise MapFormatError(f"'semantic_features' is {list(params['semantic_features'].shape)}, expected "
                                  f"[{n}, {len(m.class_slots)}] (one column per semantic_feature_ids entry)")
@@ -249,11 +262,12 @@ class GaussianMap:
         if len(ids) != n:
             raise MapFormatError(f"'semantic_ids' has {len(ids)} rows but means3D has {n}")
         ts = np.asarray(a["timestep"]).reshape(-1).astype(np.int64) if "timestep" in a else np.zeros(n, np.int64)
-        m._set(params, torch.as_tensor(ids), torch.as_tensor(ts))
+        m._set(params, torch.as_tensor(ids, device=m.device), torch.as_tensor(ts, device=m.device))
         nrm = np.asarray(a["normals"], np.float32) if "normals" in a else np.zeros((n, 3), np.float32)
         if nrm.shape != (n, 3):
             raise MapFormatError(f"'normals' is {list(nrm.shape)}, expected [{n}, 3]")
-        m.normals = torch.as_tensor(nrm)
+        m.normals = torch.as_tensor(nrm, device=m.device)
+        m.has_normals = bool(np.abs(nrm).sum() > 0)
         return m
 
 

@@ -5,6 +5,7 @@ Usage::
     python -m semantic_gs_slam.run --dataset /tmp/home --out /tmp/home_map [--frames 60] [--eval]
     python -m semantic_gs_slam.run --dataset /tmp/home --out /tmp/home_map --checkpoint-every 10
     python -m semantic_gs_slam.run --dataset /tmp/home --out /tmp/home_map --resume   # after a crash
+    python -m semantic_gs_slam.run --dataset /tmp/home --out /tmp/home_map --device cuda --backend gsplat
 
 Prints a progress bar and one log line per frame (pose error when ground truth exists, Gaussians,
 times) on stderr, and the evaluation table on stdout.
@@ -33,7 +34,7 @@ def progress_line(done: int, total: int, width: int = 24) -> str:
 
 def build_config(args: argparse.Namespace, intrinsics) -> SlamConfig:
     """SlamConfig from the command line (and an optional JSON file of overrides)."""
-    cfg = SlamConfig(intrinsics=intrinsics, renderer=RendererConfig(backend=args.backend),
+    cfg = SlamConfig(intrinsics=intrinsics, renderer=RendererConfig(backend=args.backend), device=args.device,
                      tracking=TrackingConfig(), mapping=MappingConfig(),
                      checkpoint_every=args.checkpoint_every,
                      checkpoint_dir=os.path.join(args.out, "checkpoint") if args.checkpoint_every else "",
@@ -68,7 +69,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--config", help="JSON file of config overrides, e.g. {\"mapping\": {\"iters\": 20}}")
     ap.add_argument("--keyframe-every", type=int, default=0)
     ap.add_argument("--mapping-iters", type=int)
-    ap.add_argument("--backend", default="torch", choices=["torch", "gsplat"])
+    ap.add_argument("--device", default="auto", help="torch device: auto (CUDA when present), cpu, cuda, cuda:N")
+    ap.add_argument("--backend", default="auto", choices=["auto", "torch", "gsplat"],
+                    help="renderer: torch tiles (any device), gsplat (CUDA), auto (gsplat on CUDA when it imports)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--refine-iters", type=int, default=0,
                     help="after the run, refine the map over all keyframes for N iterations (not counted in FPS)")

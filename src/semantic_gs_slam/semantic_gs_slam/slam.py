@@ -19,7 +19,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from semantic_gs_slam.config import Intrinsics, SlamConfig
+from semantic_gs_slam.config import Intrinsics, MappingConfig, SlamConfig
+from semantic_gs_slam.devices import resolve_device
 from semantic_gs_slam.errors import FrameError, MapFormatError, TrackingError
 from semantic_gs_slam.gaussian_map import (
     GaussianMap,
@@ -30,7 +31,7 @@ from semantic_gs_slam.gaussian_map import (
     save_semantic_json,
 )
 from semantic_gs_slam.metrics import ssim
-from semantic_gs_slam.render import Gaussians, RenderOutput, render
+from semantic_gs_slam.render import Gaussians, RenderOutput, select_backend
 from semantic_gs_slam.tracking import icp, photometric_refine, plane_depth_features, plane_depth_image
 
 log = logging.getLogger("semantic_gs_slam")
@@ -54,6 +55,35 @@ def _class_balance(sem: Tensor, power: float, cap: float = 20.0) -> Tensor:
     pix = w[sem.clamp_min(0)]
     pix = (pix / pix.mean()).clamp(max=cap)
     return (pix / pix.mean()).float()
+
+
+def mapping_loss(out: RenderOutput, rgb: Tensor, depth: Tensor, sem_img: Tensor | None, labelled: Tensor | None,
+                 sem_w: Tensor | None, mc: MappingConfig) -> Tensor:
+    """Keyframe mapping loss: depth L1 over valid depth + colour (L1 and SSIM) + class-balanced semantic L1.
+
+    Fixed-shape (masks multiply; no boolean indexing), so it runs without host synchronisation.
+
+    Args:
+        out: the rendered view.
+        rgb: [H, W, 3] keyframe colour. depth: [H, W] metres (0: missing).
+        sem_img: [H, W, C] one-hot labels or None. labelled: [H, W] 1 where a label is known, or None.
+        sem_w: [H, W] class-balance weights or None.
+        mc: mapping settings (weights).
+
+    Returns:
+        Scalar loss.
+    """
+    valid = (depth > 0).to(depth.dtype)
+    l_depth = ((out.depth - depth).abs() * valid).sum() / valid.sum().clamp_min(1.0)
+    l1 = (out.rgb - rgb).abs().mean()
+    l_col = (1 - mc.w_ssim) * l1 + mc.w_ssim * (1 - ssim(out.rgb, rgb)) if mc.w_ssim > 0 else l1
+    loss = mc.w_depth * l_depth + mc.w_colour * l_col
+    if sem_img is not None and out.semantic is not None and mc.w_semantic > 0:
+        err = (out.semantic - sem_img).abs().sum(-1) * labelled  # [H, W]; label 0 = unknown
+        if sem_w is not None:
+            err = err * sem_w
+        loss = loss + mc.w_semantic * err.mean() / 2
+    return loss
 
 
 @dataclass
@@ -91,7 +121,9 @@ class SLAM:
         if config.threads > 0:
             torch.set_num_threads(config.threads)
         torch.manual_seed(config.seed)
-        self.map = GaussianMap(config.device)
+        self.device = resolve_device(config.device)
+        self.backend = select_backend(config.renderer, self.device)  # the renderer, chosen once
+        self.map = GaussianMap(self.device)
         self.poses: list[np.ndarray] = []  # estimated c2w per frame
         self.gt_poses: list[np.ndarray | None] = []
         self.timestamps: list[float] = []
@@ -126,11 +158,13 @@ class SLAM:
             sem = np.asarray(sem)
             if sem.shape != (k.height, k.width):
                 raise FrameError(f"semantics must be [{k.height}, {k.width}] ids, got {list(sem.shape)}")
-            s = torch.as_tensor(sem.astype(np.int64))
+            s = torch.as_tensor(sem.astype(np.int64), device=self.device)
             for i in np.unique(sem):
                 if i > 0:  # unknown labels get a placeholder name in semantic.json
                     self.classes.setdefault(int(i), f"class_{int(i)}")
-        return torch.as_tensor(rgb, dtype=torch.float32), torch.as_tensor(d, dtype=torch.float32), s
+        dev = self.device
+        return (torch.as_tensor(rgb, dtype=torch.float32, device=dev),
+                torch.as_tensor(d, dtype=torch.float32, device=dev), s)
 
     # ------------------------------------------------------------------ main step
     def add_frame(self, rgb: np.ndarray, depth: np.ndarray, semantics: np.ndarray | None = None,
@@ -185,7 +219,7 @@ class SLAM:
     def _track(self, rgb: Tensor, depth: Tensor) -> tuple[np.ndarray, float, int, bool]:
         prev = self.poses[-1]
         guess = prev @ (np.linalg.inv(self.poses[-2]) @ prev) if len(self.poses) >= 2 else prev
-        g = torch.as_tensor(guess)
+        g = torch.as_tensor(guess, device=self.device)
         tc = self.cfg.tracking
         out = self.render_view(guess, scale_shrink=tc.render_scale_shrink, semantic=False)
         sil = out.silhouette
@@ -200,30 +234,30 @@ class SLAM:
         c2w = res.c2w
         if self.cfg.tracking.photometric_iters > 0:
             c2w = photometric_refine(self.map.gaussians(), c2w, rgb, depth, self.k, self.cfg.renderer,
-                                     self.cfg.tracking)
-        return c2w.numpy(), res.residual, res.inliers, False
+                                     self.cfg.tracking, self.backend)
+        return c2w.cpu().numpy(), res.residual, res.inliers, False
 
     def _plane_depth_on(self) -> bool:
-        return self.cfg.plane_depth and bool((self.map.normals.abs().sum(-1) > 0).any())
+        return self.cfg.plane_depth and self.map.has_normals
 
     def _render(self, g: Gaussians, w2c: Tensor, plane: bool = True) -> RenderOutput:
         """Render ``g``; with ``plane`` and ``plane_depth`` the depth output blends each Gaussian's surface
         plane (:func:`~semantic_gs_slam.tracking.plane_depth_features`) instead of its centre depth."""
         if not (plane and self._plane_depth_on()):
-            return render(g, w2c, self.k, self.cfg.renderer)
+            return self.backend(g, w2c, self.k, self.cfg.renderer)
         means_c = g.means @ w2c[:3, :3].T + w2c[:3, 3]
         pf = plane_depth_features(means_c, self.map.normals.to(means_c) @ w2c[:3, :3].T, self.k)
         c = 0 if g.semantic is None else g.semantic.shape[1]
         feats = pf if g.semantic is None else torch.cat([g.semantic, pf], -1)
-        out = render(Gaussians(g.means, g.quats, g.log_scales, g.logit_opacities, g.rgb, feats), w2c, self.k,
-                     self.cfg.renderer)
+        out = self.backend(Gaussians(g.means, g.quats, g.log_scales, g.logit_opacities, g.rgb, feats), w2c, self.k,
+                           self.cfg.renderer)
         depth = plane_depth_image(out.semantic[..., c:])  # sum w_i z_i(u, v), like the centre-depth channel
         return replace(out, depth=depth, semantic=out.semantic[..., :c] if c else None)
 
     def render_view(self, c2w: np.ndarray, scale_shrink: float = 1.0, semantic: bool = True) -> RenderOutput:
         """Render the map at a camera-to-world pose (gradients off); ``scale_shrink`` multiplies all radii;
         ``semantic=False`` skips the class columns (cheaper: tracking and densification do not need them)."""
-        w2c = torch.as_tensor(np.linalg.inv(c2w), dtype=torch.float32)
+        w2c = torch.as_tensor(np.linalg.inv(c2w), dtype=torch.float32, device=self.device)
         with torch.no_grad():
             g = self.map.gaussians()
             ls = g.log_scales.detach() + math.log(scale_shrink)
@@ -256,7 +290,8 @@ class SLAM:
                 # where the map renders a small object's pixels with another label, add Gaussians there
                 pred = self.map.labels_from_features(out.semantic / out.silhouette.clamp_min(1e-6)[..., None])
                 mask = mask | (fine & (pred != sem))
-        return self.map.add_from_frame(rgb, depth, sem, torch.as_tensor(c2w, dtype=torch.float32), self.k, mask,
+        return self.map.add_from_frame(rgb, depth, sem, torch.as_tensor(c2w, dtype=torch.float32, device=self.device),
+                                       self.k, mask,
                                        mc.pixel_stride, idx, mc.radius_factor, mc.init_logit_opacity, fine)
 
     def _window(self, current: Keyframe) -> list[Keyframe]:
@@ -291,7 +326,7 @@ class SLAM:
         mc = self.cfg.mapping
         c2w = self.poses[-1]
         added = self._densify(idx, rgb, depth, sem, c2w, keyframe=True)
-        kf = Keyframe(idx, torch.as_tensor(c2w), rgb, depth, sem)
+        kf = Keyframe(idx, torch.as_tensor(c2w, device=self.device), rgb, depth, sem)
         self.keyframes.append(kf)
         window = self._window(kf)
         iters = mc.first_frame_iters if idx == 0 else mc.iters
@@ -320,26 +355,16 @@ class SLAM:
         labelled = [None if kf.sem is None else (kf.sem > 0).float() for kf in window]
         sem_w = [None if (kf.sem is None or mc.semantic_balance <= 0) else _class_balance(kf.sem, mc.semantic_balance)
                  for kf in window]
-        loss_v = float("nan")
+        loss = None
         for it in range(iters):
             j = it % len(window)
             kf = window[j]
             out = self._render(self.map.gaussians(), w2cs[j], plane=mc.plane_depth_loss)
-            valid = kf.depth > 0
-            l_depth = (out.depth - kf.depth).abs()[valid].mean()
-            l1 = (out.rgb - kf.rgb).abs().mean()
-            l_col = (1 - mc.w_ssim) * l1 + mc.w_ssim * (1 - ssim(out.rgb, kf.rgb)) if mc.w_ssim > 0 else l1
-            loss = mc.w_depth * l_depth + mc.w_colour * l_col
-            if sem_imgs[j] is not None and out.semantic is not None and mc.w_semantic > 0:
-                err = (out.semantic - sem_imgs[j]).abs().sum(-1) * labelled[j]  # [H, W]; label 0 = unknown
-                if sem_w[j] is not None:
-                    err = err * sem_w[j]
-                loss = loss + mc.w_semantic * err.mean() / 2
+            loss = mapping_loss(out, kf.rgb, kf.depth, sem_imgs[j], labelled[j], sem_w[j], mc)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
-            loss_v = float(loss.detach())
-        return loss_v
+        return float(loss.detach()) if loss is not None else float("nan")  # one host copy per keyframe
 
     def refine(self, iters: int) -> float:
         """Offline map refinement after the run: ``iters`` Adam steps cycling over all keyframes (poses fixed).
@@ -388,12 +413,13 @@ class SLAM:
             "poses": np.stack(self.poses), "timestamps": np.array(self.timestamps),
             "gt_poses": np.stack([g if g is not None else np.full((4, 4), np.nan) for g in self.gt_poses]),
             "kf_index": np.array([kf.index for kf in kfs], np.int64),
-            "kf_c2w": np.stack([kf.c2w.numpy() for kf in kfs]) if kfs else np.zeros((0, 4, 4)),
-            "kf_rgb": np.stack([(kf.rgb.numpy() * 255 + 0.5).astype(np.uint8) for kf in kfs]) if kfs else np.zeros(0),
-            "kf_depth": np.stack([kf.depth.numpy() for kf in kfs]) if kfs else np.zeros(0),
-            "kf_sem": np.stack([kf.sem.numpy() if kf.sem is not None else np.full(kf.depth.shape, -1) for kf in kfs])
-            if kfs else np.zeros(0),
-            "map_semantic_ids_raw": self.map.semantic_ids.numpy(),
+            "kf_c2w": np.stack([kf.c2w.cpu().numpy() for kf in kfs]) if kfs else np.zeros((0, 4, 4)),
+            "kf_rgb": np.stack([(kf.rgb.cpu().numpy() * 255 + 0.5).astype(np.uint8) for kf in kfs]) if kfs
+            else np.zeros(0),
+            "kf_depth": np.stack([kf.depth.cpu().numpy() for kf in kfs]) if kfs else np.zeros(0),
+            "kf_sem": np.stack([kf.sem.cpu().numpy() if kf.sem is not None else np.full(kf.depth.shape, -1)
+                                for kf in kfs]) if kfs else np.zeros(0),
+            "map_semantic_ids_raw": self.map.semantic_ids.cpu().numpy(),
             "since_prune": np.array(self._since_prune)}
         np.savez_compressed(os.path.join(ckpt_dir, "state.npz"), **state)
         meta = {"config": self.cfg.to_dict(), "classes": {str(k): v for k, v in self.classes.items()},
@@ -432,8 +458,9 @@ class SLAM:
         eng = cls(cfg, {int(k): v for k, v in meta["classes"].items()}, meta.get("initial_c2w"))
         arr = load_params(os.path.join(ckpt_dir, "params.npz"))
         st = load_params(os.path.join(ckpt_dir, "state.npz"))
-        eng.map = GaussianMap.from_arrays(arr, cfg.device)
-        eng.map.semantic_ids = torch.as_tensor(st["map_semantic_ids_raw"].astype(np.int64))
+        dev = eng.device
+        eng.map = GaussianMap.from_arrays(arr, dev)
+        eng.map.semantic_ids = torch.as_tensor(st["map_semantic_ids_raw"].astype(np.int64), device=dev)
         if len(st["poses"]) != meta["frames"]:
             raise MapFormatError(f"{ckpt_dir}: state has {len(st['poses'])} poses, "
                                  f"checkpoint.json says {meta['frames']}")
@@ -442,10 +469,11 @@ class SLAM:
         eng.gt_poses = [None if np.isnan(g).any() else g for g in st["gt_poses"]]
         for i in range(len(st["kf_index"])):
             sem = st["kf_sem"][i]
-            eng.keyframes.append(Keyframe(int(st["kf_index"][i]), torch.as_tensor(st["kf_c2w"][i]),
-                                          torch.as_tensor(st["kf_rgb"][i].astype(np.float32) / 255.0),
-                                          torch.as_tensor(st["kf_depth"][i]),
-                                          None if (sem < 0).all() else torch.as_tensor(sem.astype(np.int64))))
+            eng.keyframes.append(Keyframe(int(st["kf_index"][i]), torch.as_tensor(st["kf_c2w"][i], device=dev),
+                                          torch.as_tensor(st["kf_rgb"][i].astype(np.float32) / 255.0, device=dev),
+                                          torch.as_tensor(st["kf_depth"][i], device=dev),
+                                          None if (sem < 0).all() else
+                                          torch.as_tensor(sem.astype(np.int64), device=dev)))
         eng._since_prune = int(st["since_prune"])
         return eng
 

@@ -269,7 +269,7 @@ def _write_frames(out: str, views, depth_noise: float, missing_depth: float, rng
 
 def generate(out: str, frames: int = 60, width: int = 300, height: int = 170, seed: int = 0,
              depth_noise: float = 0.0, missing_depth: float = 0.0, span_deg: float = 120.0,
-             supersample: int = 3) -> Intrinsics:
+             supersample: int = 3, workers: int = 4) -> Intrinsics:
     """Write a synthetic sequence (layout in the module docstring).
 
     Args:
@@ -281,6 +281,7 @@ def generate(out: str, frames: int = 60, width: int = 300, height: int = 170, se
         missing_depth: fraction of depth pixels set to 0 (missing).
         span_deg: how far around the ellipse the camera travels.
         supersample: rays per pixel side for colour (odd; 1 = point-sampled, aliased texture).
+        workers: at most this many worker processes (also capped by the CPU count).
 
     Returns:
         The intrinsics used.
@@ -291,7 +292,7 @@ def generate(out: str, frames: int = 60, width: int = 300, height: int = 170, se
     os.makedirs(os.path.join(out, "semantic"), exist_ok=True)
     poses = trajectory(frames, span_deg)
     jobs = [(seed, c2w, k, supersample) for c2w in poses]
-    workers = min(os.cpu_count() or 1, 4, len(jobs))
+    workers = min(os.cpu_count() or 1, workers, len(jobs))
     if workers > 1 and len(jobs) * k.width * k.height * supersample**2 > 2_000_000:  # else not worth processes
         import multiprocessing
 

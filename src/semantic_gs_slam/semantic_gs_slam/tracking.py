@@ -17,7 +17,7 @@ from torch import Tensor
 from semantic_gs_slam.config import Intrinsics, RendererConfig, TrackingConfig
 from semantic_gs_slam.errors import TrackingError
 from semantic_gs_slam.geometry import backproject, quat_to_rotmat, se3_exp
-from semantic_gs_slam.render import Gaussians, render
+from semantic_gs_slam.render import Gaussians, RenderBackend, RenderOutput, select_backend
 
 
 @dataclass
@@ -186,7 +186,10 @@ def icp(model_depth: Tensor, model_valid: Tensor, guess_c2w: Tensor, live_depth:
     res_rms, n_in = float("nan"), 0
     sg, sc = cfg.icp_sigma_geo, cfg.icp_sigma_col
     wg = cfg.geometric_weight
-    p_w = torch.diag(torch.tensor([1 / cfg.prior_sigma_rot**2] * 3 + [1 / cfg.prior_sigma_trans**2] * 3, dtype=dt))
+    dev = live_depth.device
+    p_w = torch.diag(torch.tensor([1 / cfg.prior_sigma_rot**2] * 3 + [1 / cfg.prior_sigma_trans**2] * 3, dtype=dt,
+                                  device=dev))
+    eye6 = torch.eye(6, dtype=dt, device=dev)
     base = max(1, round(k.width / 160))  # about 160 live points per row at the finest level
     for level in reversed(range(cfg.icp_levels)):
         stride = base * 2**level
@@ -239,11 +242,11 @@ def icp(model_depth: Tensor, model_valid: Tensor, guess_c2w: Tensor, live_depth:
             prior = torch.cat([_so3_log(d[:3, :3]), d[:3, 3]])
             a += p_w
             b += -(p_w @ prior)
-            a += 1e-9 * torch.eye(6, dtype=dt) * a.diagonal().mean()
+            a += 1e-9 * eye6 * a.diagonal().mean()
             xi = torch.linalg.solve(a, b)
             est = se3_exp(xi) @ est
-            res_rms = float(torch.sqrt((r * r).mean()))
-            if float(xi.abs().max()) < 1e-6:
+            res_rms, step = torch.stack([torch.sqrt((r * r).mean()), xi.abs().max()]).tolist()  # one host copy
+            if step < 1e-6:
                 break
     return TrackResult(est, res_rms, n_in)
 
@@ -251,28 +254,34 @@ def icp(model_depth: Tensor, model_valid: Tensor, guess_c2w: Tensor, live_depth:
 def _quat_from_rot(r: Tensor) -> Tensor:
     from semantic_gs_slam.geometry import rotmat_to_quat
 
-    return torch.as_tensor(rotmat_to_quat(r.detach().cpu().numpy()))
+    return torch.as_tensor(rotmat_to_quat(r.detach().cpu().numpy()), device=r.device)
 
 
 def photometric_loss(g: Gaussians, w2c: Tensor, rgb: Tensor, depth: Tensor, k: Intrinsics, rcfg: RendererConfig,
-                     min_silhouette: float) -> Tensor | None:
+                     min_silhouette: float, backend: RenderBackend | None = None) -> Tensor:
     """Sum of L1 depth + 0.5 L1 colour (both normalised by the silhouette) over pixels with valid depth and
-    silhouette > ``min_silhouette``; None when no pixel qualifies."""
-    out = render(g, w2c, k, rcfg)
-    m = (out.silhouette.detach() > min_silhouette) & (depth > 0)
-    if not bool(m.any()):
-        return None
+    silhouette > ``min_silhouette`` (0 when no pixel qualifies); a fixed-shape computation (a mask
+    multiplies, no boolean indexing), so no host synchronisation."""
+    out = (backend or select_backend(rcfg, g.means.device))(g, w2c, k, rcfg)
+    return photometric_loss_of(out, rgb, depth, min_silhouette)
+
+
+def photometric_loss_of(out: RenderOutput, rgb: Tensor, depth: Tensor, min_silhouette: float) -> Tensor:
+    """:func:`photometric_loss` of a rendered view ``out`` against ``rgb`` [H, W, 3] and ``depth`` [H, W]."""
+    m = ((out.silhouette.detach() > min_silhouette) & (depth > 0)).to(depth.dtype)
     sil = out.silhouette.clamp_min(1e-6)
-    return (out.depth / sil - depth).abs()[m].sum() + 0.5 * (out.rgb / sil[..., None] - rgb).abs().sum(-1)[m].sum()
+    l_depth = ((out.depth / sil - depth).abs() * m).sum()
+    return l_depth + 0.5 * ((out.rgb / sil[..., None] - rgb).abs().sum(-1) * m).sum()
 
 
-def _w2c_from(q: Tensor, t: Tensor) -> Tensor:
-    bottom = torch.tensor([[0.0, 0.0, 0.0, 1.0]], dtype=q.dtype)
+def w2c_from_quat_trans(q: Tensor, t: Tensor) -> Tensor:
+    """[4, 4] world-to-camera pose from an (unnormalised) quaternion [4] (wxyz) and a translation [3]."""
+    bottom = torch.nn.functional.pad(torch.ones_like(t[:1]), (3, 0))[None]  # [[0, 0, 0, 1]], no host copy
     return torch.cat([torch.cat([quat_to_rotmat(q), t[:, None]], 1), bottom], 0)
 
 
 def photometric_refine(g: Gaussians, c2w: Tensor, rgb: Tensor, depth: Tensor, k: Intrinsics,
-                       rcfg: RendererConfig, cfg: TrackingConfig) -> Tensor:
+                       rcfg: RendererConfig, cfg: TrackingConfig, backend: RenderBackend | None = None) -> Tensor:
     """Refine a pose with Adam (SplaTAM-style) on :func:`photometric_loss`.
 
     Args:
@@ -288,16 +297,20 @@ def photometric_refine(g: Gaussians, c2w: Tensor, rgb: Tensor, depth: Tensor, k:
     opt = torch.optim.Adam([{"params": [q], "lr": cfg.photometric_lr_rot},
                             {"params": [t], "lr": cfg.photometric_lr_trans}])
     gd = Gaussians(*(x.detach() for x in (g.means, g.quats, g.log_scales, g.logit_opacities, g.rgb)), None)
-    best = (float("inf"), q.detach().clone(), t.detach().clone())
+    backend = backend or select_backend(rcfg, g.means.device)
+    # the best iterate is kept on the device (no host round trip per iteration)
+    best_loss = torch.full((), float("inf"), device=q.device)
+    best_q, best_t = q.detach().clone(), t.detach().clone()
     for _ in range(cfg.photometric_iters):
-        loss = photometric_loss(gd, _w2c_from(q, t), rgb, depth, k, rcfg, cfg.min_silhouette)
-        if loss is None:
-            break
-        if float(loss.detach()) < best[0]:
-            best = (float(loss.detach()), q.detach().clone(), t.detach().clone())
+        loss = photometric_loss(gd, w2c_from_quat_trans(q, t), rgb, depth, k, rcfg, cfg.min_silhouette, backend)
+        with torch.no_grad():
+            better = loss.detach() < best_loss
+            best_loss = torch.where(better, loss.detach(), best_loss)
+            best_q = torch.where(better, q.detach(), best_q)
+            best_t = torch.where(better, t.detach(), best_t)
         opt.zero_grad()
         loss.backward()
         opt.step()
     with torch.no_grad():
-        w2c = _w2c_from(best[1].double(), best[2].double())
+        w2c = w2c_from_quat_trans(best_q.double(), best_t.double())
     return torch.linalg.inv(w2c)

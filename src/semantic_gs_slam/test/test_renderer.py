@@ -135,8 +135,10 @@ def test_silhouette_empty_behind_camera_and_opaque():
     big = Gaussians(torch.tensor([[0.0, 0, 2.0]] * 3), torch.tensor([[1.0, 0, 0, 0]] * 3), torch.zeros(3, 1),
                     torch.full((3, 1), 10.0), torch.ones(3, 3))
     out = render(big, torch.eye(4), k)
-    # three stacked opaque Gaussians: 1 - (1 - 0.99)^3 everywhere near the centre
-    assert float(out.silhouette[7, 7]) == pytest.approx(1 - 0.01**3, abs=1e-4)
+    # three stacked opaque Gaussians: the third would take the transmittance below 1e-4, so (as in gsplat's
+    # kernel) it is not blended: silhouette 1 - (1 - a)^2 with a the alpha at the pixel (0.5 px off centre)
+    a = 0.99 * math.exp(-0.5 * 0.5 / (5.0**2 + 0.3))
+    assert float(out.silhouette[7, 7]) == pytest.approx(1 - (1 - a) ** 2, abs=1e-5)  # float32
 
 
 def test_shape_errors_are_clear():
@@ -163,14 +165,4 @@ def test_gsplat_backend_unavailable_raises_typed_error():
         render(random_scene(n=4), torch.eye(4, dtype=F64), K, RendererConfig(backend="gsplat"))
 
 
-@pytest.mark.skipif(not _gsplat_ok(), reason="needs gsplat and a CUDA GPU")
-def test_gsplat_matches_torch_backend():
-    g = random_scene(n=200, dtype=torch.float32)
-    k = Intrinsics(64, 48, 48.0, 48.0, 31.5, 23.5)
-    w2c = torch.eye(4)
-    a = render(g, w2c, k)
-    gc = Gaussians(*(t.detach().cuda() for t in (g.means, g.quats, g.log_scales, g.logit_opacities, g.rgb,
-                                                  g.semantic)))
-    b = render(gc, w2c.cuda(), k, RendererConfig(backend="gsplat"))
-    for name in ("rgb", "silhouette", "depth"):
-        torch.testing.assert_close(getattr(b, name).cpu(), getattr(a, name), rtol=0, atol=2e-2)
+# the gsplat agreement tests (GPU) are in test_gsplat_gpu.py

@@ -34,8 +34,10 @@ class EngineAdapter:
         return len(self.slam.map)
 
 
-def load_slam_config(path: str, intrinsics: tuple[float, float, float, float, int, int]) -> Any:
-    """SlamConfig from a YAML file (any subset of its fields; "" = defaults) and the camera."""
+def load_slam_config(path: str, intrinsics: tuple[float, float, float, float, int, int],
+                     overrides: dict[str, Any] | None = None) -> Any:
+    """SlamConfig from a YAML file (any subset of its fields; "" = defaults), top-level ``overrides``
+    (e.g. the server's ``device`` parameter) and the camera."""
     import yaml
 
     from semantic_gs_slam.config import Intrinsics, SlamConfig
@@ -49,7 +51,8 @@ def load_slam_config(path: str, intrinsics: tuple[float, float, float, float, in
         except (OSError, yaml.YAMLError) as exc:
             raise StreamingError(f"cannot read slam_config {path!r}: {exc}") from exc
     fx, fy, cx, cy, w, h = intrinsics
-    doc = {**doc, "intrinsics": {"width": int(w), "height": int(h), "fx": fx, "fy": fy, "cx": cx, "cy": cy}}
+    doc = {**doc, **(overrides or {}),
+           "intrinsics": {"width": int(w), "height": int(h), "fx": fx, "fy": fy, "cx": cx, "cy": cy}}
     try:
         cfg = SlamConfig.from_dict(doc)
         cfg.check()
@@ -69,7 +72,8 @@ def scaled_intrinsics(k: tuple[float, float, float, float, int, int], width: int
 
 
 def make_engine(slam_config: str, wait_intrinsics: Callable[[], Any], cfg: Any,
-                classes: dict[int, str] | None = None, resume_dir: str | None = None) -> EngineAdapter:
+                classes: dict[int, str] | None = None, resume_dir: str | None = None,
+                overrides: dict[str, Any] | None = None) -> EngineAdapter:
     """Create (or resume) the engine for a run.
 
     Args:
@@ -78,6 +82,7 @@ def make_engine(slam_config: str, wait_intrinsics: Callable[[], Any], cfg: Any,
         cfg: the session config (its width/height are the resize target).
         classes: semantic id → class name.
         resume_dir: checkpoint folder to resume from, or None.
+        overrides: top-level SlamConfig fields that win over the YAML (e.g. ``{"device": "cuda"}``).
 
     Raises:
         StreamingError: no camera intrinsics, bad settings, unusable checkpoint.
@@ -88,7 +93,7 @@ def make_engine(slam_config: str, wait_intrinsics: Callable[[], Any], cfg: Any,
     k = wait_intrinsics()
     if k is None:
         raise StreamingError("no camera_info received: publish sensor_msgs/CameraInfo on 'camera_info'")
-    config, _ = load_slam_config(slam_config, scaled_intrinsics(k, cfg.width, cfg.height))
+    config, _ = load_slam_config(slam_config, scaled_intrinsics(k, cfg.width, cfg.height), overrides)
     try:
         if resume_dir and os.path.isdir(resume_dir):
             return EngineAdapter(SLAM.resume(os.path.join(resume_dir, "engine"), config))

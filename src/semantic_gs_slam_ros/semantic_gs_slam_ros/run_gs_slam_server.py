@@ -65,6 +65,8 @@ class SlamServer(Node):
         p("checkpoint_every", 20)
         p("export_every", 0)
         p("slam_config", "")  # YAML of the engine's SlamConfig ("" = defaults)
+        p("device", "auto")  # torch device of the engine: auto (CUDA when present), cpu, cuda, cuda:N;
+        # overrides slam_config's device (with CUDA and gsplat installed, renderer backend auto picks gsplat)
         p("slam_enabled", True)  # false = record frames only (no map), e.g. for offline runs
         p("reload_service", "/object_query_server/reload")  # std_srvs/Trigger of object_query_server
         p("done_wait", 10.0)  # s to wait for images still in flight after data_transfer_done
@@ -217,6 +219,7 @@ class SlamServer(Node):
             engine = None
             if self.get_parameter("slam_enabled").value:
                 engine = make_engine(self.get_parameter("slam_config").value, self._wait_intrinsics, cfg,
+                                     overrides={"device": str(self.get_parameter("device").value)},
                                      classes=parse_classes(goal.semantic_classes),
                                      resume_dir=os.path.join(cfg.work_dir, "checkpoint") if resume_state else None)
             session = StreamingSession(cfg, engine, on_map=self._request_reload,

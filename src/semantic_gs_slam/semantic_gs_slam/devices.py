@@ -1,0 +1,40 @@
+"""Which torch device the engine runs on: ``SlamConfig.device`` resolved once (``auto`` = CUDA when present)."""
+
+from __future__ import annotations
+
+import re
+
+import torch
+
+from semantic_gs_slam.errors import ConfigError
+
+DEVICE_PATTERN = re.compile(r"^(auto|cpu|cuda(:\d+)?)$")
+
+
+def resolve_device(name: str | torch.device) -> torch.device:
+    """The torch device for a config value.
+
+    Args:
+        name: ``"auto"`` (the first CUDA device when ``torch.cuda.is_available()``, else the CPU),
+            ``"cpu"``, ``"cuda"`` or ``"cuda:N"`` (or a ``torch.device``).
+
+    Returns:
+        The device every tensor of the engine lives on.
+
+    Raises:
+        ConfigError: an unknown name, or CUDA asked for where this torch has none.
+    """
+    if isinstance(name, torch.device):
+        return name
+    if not DEVICE_PATTERN.match(name):
+        raise ConfigError(f"device must be 'auto', 'cpu', 'cuda' or 'cuda:N', got {name!r}")
+    if name == "auto":
+        return torch.device("cuda") if torch.cuda.is_available() else torch.device("cpu")
+    dev = torch.device(name)
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise ConfigError(f"device {name!r} asked for, but torch {torch.__version__} sees no CUDA device; "
+                              "use device 'auto' or 'cpu' (a CUDA machine: `make setup-gpu`)")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise ConfigError(f"device {name!r}: only {torch.cuda.device_count()} CUDA device(s) here")
+    return dev

@@ -1,0 +1,55 @@
+"""The CPU-runnable parts of the GPU benchmark (``bench/slam_gpu.py``, ``bench/gpu.sh``)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+
+import pytest
+
+ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", "..", ".."))
+BENCH = os.path.join(ROOT, "bench")
+
+
+def test_table_printer_runs_on_cpu_at_a_tiny_size(tmp_path):
+    sys.path.insert(0, BENCH)
+    try:
+        import slam_gpu
+    finally:
+        sys.path.remove(BENCH)
+    from semantic_gs_slam.config import MappingConfig
+
+    data = slam_gpu.make_sequence(str(tmp_path), 64, 36, 4, supersample=1, workers=1)
+    row = slam_gpu.run_size(data, "cpu", "torch", 1, count_syncs=True,
+                            mapping=MappingConfig(first_frame_iters=20, iters=3))
+    table = slam_gpu.format_table([row], slam_gpu.device_name("cpu"))
+    print(table)
+    assert row.size == "64x36" and row.frames == 4 and row.fps > 0 and row.gaussians > 0
+    assert row.syncs_per_frame > 0 and row.ate_cm == row.ate_cm  # counted, and ground truth was there
+    lines = table.splitlines()
+    assert lines[0].startswith("CPU") and lines[2].count("|") == lines[4].count("|") == 12
+    assert "| - |" in lines[4]  # no GPU memory figure on the CPU
+
+
+def test_gpu_script_is_valid_bash_and_refuses_a_cpu_torch_clearly():
+    import torch
+
+    script = os.path.join(BENCH, "gpu.sh")
+    assert subprocess.run(["bash", "-n", script]).returncode == 0
+    if torch.cuda.is_available():
+        pytest.skip("a CUDA machine: the script would run for real (make bench-gpu)")
+    r = subprocess.run(["bash", script], capture_output=True, text=True, timeout=120,
+                       env={**os.environ, "PYTHON": sys.executable})
+    assert r.returncode == 2 and "needs a CUDA machine" in r.stderr
+
+
+def test_size_argument_errors_are_clear():
+    sys.path.insert(0, BENCH)
+    try:
+        import slam_gpu
+    finally:
+        sys.path.remove(BENCH)
+    assert slam_gpu.parse_size("1200x680") == (1200, 680)
+    with pytest.raises(Exception, match="WIDTHxHEIGHT"):
+        slam_gpu.parse_size("1200")
