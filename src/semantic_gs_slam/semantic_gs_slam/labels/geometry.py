@@ -31,7 +31,7 @@ from semantic_gs_slam.errors import ConfigError, FrameError
 
 PLANE_CLASSES: dict[int, str] = {1: "floor", 2: "wall", 3: "table", 4: "ceiling"}
 FLOOR, WALL, TABLE, CEILING = 1, 2, 3, 4
-FIRST_INSTANCE_ID = 100
+FIRST_INSTANCE_ID = 128
 OBJECT_CLASS = "object"
 
 
@@ -191,7 +191,7 @@ class GeometryLabeller:
         self.cfg.check()
         self._rng = np.random.default_rng(self.cfg.seed)
         self._owner: dict[int, int] = {}  # world voxel key -> instance id
-        self._next_id = FIRST_INSTANCE_ID
+        self.next_id = FIRST_INSTANCE_ID  # id of the next new instance
         self._up: np.ndarray | None = None if self.cfg.up is None else np.asarray(self.cfg.up, np.float64)
         self.classes: dict[int, str] = dict(PLANE_CLASSES)
         self._up_sum = np.zeros(3)  # pixel-weighted sum of horizontal plane normals (world) seen so far
@@ -231,7 +231,7 @@ class GeometryLabeller:
             self._refine_up(planes, c2w)
             up_c = c2w[:3, :3].T @ self._up
             ids[:] = 0
-            for pl, m in zip(planes, self._plane_masks):
+            for pl, m in zip(planes, self._plane_masks, strict=True):
                 pl.cls = self._plane_class(pl.normal, pl.d, up_c)
                 if pl.cls:
                     ids[m] = pl.cls
@@ -270,8 +270,8 @@ class GeometryLabeller:
             if cnt[best] >= self.cfg.min_overlap * len(keys):
                 iid = int(vals[best])
         if iid == 0:
-            iid = self._next_id
-            self._next_id += 1
+            iid = self.next_id
+            self.next_id += 1
         for q in keys:
             self._owner.setdefault(int(q), iid)
         return iid
