@@ -348,16 +348,15 @@ def load_tum(root: str, intrinsics: Intrinsics | None = None, depth_scale: float
                    depth_scale)
 
 
-def _read_k_txt(path: str) -> Intrinsics:
-    """7-Scenes ``camera-intrinsics.txt``: a 3x3 K matrix (rows on lines); the image size is 640x480."""
+def _read_k_txt(path: str, width: int, height: int) -> Intrinsics:
+    """7-Scenes ``camera-intrinsics.txt``: a 3x3 K matrix (rows on lines) of ``width`` x ``height`` images."""
     try:
         vals = np.loadtxt(path, dtype=np.float64)
     except ValueError as exc:
         raise DatasetError(f"{path}: not a 3x3 matrix of numbers ({exc})") from exc
     if vals.shape != (3, 3) or not np.all(np.isfinite(vals)):
         raise DatasetError(f"{path}: expected a 3x3 K matrix, got shape {vals.shape}")
-    d = SEVEN_SCENES_INTRINSICS
-    return Intrinsics(d.width, d.height, float(vals[0, 0]), float(vals[1, 1]), float(vals[0, 2]), float(vals[1, 2]))
+    return Intrinsics(width, height, float(vals[0, 0]), float(vals[1, 1]), float(vals[0, 2]), float(vals[1, 2]))
 
 
 def _read_c2w_file(path: str) -> np.ndarray:
@@ -395,7 +394,10 @@ def load_7scenes(root: str, intrinsics: Intrinsics | None = None, depth_scale: f
             raise DatasetError(f"{root}: {len(missing)} frames have no pose file (first: frame {missing[0]})")
         poses = [_read_c2w_file(pose[i]) for i in ids]
     kp = os.path.join(root, "camera-intrinsics.txt")
-    k = intrinsics or (_read_k_txt(kp) if os.path.isfile(kp) else SEVEN_SCENES_INTRINSICS)
+    if intrinsics is None and os.path.isfile(kp):
+        h, w = _read_image(depth[ids[0]]).shape[:2]  # the K file does not say the image size
+        intrinsics = _read_k_txt(kp, w, h)
+    k = intrinsics or SEVEN_SCENES_INTRINSICS
     ds = Dataset(k, [rgb[i] for i in ids], [depth[i] for i in ids], None, poses, [i / fps for i in ids],
                  depth_scale)
     ds.invalid_depth_raw = 65535

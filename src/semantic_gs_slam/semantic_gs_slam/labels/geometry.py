@@ -40,17 +40,20 @@ class GeometryLabelConfig:
     """Settings of :class:`GeometryLabeller` (distances in metres)."""
 
     max_planes: int = 4  # planes removed per frame
-    min_plane_fraction: float = 0.08  # a plane must hold this share of the valid pixels
+    min_plane_fraction: float = 0.08  # a plane must hold this share of the valid pixels ...
+    min_support_fraction: float = 0.02  # ... a horizontal support surface below the camera (table top) only this
+    max_rejected: int = 6  # plane hypotheses rejected as too small before the search stops
     plane_dist: float = 0.012  # inlier distance at 1 m; grows with depth^2 (Kinect-like noise)
     plane_normal_cos: float = 0.85  # inlier normals within ~32 degrees of the plane's
-    ransac_iters: int = 80
+    ransac_iters: int = 200
     horizontal_cos: float = 0.9  # |n . up| above this: horizontal plane
     vertical_cos: float = 0.3  # |n . up| below this: vertical plane (wall)
-    floor_min_height: float = 1.0  # camera at least this high above a horizontal plane: it is the floor
+    floor_min_height: float = 1.0  # a horizontal plane is the floor when the camera is at least this high above
+    floor_tolerance: float = 0.15  # it and it lies within this of the lowest such plane seen so far (else: table)
     depth_jump: float = 0.03  # neighbours further apart than this x depth are not connected
     min_segment_fraction: float = 0.002  # smaller components (share of the image) are dropped
     max_segment_fraction: float = 0.35  # larger ones are structure, not objects
-    max_extent: float = 1.5  # metres; components larger than this in 3-D are structure
+    max_extent: float = 2.5  # metres; components larger than this in 3-D are structure
     voxel: float = 0.04  # world voxel for tracking instances across frames
     min_overlap: float = 0.2  # share of a component's voxels an earlier instance must own to give its id
     smooth: int = 5  # box filter (pixels) on the depth for normals
@@ -197,6 +200,8 @@ class GeometryLabeller:
         self._up_sum = np.zeros(3)  # pixel-weighted sum of horizontal plane normals (world) seen so far
         self._up_frames = 0  # frames that refined the up estimate
         self._plane_masks: list[np.ndarray] = []  # inlier masks of the current frame's planes
+        self._floor_level: float | None = None  # world height (along up) of the lowest floor candidate so far
+        self._cam_height = 0.0  # the current camera's world height along up
 
     def label(self, rgb: np.ndarray, depth: np.ndarray, c2w: np.ndarray) -> FrameLabels:
         """Label one frame.
@@ -220,6 +225,7 @@ class GeometryLabeller:
         if self._up is None:
             self._up = -c2w[:3, 1] / np.linalg.norm(c2w[:3, 1])
         up_c = c2w[:3, :3].T @ self._up  # gravity "up" in camera coordinates
+        self._cam_height = float(c2w[:3, 3] @ self._up)
         valid = np.isfinite(depth) & (depth > 0)
         ids = np.zeros(depth.shape, np.int64)
         if valid.sum() < 50:
@@ -230,6 +236,8 @@ class GeometryLabeller:
         if self.cfg.up is None and self._up_frames < self.cfg.up_frames:
             self._refine_up(planes, c2w)
             up_c = c2w[:3, :3].T @ self._up
+            self._cam_height = float(c2w[:3, 3] @ self._up)
+            self._floor_level = None  # levels measured along the old up are void
             ids[:] = 0
             for pl, m in zip(planes, self._plane_masks, strict=True):
                 pl.cls = self._plane_class(pl.normal, pl.d, up_c)
@@ -286,13 +294,18 @@ class GeometryLabeller:
         tol = cfg.plane_dist * np.maximum(z, 0.3) ** 2
         planes: list[Plane] = []
         self._plane_masks: list[np.ndarray] = []
-        for _ in range(cfg.max_planes):
-            cand = np.flatnonzero((free & ~taken).reshape(-1))
-            if cand.size < cfg.min_plane_fraction * n_valid:
+        tried = np.zeros(valid.shape, bool)  # inliers of hypotheses rejected as too small
+        for _ in range(cfg.max_planes + cfg.max_rejected):
+            if len(planes) >= cfg.max_planes:
+                break
+            cand = np.flatnonzero((free & ~taken & ~tried).reshape(-1))
+            if cand.size == 0:
+                break
+            if cand.size < cfg.min_support_fraction * n_valid:
                 break
             p_all = pts.reshape(-1, 3)
             n_all = normals.reshape(-1, 3)
-            sub = cand if cand.size <= 4000 else self._rng.choice(cand, 4000, replace=False)
+            sub = cand if cand.size <= 2000 else self._rng.choice(cand, 2000, replace=False)
             best, best_score = None, 0
             for s in self._rng.choice(cand, min(cfg.ransac_iters, cand.size), replace=False):
                 n0 = n_all[s]  # one point + its normal is a plane hypothesis
@@ -306,7 +319,8 @@ class GeometryLabeller:
             n0, d0 = best
             inl = (np.abs(pts @ n0 + d0) < tol) & ((normals @ n0) > cfg.plane_normal_cos) & free & ~taken
             if inl.sum() < 10:
-                break
+                tried |= inl
+                continue
             # least-squares refit on the inliers, then the final inlier set
             q = pts[inl]
             c = q.mean(0)
@@ -314,9 +328,12 @@ class GeometryLabeller:
             n1 = vt[2] if vt[2] @ n0 > 0 else -vt[2]
             d1 = -float(n1 @ c)
             inl = (np.abs(pts @ n1 + d1) < tol) & ((normals @ n1) > cfg.plane_normal_cos) & valid & ~taken
-            if inl.sum() < cfg.min_plane_fraction * n_valid:
-                break
             cls = self._plane_class(n1, d1, up_c)
+            horizontal_below = float(n1 @ up_c) > cfg.up_snap_cos and d1 > 0  # the up estimate may still be off
+            need = cfg.min_support_fraction if horizontal_below else cfg.min_plane_fraction
+            if inl.sum() < need * n_valid:
+                tried |= inl | (np.abs(pts @ n0 + d0) < tol) & free
+                continue
             planes.append(Plane(n1, d1, cls, int(inl.sum())))
             self._plane_masks.append(inl)
             taken |= inl
@@ -349,4 +366,9 @@ class GeometryLabeller:
         height = d * cos
         if height <= 0:
             return CEILING
-        return FLOOR if height >= self.cfg.floor_min_height else TABLE
+        if height < self.cfg.floor_min_height:
+            return TABLE
+        level = self._cam_height - height  # the plane's height along up in world coordinates
+        if self._floor_level is None or level < self._floor_level:
+            self._floor_level = level
+        return FLOOR if level < self._floor_level + self.cfg.floor_tolerance else TABLE
