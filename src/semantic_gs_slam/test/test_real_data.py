@@ -115,7 +115,7 @@ def test_resized_dataset_scales_intrinsics_and_never_blends_depth(tmp_path):
     assert set(f.depth.ravel().tolist()) <= native  # nearest: only measured values (or 0), no blends
     # a point projects to the same place (in units of the image) before and after
     full = load_dataset(str(tmp_path))
-    x, y, z = 0.2, -0.1, 1.5
+    x, z = 0.2, 1.5
     u0 = full.intrinsics.fx * x / z + full.intrinsics.cx
     u1 = k.fx * x / z + k.cx
     assert (u1 + 0.5) / 32 == pytest.approx((u0 + 0.5) / 64)
