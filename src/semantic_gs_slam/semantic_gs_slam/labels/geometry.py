@@ -57,6 +57,9 @@ class GeometryLabelConfig:
     voxel: float = 0.04  # world voxel for tracking instances across frames
     min_overlap: float = 0.2  # share of a component's voxels an earlier instance must own to give its id
     smooth: int = 5  # box filter (pixels) on the depth for normals
+    concave_cut: float = 0.3  # pixels on concave creases (normal turn > ~17 deg, see concave_pixels) split
+    # objects from the wall / each other (0: off)
+    concave_step: int = 2  # pixels between the compared normals
     seed: int = 0
     up: tuple[float, float, float] | None = None  # world up; None: minus the first camera's y axis, refined
     # by the normals of near-horizontal planes in the first ``up_frames`` frames that show one
@@ -179,6 +182,28 @@ def connected_components(mask: np.ndarray, join_h: np.ndarray, join_v: np.ndarra
     return out, 0
 
 
+def concave_pixels(pts: np.ndarray, normals: np.ndarray, step: int, threshold: float) -> np.ndarray:
+    """Pixels on a concave crease (where an object meets the wall or another object) [H, W] bool.
+
+    Along x and y, ``c = (n(+s) - n(-s)) . (p(+s) - p(-s)) / |p(+s) - p(-s)|`` is positive across a
+    convex edge (a box's own corner) and negative across a concave one; pixels with ``c < -threshold``
+    are creases.
+    """
+    h, w = normals.shape[:2]
+    out = np.zeros((h, w), bool)
+    ok = np.abs(normals).sum(-1) > 0
+    s = step
+    for axis in (0, 1):
+        sl_a = (slice(2 * s, None), slice(None)) if axis == 0 else (slice(None), slice(2 * s, None))
+        sl_b = (slice(None, -2 * s), slice(None)) if axis == 0 else (slice(None), slice(None, -2 * s))
+        centre = (slice(s, -s), slice(None)) if axis == 0 else (slice(None), slice(s, -s))
+        dp = pts[sl_a] - pts[sl_b]
+        dn = normals[sl_a] - normals[sl_b]
+        c = (dn * dp).sum(-1) / np.maximum(np.linalg.norm(dp, axis=-1), 1e-9)
+        out[centre] |= (c < -threshold) & ok[sl_a] & ok[sl_b]
+    return out
+
+
 def _voxel_keys(world: np.ndarray, voxel: float) -> np.ndarray:
     """Unique int64 keys of the voxels holding the points [N, 3] (21 bits per axis, +-42 km at 2 cm)."""
     q = np.floor(world / voxel).astype(np.int64) + (1 << 20)
@@ -244,6 +269,9 @@ class GeometryLabeller:
                 if pl.cls:
                     ids[m] = pl.cls
         rest = valid & ~plane_mask
+        if cfg.concave_cut > 0:
+            rest &= ~concave_pixels(backproject(box_filter_valid(depth, cfg.smooth), k), normals, cfg.concave_step,
+                                    cfg.concave_cut)
         z = depth
         jump = cfg.depth_jump * np.maximum(z, 1e-6)
         join_h = np.abs(z[:, 1:] - z[:, :-1]) < np.minimum(jump[:, 1:], jump[:, :-1])
