@@ -137,6 +137,7 @@ def main() -> int:
     ap.add_argument("--o3d-voxel", type=float, default=0.02, help="Open3D TSDF voxel (m)")
     ap.add_argument("--o3d-depth-max", type=float, default=3.0)
     ap.add_argument("--no-open3d", action="store_true")
+    ap.add_argument("--open3d-only", action="store_true", help="only the Open3D baseline (minutes, not hours)")
     ap.add_argument("--quiet", action="store_true", help="no per-frame lines")
     args = ap.parse_args()
     ds = load_dataset(args.dataset, size=parse_size(args.size) if args.size else None)
@@ -149,6 +150,16 @@ def main() -> int:
     print(f"sequence {args.dataset}: frames {idx[0]}..{idx[-1]} every {args.stride} ({len(idx)} frames), "
           f"{k.width}x{k.height}, device {args.device}, labels {args.labels}")
     o3 = None if args.no_open3d else run_open3d(ds, idx, args.o3d_voxel, args.o3d_depth_max, args.device)
+    if args.open3d_only:
+        if o3 is None:
+            return 2
+        e = aligned_errors(o3["poses"], gts)
+        print(f"Open3D {o3['version']} t.pipelines.slam.Model ({o3['device']}, {args.o3d_voxel * 100:.0f} cm voxels): "
+              f"ATE {100 * ate_rmse(o3['poses'], gts):.2f} cm, {o3['fps']:.1f} FPS, {o3['lost']} failures")
+        print("| frame | Open3D aligned (cm) |\n|---|---|")
+        for n in range(0, len(idx), max(1, args.curve_every)):
+            print(f"| {idx[n]} | {e[n] * 100:.2f} |")
+        return 0
     ours = run_ours(ds, idx, args)
     ate_o = ours["ate_rmse_cm"]
     rows = [("ATE RMSE (cm, aligned)", f"{ate_o:.2f}"), ("PSNR (dB)", f"{ours['psnr']:.2f}"),
