@@ -11,10 +11,19 @@ Layouts:
   ``traj_w_c.txt`` (4x4 camera-to-world per line).
 * ``tum`` — TUM RGB-D: ``rgb.txt``, ``depth.txt``, ``groundtruth.txt`` (t tx ty tz qx qy qz qw),
   depth scale 5000, rgb/depth/pose associated within 0.08 s.
+* ``7scenes`` — Microsoft 7-Scenes (one ``seq-XX`` folder): ``frame-XXXXXX.color.jpg``,
+  ``frame-XXXXXX.depth.png`` (16-bit millimetres, 0 or 65535 = invalid), ``frame-XXXXXX.pose.txt``
+  (4x4 camera-to-world), optional ``camera-intrinsics.txt`` (3x3 K; default fx = fy = 585,
+  cx = 320, cy = 240), 30 Hz. Colour and depth come from two unregistered cameras: expect the
+  colour a few pixels off the depth.
+
+Any layout can be read at a working size (:meth:`Dataset.resized`: colour area-averaged, depth and
+labels nearest-neighbour so no invalid zero is blended into a valid depth, intrinsics scaled).
 """
 
 from __future__ import annotations
 
+import copy
 import glob
 import json
 import os
@@ -28,6 +37,8 @@ from semantic_gs_slam.errors import DatasetError
 
 REPLICA_INTRINSICS = Intrinsics(1200, 680, 600.0, 600.0, 599.5, 339.5)
 TUM_INTRINSICS = Intrinsics(640, 480, 525.0, 525.0, 319.5, 239.5)  # TUM "ROS default"
+SEVEN_SCENES_INTRINSICS = Intrinsics(640, 480, 585.0, 585.0, 320.0, 240.0)  # the Kinect v1 depth camera
+LAYOUTS = ("replica", "sgs", "tum", "7scenes")
 
 
 @dataclass
@@ -61,6 +72,23 @@ class Dataset:
         self.rgb_paths, self.depth_paths, self.sem_paths = rgb_paths, depth_paths, sem_paths
         self.poses, self.timestamps, self.depth_scale = poses, timestamps, depth_scale
         self.classes = classes or {}
+        self.native_intrinsics = intrinsics  # the files' camera; ``intrinsics`` is the working one
+        self.invalid_depth_raw: int | None = None  # a raw depth value meaning "no depth" besides 0 (7-Scenes: 65535)
+
+    def resized(self, width: int, height: int) -> Dataset:
+        """The same frames at a working size ``width`` x ``height`` (a shallow copy; the files are untouched).
+
+        The intrinsics are scaled per axis (pixel-centre convention); colour is area-averaged, depth and
+        labels are taken nearest-neighbour (a depth pixel is never blended with an invalid 0).
+
+        Raises:
+            DatasetError: a non-positive size.
+        """
+        if width <= 0 or height <= 0:
+            raise DatasetError(f"working size must be positive, got {width}x{height}")
+        out = copy.copy(self)
+        out.intrinsics = scale_intrinsics(self.native_intrinsics, width, height)
+        return out
 
     def __len__(self) -> int:
         return len(self.rgb_paths)
@@ -76,6 +104,8 @@ class Dataset:
         depth = _read_image(self.depth_paths[i])
         if depth.ndim != 2:
             raise DatasetError(f"{self.depth_paths[i]}: expected a single-channel depth image, got {depth.shape}")
+        if self.invalid_depth_raw is not None:
+            depth = np.where(depth == self.invalid_depth_raw, 0, depth)
         depth = depth.astype(np.float32) / self.depth_scale
         if depth.shape != rgb.shape[:2]:
             raise DatasetError(f"frame {i}: colour {rgb.shape[:2]} and depth {depth.shape} sizes differ")
@@ -87,12 +117,69 @@ class Dataset:
             if sem.shape != depth.shape:
                 raise DatasetError(f"frame {i}: semantic {sem.shape} and depth {depth.shape} sizes differ")
             sem = sem.astype(np.int64)
-        k = self.intrinsics
+        k = self.native_intrinsics
         if rgb.shape[:2] != (k.height, k.width):
             raise DatasetError(f"frame {i}: image {rgb.shape[1]}x{rgb.shape[0]} does not match the intrinsics "
                                f"{k.width}x{k.height}")
+        w = self.intrinsics
+        if (w.width, w.height) != (k.width, k.height):
+            rgb = resize_area(rgb, w.width, w.height)
+            depth = resize_nearest(depth, w.width, w.height)
+            sem = None if sem is None else resize_nearest(sem, w.width, w.height)
         pose = None if self.poses is None else self.poses[i]
         return Frame(i, self.timestamps[i], rgb, depth, sem, pose)
+
+
+def scale_intrinsics(k: Intrinsics, width: int, height: int) -> Intrinsics:
+    """``k`` for the image resized to ``width`` x ``height`` (per-axis factors, pixel-centre convention)."""
+    sx, sy = width / k.width, height / k.height
+    return Intrinsics(width, height, k.fx * sx, k.fy * sy, (k.cx + 0.5) * sx - 0.5, (k.cy + 0.5) * sy - 0.5)
+
+
+def resize_area(img: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Resize a float image [H, W, C] by box (area) filtering (PIL, per channel in float32)."""
+    from PIL import Image
+
+    chans = [np.asarray(Image.fromarray(np.ascontiguousarray(img[..., c], np.float32), mode="F")
+                        .resize((width, height), Image.Resampling.BOX)) for c in range(img.shape[2])]
+    return np.stack(chans, -1).astype(np.float32)
+
+
+def resize_nearest(img: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Nearest-neighbour resize of a 2-D array [H, W] (depth, ids): the sample at each output pixel centre."""
+    h, w = img.shape[:2]
+    ys = np.minimum(((np.arange(height) + 0.5) * h / height).astype(np.int64), h - 1)
+    xs = np.minimum(((np.arange(width) + 0.5) * w / width).astype(np.int64), w - 1)
+    return img[ys[:, None], xs[None, :]]
+
+
+def frame_indices(n: int, start: int = 0, stride: int = 1, frames: int = 0, stop: int = 0) -> list[int]:
+    """Dataset indices: ``start``, ``start + stride``, ... below ``stop`` (0: the end), at most ``frames`` (0: all).
+
+    Raises:
+        DatasetError: negative values, ``stride < 1`` or a range that selects no frame.
+    """
+    if stride < 1 or start < 0 or frames < 0 or stop < 0:
+        raise DatasetError(f"need stride >= 1 and start, frames, stop >= 0; got stride={stride} start={start} "
+                           f"frames={frames} stop={stop}")
+    idx = list(range(start, min(stop, n) if stop else n, stride))
+    if frames:
+        idx = idx[:frames]
+    if not idx:
+        raise DatasetError(f"no frames selected: the dataset has {n} frames, start={start} stop={stop}")
+    return idx
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """``"320x240"`` -> (320, 240).
+
+    Raises:
+        DatasetError: anything else.
+    """
+    m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
+    if not m or int(m.group(1)) <= 0 or int(m.group(2)) <= 0:
+        raise DatasetError(f"size must be WIDTHxHEIGHT, e.g. 320x240; got {text!r}")
+    return int(m.group(1)), int(m.group(2))
 
 
 def _read_image(path: str) -> np.ndarray:
@@ -129,13 +216,7 @@ def _read_c2w_lines(path: str) -> list[np.ndarray]:
 
 
 def _numbered(folder: str, pattern: str) -> list[str]:
-    rx = re.compile(pattern)
-    files = []
-    for p in glob.glob(os.path.join(folder, "*")):
-        m = rx.fullmatch(os.path.basename(p))
-        if m:
-            files.append((int(m.group(1)), p))
-    return [p for _, p in sorted(files)]
+    return [p for _, p in _numbered_with_ids(folder, pattern)]
 
 
 def _read_classes(root: str) -> dict[int, str]:
@@ -267,20 +348,113 @@ def load_tum(root: str, intrinsics: Intrinsics | None = None, depth_scale: float
                    depth_scale)
 
 
-def load_dataset(root: str, layout: str = "auto", intrinsics: Intrinsics | None = None) -> Dataset:
-    """Open a dataset folder; ``layout`` is ``auto``, ``replica``, ``sgs`` or ``tum``."""
+def _read_k_txt(path: str, width: int, height: int) -> Intrinsics:
+    """7-Scenes ``camera-intrinsics.txt``: a 3x3 K matrix (rows on lines) of ``width`` x ``height`` images."""
+    try:
+        vals = np.loadtxt(path, dtype=np.float64)
+    except ValueError as exc:
+        raise DatasetError(f"{path}: not a 3x3 matrix of numbers ({exc})") from exc
+    if vals.shape != (3, 3) or not np.all(np.isfinite(vals)):
+        raise DatasetError(f"{path}: expected a 3x3 K matrix, got shape {vals.shape}")
+    return Intrinsics(width, height, float(vals[0, 0]), float(vals[1, 1]), float(vals[0, 2]), float(vals[1, 2]))
+
+
+def _read_c2w_file(path: str) -> np.ndarray:
+    try:
+        m = np.loadtxt(path, dtype=np.float64)
+    except ValueError as exc:
+        raise DatasetError(f"{path}: not a 4x4 matrix of numbers ({exc})") from exc
+    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+        raise DatasetError(f"{path}: expected a finite 4x4 camera-to-world matrix, got shape {m.shape}")
+    return m
+
+
+def load_7scenes(root: str, intrinsics: Intrinsics | None = None, depth_scale: float = 1000.0,
+                 fps: float = 30.0) -> Dataset:
+    """One 7-Scenes sequence folder (see module docstring); timestamps are ``index / fps``.
+
+    Raises:
+        DatasetError: no frames, colour/depth/pose files that do not pair up, bad pose or K files.
+    """
+    rgb = dict(_numbered_with_ids(root, r"frame-(\d+)\.color\.(?:jpg|png)"))
+    depth = dict(_numbered_with_ids(root, r"frame-(\d+)\.depth\.png"))
+    pose = dict(_numbered_with_ids(root, r"frame-(\d+)\.pose\.txt"))
+    if not rgb:
+        seqs = sorted(d for d in os.listdir(root) if d.startswith("seq-")) if os.path.isdir(root) else []
+        hint = f" (it has {', '.join(seqs)}: give one of them)" if seqs else ""
+        raise DatasetError(f"{root}: no frame-XXXXXX.color.jpg files{hint}")
+    ids = sorted(rgb)
+    missing = [i for i in ids if i not in depth]
+    if missing:
+        raise DatasetError(f"{root}: {len(missing)} colour frames have no depth image (first: frame {missing[0]})")
+    poses = None
+    if pose:
+        missing = [i for i in ids if i not in pose]
+        if missing:
+            raise DatasetError(f"{root}: {len(missing)} frames have no pose file (first: frame {missing[0]})")
+        poses = [_read_c2w_file(pose[i]) for i in ids]
+    kp = os.path.join(root, "camera-intrinsics.txt")
+    if intrinsics is None and os.path.isfile(kp):
+        h, w = _read_image(depth[ids[0]]).shape[:2]  # the K file does not say the image size
+        intrinsics = _read_k_txt(kp, w, h)
+    k = intrinsics or SEVEN_SCENES_INTRINSICS
+    ds = Dataset(k, [rgb[i] for i in ids], [depth[i] for i in ids], None, poses, [i / fps for i in ids],
+                 depth_scale)
+    ds.invalid_depth_raw = 65535
+    return ds
+
+
+def _numbered_with_ids(folder: str, pattern: str) -> list[tuple[int, str]]:
+    rx = re.compile(pattern)
+    out = []
+    for p in glob.glob(os.path.join(folder, "*")):
+        m = rx.fullmatch(os.path.basename(p))
+        if m:
+            out.append((int(m.group(1)), p))
+    return sorted(out)
+
+
+def detect_layout(root: str) -> str:
+    """The layout of a dataset folder (one of :data:`LAYOUTS`), told by its files.
+
+    Raises:
+        DatasetError: no known layout.
+    """
+    if os.path.isdir(os.path.join(root, "results")):
+        return "replica"
+    if os.path.isdir(os.path.join(root, "rgb")) and os.path.isfile(os.path.join(root, "traj_w_c.txt")):
+        return "sgs"
+    if os.path.isfile(os.path.join(root, "rgb.txt")):
+        return "tum"
+    if glob.glob(os.path.join(root, "frame-*.color.*")):
+        return "7scenes"
+    raise DatasetError(f"{root}: cannot tell the layout (no results/, rgb/+traj_w_c.txt, rgb.txt or "
+                       f"frame-XXXXXX.color.jpg)")
+
+
+def load_dataset(root: str, layout: str = "auto", intrinsics: Intrinsics | None = None,
+                 size: tuple[int, int] | None = None) -> Dataset:
+    """Open a dataset folder; ``layout`` is ``auto`` or one of :data:`LAYOUTS`.
+
+    Args:
+        root: the folder.
+        layout: ``auto`` tells it from the files (:func:`detect_layout`).
+        intrinsics: overrides the layout's (native-size) camera.
+        size: (width, height) working size; frames are resized and the intrinsics scaled (None: native).
+
+    Raises:
+        DatasetError: missing folder, unknown layout, bad files.
+    """
     if not os.path.isdir(root):
         raise DatasetError(f"dataset folder not found: {root}")
+    ds = _load(root, layout, intrinsics)
+    return ds.resized(*size) if size is not None else ds
+
+
+def _load(root: str, layout: str, intrinsics: Intrinsics | None) -> Dataset:
     if layout == "auto":
-        if os.path.isdir(os.path.join(root, "results")):
-            layout = "replica"
-        elif os.path.isdir(os.path.join(root, "rgb")) and os.path.isfile(os.path.join(root, "traj_w_c.txt")):
-            layout = "sgs"
-        elif os.path.isfile(os.path.join(root, "rgb.txt")):
-            layout = "tum"
-        else:
-            raise DatasetError(f"{root}: cannot tell the layout (no results/, rgb/+traj_w_c.txt or rgb.txt)")
-    loaders = {"replica": load_replica, "sgs": load_sgs, "tum": load_tum}
+        layout = detect_layout(root)
+    loaders = {"replica": load_replica, "sgs": load_sgs, "tum": load_tum, "7scenes": load_7scenes}
     if layout not in loaders:
         raise DatasetError(f"unknown layout {layout!r}; use one of {sorted(loaders)} or 'auto'")
     return loaders[layout](root, intrinsics)

@@ -6,6 +6,8 @@ Usage::
     python -m semantic_gs_slam.run --dataset /tmp/home --out /tmp/home_map --checkpoint-every 10
     python -m semantic_gs_slam.run --dataset /tmp/home --out /tmp/home_map --resume   # after a crash
     python -m semantic_gs_slam.run --dataset /tmp/home --out /tmp/home_map --device cuda --backend gsplat
+    python -m semantic_gs_slam.run --dataset ../shared/data/7scenes-redkitchen-0-499 --out /tmp/kitchen \
+        --size 320x240 --stride 2 --frames 120 --labels auto --eval   # a real camera (7-Scenes)
 
 Prints a progress bar and one log line per frame (pose error when ground truth exists, Gaussians,
 times) on stderr, and the evaluation table on stdout.
@@ -19,10 +21,13 @@ import os
 import sys
 import time
 
+import numpy as np
+
 from semantic_gs_slam.config import MappingConfig, RendererConfig, SlamConfig, TrackingConfig
-from semantic_gs_slam.datasets import load_dataset
+from semantic_gs_slam.datasets import LAYOUTS, frame_indices, load_dataset, parse_size
 from semantic_gs_slam.errors import SlamError
 from semantic_gs_slam.geometry import pose_error
+from semantic_gs_slam.labels import LABEL_MODES, LabelConfig, LabelStage, predict_pose
 from semantic_gs_slam.slam import SLAM
 
 
@@ -56,14 +61,31 @@ def build_config(args: argparse.Namespace, intrinsics) -> SlamConfig:
     return cfg
 
 
+def label_frame(stage: LabelStage, eng: SLAM, f) -> np.ndarray | None:
+    """The labels ``stage`` gives frame ``f`` (a :class:`~semantic_gs_slam.datasets.Frame`) at the engine's
+    constant-velocity pose guess; their names go into ``eng.classes`` before the frame is added."""
+    first = eng.initial_c2w if eng.initial_c2w is not None else f.gt_c2w
+    sem = stage(f.rgb, f.depth, f.semantics, predict_pose(eng.poses, first))
+    if stage.mode != "dataset":
+        eng.classes.update(stage.classes)
+    return sem
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point (``semantic_gs_slam_run``); returns the exit code."""
     ap = argparse.ArgumentParser(description="Semantic Gaussian-splatting RGB-D SLAM over a dataset folder.")
     ap.add_argument("--dataset", required=True, help="folder in the replica / sgs / tum layout")
-    ap.add_argument("--layout", default="auto", choices=["auto", "replica", "sgs", "tum"])
+    ap.add_argument("--layout", default="auto", choices=["auto", *LAYOUTS])
     ap.add_argument("--out", required=True, help="output folder: params.npz, semantic.json, map.ply")
     ap.add_argument("--frames", type=int, default=0, help="use only the first N frames (0: all)")
     ap.add_argument("--stride", type=int, default=1, help="use every k-th frame")
+    ap.add_argument("--start", type=int, default=0, help="first dataset frame")
+    ap.add_argument("--size", default="", help="working size WIDTHxHEIGHT, e.g. 320x240 (default: the files')")
+    ap.add_argument("--labels", default="auto", choices=list(LABEL_MODES),
+                    help="per-pixel labels: the dataset's, from geometry, geometry + an ONNX COCO model, none; "
+                         "auto = dataset when it has labels, else geometry")
+    ap.add_argument("--onnx-model", default="", help="ONNX instance segmenter/detector with COCO classes "
+                                                     "(--labels onnx)")
     ap.add_argument("--checkpoint-every", type=int, default=0, help="checkpoint into <out>/checkpoint every N frames")
     ap.add_argument("--resume", action="store_true", help="continue from <out>/checkpoint")
     ap.add_argument("--config", help="JSON file of config overrides, e.g. {\"mapping\": {\"iters\": 20}}")
@@ -79,22 +101,24 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quiet", action="store_true", help="no per-frame log lines")
     args = ap.parse_args(argv)
     try:
-        ds = load_dataset(args.dataset, args.layout)
-        idx = list(range(0, len(ds), args.stride))
-        if args.frames:
-            idx = idx[:args.frames]
+        ds = load_dataset(args.dataset, args.layout, size=parse_size(args.size) if args.size else None)
+        idx = frame_indices(len(ds), args.start, args.stride, args.frames)
         cfg = build_config(args, ds.intrinsics)
+        stage = LabelStage(LabelConfig(mode=args.labels, onnx_model=args.onnx_model), ds.intrinsics,
+                           ds.sem_paths is not None)
         ckpt = os.path.join(args.out, "checkpoint")
         if args.resume:
             eng = SLAM.resume(ckpt)
             print(f"resumed from {ckpt} at frame {len(eng.poses)}", file=sys.stderr)
         else:
             eng = SLAM(cfg, ds.classes)
+        stage.reserve_ids(eng.classes)  # after a resume: new instances must not reuse the map's ids
         t0 = time.perf_counter()
         start = len(eng.poses)
         for n, i in enumerate(idx[start:], start):
             f = ds[i]
-            pose = eng.add_frame(f.rgb, f.depth, f.semantics, f.timestamp, f.gt_c2w)
+            sem = label_frame(stage, eng, f)
+            pose = eng.add_frame(f.rgb, f.depth, sem, f.timestamp, f.gt_c2w)
             lg = eng.logs[-1]
             err = ""
             if f.gt_c2w is not None:

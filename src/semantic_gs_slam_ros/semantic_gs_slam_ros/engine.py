@@ -15,11 +15,20 @@ from semantic_gs_slam_ros.errors import StreamingError
 class EngineAdapter:
     """Wraps :class:`semantic_gs_slam.slam.SLAM` in the session's ``SlamEngine`` protocol."""
 
-    def __init__(self, slam: Any) -> None:
+    def __init__(self, slam: Any, labels: Any = None) -> None:
         self.slam = slam
+        self.labels = labels  # semantic_gs_slam.labels.LabelStage or None (the streamed labels as they are)
+        if labels is not None:
+            labels.reserve_ids(slam.classes)
 
     def add_frame(self, rgb: np.ndarray, depth: np.ndarray, semantics: np.ndarray | None,
                   timestamp: float) -> np.ndarray:
+        if self.labels is not None:
+            from semantic_gs_slam.labels import predict_pose
+
+            semantics = self.labels(rgb, depth, semantics, predict_pose(self.slam.poses, self.slam.initial_c2w))
+            if self.labels.mode != "dataset":
+                self.slam.classes.update(self.labels.classes)
         return self.slam.add_frame(rgb, depth, semantics, timestamp)
 
     def save_map(self, out_dir: str) -> tuple[str, str]:
@@ -71,9 +80,32 @@ def scaled_intrinsics(k: tuple[float, float, float, float, int, int], width: int
     return fx * sx, fy * sy, (cx + 0.5) * sx - 0.5, (cy + 0.5) * sy - 0.5, width, height
 
 
+def make_labels(mode: str, onnx_model: str, intrinsics: Any, streamed_labels: bool) -> Any:
+    """The labelling stage for a run (:class:`semantic_gs_slam.labels.LabelStage`).
+
+    Args:
+        mode: ``auto`` | ``dataset`` | ``geometry`` | ``onnx`` | ``none`` (auto: the streamed labels when
+            the server takes a ``semantic`` stream, else geometry).
+        onnx_model: ONNX file for mode ``onnx``.
+        intrinsics: the engine's :class:`~semantic_gs_slam.config.Intrinsics`.
+        streamed_labels: whether a ``semantic`` stream comes with the images.
+
+    Raises:
+        StreamingError: a bad mode, a missing or unloadable model.
+    """
+    from semantic_gs_slam.errors import ConfigError
+    from semantic_gs_slam.labels import LabelConfig, LabelStage
+
+    try:
+        return LabelStage(LabelConfig(mode=mode, onnx_model=onnx_model), intrinsics, streamed_labels)
+    except ConfigError as exc:
+        raise StreamingError(f"labels: {exc}") from exc
+
+
 def make_engine(slam_config: str, wait_intrinsics: Callable[[], Any], cfg: Any,
                 classes: dict[int, str] | None = None, resume_dir: str | None = None,
-                overrides: dict[str, Any] | None = None) -> EngineAdapter:
+                overrides: dict[str, Any] | None = None,
+                labels: tuple[str, str] = ("dataset", "")) -> EngineAdapter:
     """Create (or resume) the engine for a run.
 
     Args:
@@ -83,6 +115,8 @@ def make_engine(slam_config: str, wait_intrinsics: Callable[[], Any], cfg: Any,
         classes: semantic id → class name.
         resume_dir: checkpoint folder to resume from, or None.
         overrides: top-level SlamConfig fields that win over the YAML (e.g. ``{"device": "cuda"}``).
+        labels: (mode, onnx model path) of the labelling stage (:func:`make_labels`; ``cfg.use_semantic``
+            says whether labels are streamed).
 
     Raises:
         StreamingError: no camera intrinsics, bad settings, unusable checkpoint.
@@ -94,10 +128,13 @@ def make_engine(slam_config: str, wait_intrinsics: Callable[[], Any], cfg: Any,
     if k is None:
         raise StreamingError("no camera_info received: publish sensor_msgs/CameraInfo on 'camera_info'")
     config, _ = load_slam_config(slam_config, scaled_intrinsics(k, cfg.width, cfg.height), overrides)
+    stage = None
+    if labels[0] != "dataset":
+        stage = make_labels(labels[0], labels[1], config.intrinsics, bool(getattr(cfg, "use_semantic", False)))
     try:
         if resume_dir and os.path.isdir(resume_dir):
-            return EngineAdapter(SLAM.resume(os.path.join(resume_dir, "engine"), config))
-        return EngineAdapter(SLAM(config, classes))
+            return EngineAdapter(SLAM.resume(os.path.join(resume_dir, "engine"), config), stage)
+        return EngineAdapter(SLAM(config, classes), stage)
     except SlamError as exc:
         raise StreamingError(f"cannot start the SLAM engine: {exc}") from exc
 

@@ -1,8 +1,12 @@
 """``run_gs_slam_client``: sends the ``run_gs_slam`` goal and streams a recorded RGB-D sequence.
 
-Any layout the SLAM core reads (Replica / NICE-SLAM, SGS-SLAM with semantics, TUM RGB-D)::
+Any layout the SLAM core reads (Replica / NICE-SLAM, SGS-SLAM with semantics, TUM RGB-D, 7-Scenes)::
 
     ros_run semantic_gs_slam_ros run_gs_slam_client --ros-args -p dataset:=/data/home_seq -p rate:=10
+    ros_run semantic_gs_slam_ros run_gs_slam_client --ros-args -p dataset:=/data/7scenes/seq-01 \
+        -p size:=320x240 -p stride:=2 -p start:=0 -p max_frames:=120
+
+``size`` (``WIDTHxHEIGHT``, "" = the files' size) resizes every frame and scales the camera_info.
 
 It publishes ``rgb`` (rgb8), ``depth`` (32FC1, metres), ``semantic`` (16UC1 ids, when the
 dataset has them) and ``camera_info`` with the dataset's timestamps, starting on
@@ -52,6 +56,8 @@ class SlamClient(Node):
         p("layout", "auto")
         p("max_frames", 0)
         p("stride", 1)  # send every k-th frame
+        p("start", 0)  # first dataset frame to send
+        p("size", "")  # working size WIDTHxHEIGHT ("" = the dataset's own)
         p("rate", 10.0)  # frames per second (0 = as fast as the server takes them)
         p("output_dir", "")
         p("map_dir", "")
@@ -95,7 +101,7 @@ class SlamClient(Node):
             self._feedback = msg.feedback
 
     def run(self) -> int:
-        from semantic_gs_slam.datasets import load_dataset
+        from semantic_gs_slam.datasets import frame_indices, load_dataset, parse_size
         from semantic_gs_slam.errors import SlamError
 
         g = lambda name: self.get_parameter(name).value  # noqa: E731
@@ -104,15 +110,11 @@ class SlamClient(Node):
             log.error("parameter 'dataset' is required (a Replica, SGS-SLAM or TUM RGB-D folder)")
             return 2
         try:
-            data = load_dataset(g("dataset"), g("layout"))
+            size = parse_size(g("size")) if g("size") else None
+            data = load_dataset(g("dataset"), g("layout"), size=size)
+            indices = frame_indices(len(data), g("start"), max(1, g("stride")), g("max_frames"))
         except (SlamError, OSError) as exc:
             log.error(f"cannot read dataset {g('dataset')!r}: {exc}")
-            return 2
-        indices = list(range(0, len(data), max(1, g("stride"))))
-        if g("max_frames"):
-            indices = indices[: g("max_frames")]
-        if not indices:
-            log.error("no frames to send (check max_frames / stride)")
             return 2
         if not self._action.wait_for_server(timeout_sec=g("server_timeout")):
             log.error(f"no run_gs_slam action server after {g('server_timeout'):.0f} s (is run_gs_slam_server up?)")

@@ -71,6 +71,8 @@ class SlamServer(Node):
         p("reload_service", "/object_query_server/reload")  # std_srvs/Trigger of object_query_server
         p("done_wait", 10.0)  # s to wait for images still in flight after data_transfer_done
         p("image_qos_depth", 50)
+        p("labels", "auto")  # auto | dataset | geometry | onnx | none (auto: the semantic stream if any, else geometry)
+        p("onnx_model", "")  # ONNX COCO instance segmenter/detector for labels:=onnx
         self._busy = threading.Lock()  # held while a goal runs (one goal at a time)
         self._session_lock = threading.Lock()  # guards _session, _subs, _intrinsics
         self._session: StreamingSession | None = None
@@ -221,7 +223,9 @@ class SlamServer(Node):
                 engine = make_engine(self.get_parameter("slam_config").value, self._wait_intrinsics, cfg,
                                      overrides={"device": str(self.get_parameter("device").value)},
                                      classes=parse_classes(goal.semantic_classes),
-                                     resume_dir=os.path.join(cfg.work_dir, "checkpoint") if resume_state else None)
+                                     resume_dir=os.path.join(cfg.work_dir, "checkpoint") if resume_state else None,
+                                     labels=(self.get_parameter("labels").value,
+                                             self.get_parameter("onnx_model").value))
             session = StreamingSession(cfg, engine, on_map=self._request_reload,
                                        log=lambda line: self.get_logger().info(line))
         except StreamingError as exc:

@@ -233,3 +233,32 @@ def test_out_of_order_and_missing_depth_over_ros(launch_nodes, ros_node, tmp_pat
         i = round((r["stamp"] - t0) * 10)
         assert np.array(PILImage.open(work / r["depth"])).max() == 1000 * (1 + i)
         assert abs(int(np.array(PILImage.open(work / r["rgb"])).mean()) - 10 * i) <= 2
+
+
+def test_client_streams_a_label_less_7scenes_sequence_server_labels_it(launch_nodes, ros_domain, sequence,
+                                                                        tmp_path):
+    """A 7-Scenes-layout sequence (no labels), resized by the client: the server's labelling stage
+    (labels:=auto -> geometry) gives the map planes and objects."""
+    import numpy as np
+    from PIL import Image
+
+    from semantic_gs_slam.datasets import load_dataset
+
+    src = load_dataset(str(sequence / "home"))
+    seq = tmp_path / "seq-01"
+    seq.mkdir()
+    np.savetxt(seq / "camera-intrinsics.txt", src.intrinsics.as_matrix())
+    for i in range(len(src)):
+        f = src[i]
+        Image.fromarray((f.rgb * 255 + 0.5).astype(np.uint8)).save(seq / f"frame-{i:06d}.color.jpg")
+        Image.fromarray((f.depth * 1000).round().astype(np.uint16)).save(seq / f"frame-{i:06d}.depth.png")
+        np.savetxt(seq / f"frame-{i:06d}.pose.txt", f.gt_c2w)
+    work = tmp_path / "run"
+    launch_nodes(nodes=[server_spec(work, sequence, use_semantic=False, reload_service="")])
+    client = Client(ros_domain, seq, size="64x36", start=1, max_frames=6)
+    assert client.wait() == 0, client.text()
+    assert "6 frames processed" in client.text()
+    names = {c["class"] for c in json.loads((work / "map" / "semantic.json").read_text())["segmentation"]}
+    assert {"floor", "object"} <= names, names
+    saved = np.load(work / "map" / "params.npz")
+    assert set(np.unique(saved["semantic_ids"]).tolist()) & {1, 2, 3, 5}

@@ -1,0 +1,202 @@
+#!/usr/bin/env python3
+"""SLAM benchmark on a real RGB-D sequence (7-Scenes, TUM RGB-D, ... any layout the loaders read).
+
+Usage (from the repository root; the data stays outside the repository, mind its licence)::
+
+    source scripts/env.sh && python bench/slam_real.py ../shared/data/7scenes-redkitchen-0-499 \\
+        --frames 60 --stride 2 --size 320x240
+    python bench/slam_real.py <seq> --frames 250 --stride 2          # all 500 frames, every 2nd
+    python bench/slam_real.py <seq> --labels geometry                # with the geometry labelling stage
+    python bench/slam_real.py <seq> --device cuda                    # on the GPU machine
+
+Runs our engine over the frames and prints ATE RMSE (aligned), PSNR, depth L1, FPS, tracking
+failures, the per-frame pose error every ``--curve-every`` frames, and, when ``open3d`` is importable
+(``requirements/bench-real.in``), Open3D's KinectFusion-style frame-to-model tracker
+(``open3d.t.pipelines.slam.Model``, depth only, ``--o3d-voxel`` voxels) on the same frames in the same
+run, with the ratios. Timings depend on what else runs on the machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+
+import numpy as np
+
+from semantic_gs_slam.config import SlamConfig
+from semantic_gs_slam.datasets import frame_indices, load_dataset, parse_size
+from semantic_gs_slam.evaluate import evaluate
+from semantic_gs_slam.geometry import pose_error, umeyama_rigid
+from semantic_gs_slam.labels import LABEL_MODES, LabelConfig, LabelStage
+from semantic_gs_slam.metrics import ate_rmse
+from semantic_gs_slam.run import label_frame
+from semantic_gs_slam.slam import SLAM
+
+
+def aligned_errors(est: list[np.ndarray], gt: list[np.ndarray]) -> np.ndarray:
+    """Per-frame position error (m) after the best rigid alignment of the whole trajectory."""
+    e = np.stack([p[:3, 3] for p in est])
+    g = np.stack([p[:3, 3] for p in gt])
+    if len(e) < 3:
+        return np.linalg.norm(e - g, axis=1)
+    t = umeyama_rigid(e, g)
+    return np.linalg.norm(e @ t[:3, :3].T + t[:3, 3] - g, axis=1)
+
+
+def run_ours(ds, idx: list[int], args: argparse.Namespace) -> dict:
+    """Our engine over ``idx``; returns poses, timings, failures and the evaluation."""
+    cfg = SlamConfig(intrinsics=ds.intrinsics, threads=args.threads, device=args.device)
+    if args.config:
+        d = cfg.to_dict()
+        with open(args.config) as fh:
+            for sec, vals in json.load(fh).items():
+                d[sec] = {**d[sec], **vals} if isinstance(vals, dict) else vals
+        cfg = SlamConfig.from_dict(d)
+    eng = SLAM(cfg)
+    stage = LabelStage(LabelConfig(mode=args.labels), ds.intrinsics, ds.sem_paths is not None)
+    label_s = 0.0
+    t0 = time.perf_counter()
+    for n, i in enumerate(idx):
+        f = ds[i]
+        t1 = time.perf_counter()
+        sem = label_frame(stage, eng, f)
+        label_s += time.perf_counter() - t1
+        pose = eng.add_frame(f.rgb, f.depth, sem, f.timestamp, f.gt_c2w)
+        lg = eng.logs[-1]
+        if not args.quiet:
+            err = ""
+            if f.gt_c2w is not None:
+                et, er = pose_error(pose, f.gt_c2w)
+                err = f" err {et * 100:6.2f} cm {er:5.2f} deg"
+            print(f"ours {n + 1:4d}/{len(idx)} frame {i:5d}{' KF' if lg.keyframe else '   '} gaussians "
+                  f"{lg.n_gaussians:7d} track {lg.track_s:5.2f} s map {lg.map_s:5.2f} s{err}"
+                  f"{' TRACKING LOST' if lg.tracking_failed else ''}", file=sys.stderr, flush=True)
+    wall = time.perf_counter() - t0
+    res = evaluate(eng, ds, idx, every=args.eval_every)
+    res.update(fps=len(idx) / wall, wall_s=wall, label_ms=1000 * label_s / len(idx),
+               lost=sum(lg.tracking_failed for lg in eng.logs), poses=[p.copy() for p in eng.poses],
+               classes=len(eng.classes))
+    return res
+
+
+def run_open3d(ds, idx: list[int], voxel: float, depth_max: float, device: str) -> dict | None:
+    """Open3D's frame-to-model tracker (``t.pipelines.slam.Model``) on the same frames; None without open3d."""
+    try:
+        import open3d as o3d
+        import open3d.core as o3c
+    except ImportError as exc:
+        print(f"open3d not importable ({exc}): skipping the Open3D baseline "
+              f"(pip install -r requirements/bench-real.in)", file=sys.stderr)
+        return None
+    dev = o3c.Device("CUDA:0" if device == "cuda" and o3d.core.cuda.is_available() else "CPU:0")
+    k = ds.intrinsics
+    intr = o3c.Tensor(np.array(k.as_matrix(), np.float64))
+    frames = [ds[i] for i in idx]  # decoded up front: the timing is the tracker's, not the JPEG decoder's
+    first = frames[0].gt_c2w if frames[0].gt_c2w is not None else np.eye(4)
+    t_cur = o3c.Tensor(np.eye(4))
+    model = o3d.t.pipelines.slam.Model(voxel, 16, 40000, t_cur, dev)
+    inp = o3d.t.pipelines.slam.Frame(k.height, k.width, intr, dev)
+    ray = o3d.t.pipelines.slam.Frame(k.height, k.width, intr, dev)
+    poses, lost = [], 0
+    t0 = time.perf_counter()
+    for n, f in enumerate(frames):
+        depth_mm = np.ascontiguousarray((f.depth * 1000.0).round().astype(np.uint16))
+        rgb8 = np.ascontiguousarray((f.rgb * 255 + 0.5).astype(np.uint8))
+        inp.set_data_from_image("depth", o3d.t.geometry.Image(o3c.Tensor(depth_mm)).to(dev))
+        inp.set_data_from_image("color", o3d.t.geometry.Image(o3c.Tensor(rgb8)).to(dev))
+        if n > 0:
+            try:
+                r = model.track_frame_to_model(inp, ray, 1000.0, depth_max, 0.07)
+                t_cur = t_cur @ r.transformation
+            except RuntimeError as exc:  # Open3D reports a failed odometry this way
+                lost += 1
+                print(f"open3d frame {n}: tracking failed ({exc}); keeping the previous pose", file=sys.stderr)
+        poses.append(first @ t_cur.cpu().numpy())
+        model.update_frame_pose(n, t_cur)
+        model.integrate(inp, 1000.0, depth_max, 8.0)
+        model.synthesize_model_frame(ray, 1000.0, 0.1, depth_max, 8.0, False)
+    wall = time.perf_counter() - t0
+    return {"poses": poses, "fps": len(frames) / wall, "lost": lost, "version": o3d.__version__, "device": str(dev)}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("dataset", help="sequence folder (7-Scenes seq, TUM RGB-D, Replica, ...)")
+    ap.add_argument("--frames", type=int, default=60, help="frames used (0: all)")
+    ap.add_argument("--stride", type=int, default=2)
+    ap.add_argument("--start", type=int, default=0)
+    ap.add_argument("--size", default="320x240", help="working size WIDTHxHEIGHT")
+    ap.add_argument("--labels", default="none", choices=list(LABEL_MODES), help="labelling stage (default none)")
+    ap.add_argument("--config", help="JSON of SlamConfig overrides, e.g. {\"tracking\": {\"icp_iters\": 20}}")
+    ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--eval-every", type=int, default=1, help="render-evaluate every k-th frame")
+    ap.add_argument("--curve-every", type=int, default=20, help="per-frame error rows every k-th frame")
+    ap.add_argument("--o3d-voxel", type=float, default=0.02, help="Open3D TSDF voxel (m)")
+    ap.add_argument("--o3d-depth-max", type=float, default=3.0)
+    ap.add_argument("--no-open3d", action="store_true")
+    ap.add_argument("--open3d-only", action="store_true", help="only the Open3D baseline (minutes, not hours)")
+    ap.add_argument("--quiet", action="store_true", help="no per-frame lines")
+    args = ap.parse_args()
+    ds = load_dataset(args.dataset, size=parse_size(args.size) if args.size else None)
+    idx = frame_indices(len(ds), args.start, args.stride, args.frames)
+    if ds.poses is None:
+        print("the sequence has no reference poses: ATE cannot be computed", file=sys.stderr)
+        return 2
+    gts = [ds.poses[i] for i in idx]
+    k = ds.intrinsics
+    print(f"sequence {args.dataset}: frames {idx[0]}..{idx[-1]} every {args.stride} ({len(idx)} frames), "
+          f"{k.width}x{k.height}, device {args.device}, labels {args.labels}")
+    o3 = None if args.no_open3d else run_open3d(ds, idx, args.o3d_voxel, args.o3d_depth_max, args.device)
+    if args.open3d_only:
+        if o3 is None:
+            return 2
+        e = aligned_errors(o3["poses"], gts)
+        print(f"Open3D {o3['version']} t.pipelines.slam.Model ({o3['device']}, {args.o3d_voxel * 100:.0f} cm voxels): "
+              f"ATE {100 * ate_rmse(o3['poses'], gts):.2f} cm, {o3['fps']:.1f} FPS, {o3['lost']} failures")
+        print("| frame | Open3D aligned (cm) |\n|---|---|")
+        for n in range(0, len(idx), max(1, args.curve_every)):
+            print(f"| {idx[n]} | {e[n] * 100:.2f} |")
+        return 0
+    ours = run_ours(ds, idx, args)
+    ate_o = ours["ate_rmse_cm"]
+    rows = [("ATE RMSE (cm, aligned)", f"{ate_o:.2f}"), ("PSNR (dB)", f"{ours['psnr']:.2f}"),
+            ("SSIM", f"{ours['ssim']:.3f}"), ("depth L1 (cm)", f"{ours['depth_l1_cm']:.2f}"),
+            ("FPS", f"{ours['fps']:.2f}"), ("tracking failures reported", str(ours["lost"])),
+            ("Gaussians", str(ours["gaussians"])), ("labelling ms/frame", f"{ours['label_ms']:.0f}"),
+            ("label classes in the map", str(ours["classes"]))]
+    print("\n| metric | ours |" + (" Open3D |" if o3 else "") + "\n|---|---|" + ("---|" if o3 else ""))
+    o3_ate = 100 * ate_rmse(o3["poses"], gts) if o3 else float("nan")
+    for name, val in rows:
+        extra = ""
+        if o3 and name.startswith("ATE"):
+            extra = f" {o3_ate:.2f} |"
+        elif o3 and name == "FPS":
+            extra = f" {o3['fps']:.2f} |"
+        elif o3 and name.startswith("tracking failures"):
+            extra = f" {o3['lost']} |"
+        elif o3:
+            extra = " - |"
+        print(f"| {name} | {val} |{extra}")
+    if o3:
+        print(f"\nOpen3D {o3['version']} t.pipelines.slam.Model ({o3['device']}, {args.o3d_voxel * 100:.0f} cm voxels, "
+              f"depth only): ATE ratio ours/Open3D {ate_o / o3_ate:.2f}, speed ratio ours/Open3D "
+              f"{ours['fps'] / o3['fps']:.3f}")
+    e_ours = aligned_errors(ours["poses"], gts)
+    e_o3 = aligned_errors(o3["poses"], gts) if o3 else None
+    print("\nper-frame pose error (cm; 'anchored' = first frame on the reference, 'aligned' = whole trajectory "
+          "aligned)")
+    print("| frame | ours anchored | ours rot (deg) | ours aligned |" + (" Open3D aligned |" if o3 else ""))
+    print("|---|---|---|---|" + ("---|" if o3 else ""))
+    for n in list(range(0, len(idx), max(1, args.curve_every))) + ([len(idx) - 1] if (len(idx) - 1) %
+                                                                   max(1, args.curve_every) else []):
+        et, er = pose_error(ours["poses"][n], gts[n])
+        print(f"| {idx[n]} | {et * 100:.2f} | {er:.2f} | {e_ours[n] * 100:.2f} |"
+              + (f" {e_o3[n] * 100:.2f} |" if o3 else ""))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,156 @@
+"""Per-pixel labels for the SLAM stream when the camera gives none: a plug-in stage between the
+dataset / camera and :meth:`semantic_gs_slam.slam.SLAM.add_frame`.
+
+Modes (``LabelConfig.mode``):
+
+* ``dataset`` — the dataset's own label images (ground truth, e.g. our synthetic home);
+* ``geometry`` — class-agnostic objects and named planes from depth alone (:mod:`.geometry`), offline,
+  no model;
+* ``onnx`` — ``geometry`` plus COCO names from a local ONNX segmenter/detector (:mod:`.onnx_model`);
+* ``none`` — no labels (the map has no classes);
+* ``auto`` — ``dataset`` when the dataset has label images, else ``geometry``.
+
+Names given by people (``"this is my mug"``) are written into a saved map's ``semantic.json`` by
+:func:`semantic_gs_slam.labels.names.name_instance`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from semantic_gs_slam.config import Intrinsics
+from semantic_gs_slam.errors import ConfigError
+from semantic_gs_slam.labels.geometry import (
+    FIRST_INSTANCE_ID,
+    OBJECT_CLASS,
+    PLANE_CLASSES,
+    GeometryLabelConfig,
+    GeometryLabeller,
+)
+
+LABEL_MODES = ("auto", "dataset", "geometry", "onnx", "none")
+OBJECT_ID = 5  # the map id of geometry instances with map_ids "class"
+
+
+@dataclass
+class LabelConfig:
+    """Which labels the SLAM stream gets (see the module docstring)."""
+
+    mode: str = "auto"
+    onnx_model: str = ""  # path of the ONNX model (mode "onnx")
+    onnx_score: float = 0.5  # detections below this score are ignored
+    onnx_label_space: str = "coco91"  # "coco91" (category ids 1-90, torchvision) or "coco80" (indices 0-79)
+    map_ids: str = "class"  # "class": every geometry instance goes to the map as class OBJECT_ID ("object",
+    # one class column; the object-query server splits instances in space); "instance": each tracked instance
+    # its own id and class column (names from people can then address it; rendering cost grows with the count)
+    geometry: GeometryLabelConfig = field(default_factory=GeometryLabelConfig)
+
+    def check(self) -> None:
+        """Raise :class:`ConfigError` on an unknown mode or a missing model path."""
+        if self.mode not in LABEL_MODES:
+            raise ConfigError(f"labels.mode must be one of {LABEL_MODES}, got {self.mode!r}")
+        if self.mode == "onnx" and not self.onnx_model:
+            raise ConfigError("labels.mode 'onnx' needs labels.onnx_model (a local .onnx file)")
+        if self.map_ids not in ("class", "instance"):
+            raise ConfigError(f"labels.map_ids must be 'class' or 'instance', got {self.map_ids!r}")
+        self.geometry.check()
+
+
+def predict_pose(poses: list[np.ndarray], first: np.ndarray | None = None) -> np.ndarray:
+    """Constant-velocity guess of the next camera-to-world pose from the poses so far ([4, 4]).
+
+    ``first`` (or the identity) when there is none yet.
+    """
+    if not poses:
+        return np.eye(4) if first is None else np.asarray(first, np.float64)
+    if len(poses) == 1:
+        return poses[-1]
+    return poses[-1] @ (np.linalg.inv(poses[-2]) @ poses[-1])
+
+
+class LabelStage:
+    """Turns each RGB-D frame into per-pixel ids according to a :class:`LabelConfig`."""
+
+    def __init__(self, config: LabelConfig, intrinsics: Intrinsics, dataset_has_labels: bool = False) -> None:
+        """Resolve the mode and load what it needs.
+
+        Raises:
+            ConfigError: bad config; ``dataset`` mode without dataset labels; an unloadable ONNX model.
+        """
+        config.check()
+        self.cfg = config
+        mode = config.mode
+        if mode == "auto":
+            mode = "dataset" if dataset_has_labels else "geometry"
+        if mode == "dataset" and not dataset_has_labels:
+            raise ConfigError("labels.mode 'dataset' but the dataset has no label images (use auto or geometry)")
+        self.mode = mode
+        self.geometry = GeometryLabeller(intrinsics, config.geometry) if mode in ("geometry", "onnx") else None
+        self.model = None
+        self._coco: dict[int, str] = {}
+        if mode == "onnx":
+            from semantic_gs_slam.labels.onnx_model import OnnxSegmenter, coco_classes
+
+            self.model = OnnxSegmenter(config.onnx_model, config.onnx_score, config.onnx_label_space)
+            self._coco = coco_classes()
+        self.classes: dict[int, str] = {}  # ids this stage produced -> names
+        if self.geometry is not None:
+            self.classes.update(PLANE_CLASSES)
+            self.classes[OBJECT_ID] = OBJECT_CLASS
+
+    def reserve_ids(self, used: dict[int, str]) -> None:
+        """New instance ids start above every id in ``used`` (a resumed map's classes)."""
+        if self.geometry is not None and used:
+            self.geometry.next_id = max(self.geometry.next_id, max(used) + 1)
+
+    def __call__(self, rgb: np.ndarray, depth: np.ndarray, dataset_labels: np.ndarray | None,
+                 c2w: np.ndarray) -> np.ndarray | None:
+        """Labels of one frame.
+
+        Args:
+            rgb: [H, W, 3] float in [0, 1] or uint8.
+            depth: [H, W] metres, 0 = missing.
+            dataset_labels: [H, W] ids from the dataset, or None.
+            c2w: [4, 4] pose of this frame (tracked, or :func:`predict_pose`), for stable instance ids.
+
+        Returns:
+            [H, W] int64 ids (0 = unlabelled), or None in mode ``none``. New ids are added to
+            :attr:`classes`.
+        """
+        if self.mode == "none":
+            return None
+        if self.mode == "dataset":
+            return None if dataset_labels is None else np.asarray(dataset_labels, np.int64)
+        assert self.geometry is not None  # modes geometry and onnx
+        ids = self.geometry.label(rgb, depth, c2w).ids
+        if self.model is not None:
+            ids = self._apply_model(rgb, ids)
+        if self.cfg.map_ids == "class":
+            ids = np.where(ids >= FIRST_INSTANCE_ID, OBJECT_ID, ids)
+        for i in np.unique(ids):
+            if i > 0 and int(i) not in self.classes:
+                self.classes[int(i)] = self.geometry.classes.get(int(i)) or self._coco.get(int(i), f"class_{i}")
+        return ids
+
+    def _apply_model(self, rgb: np.ndarray, geo: np.ndarray) -> np.ndarray:
+        """COCO names over the geometry labels: a mask's pixels take its class; without masks a detection
+        names the geometry instance that fills most of its box."""
+        out = geo.copy()
+        h, w = geo.shape
+        for sem_id, _score, mask, box in reversed(self.model(rgb)):  # best last: it wins overlaps
+            if mask is None:
+                x1, y1, x2, y2 = np.clip(np.round(box), 0, [w, h, w, h]).astype(int)
+                inside = geo[y1:y2, x1:x2]
+                cand = inside[inside >= FIRST_INSTANCE_ID]
+                if cand.size == 0:
+                    continue
+                vals, cnt = np.unique(cand, return_counts=True)
+                j = int(np.argmax(cnt))
+                total = int((geo == vals[j]).sum())
+                if cnt[j] < 0.6 * total:  # the instance lies mostly outside the box: not this object
+                    continue
+                mask = geo == vals[j]
+            out[mask] = sem_id
+        return out

@@ -1,0 +1,268 @@
+"""The labelling stage: geometry labels on the synthetic home (where truth exists), instance ids stable
+across frames, the ONNX path on a toy model the test exports itself, names from people, and the CLI
+on a 7-Scenes-layout sequence without labels."""
+
+from __future__ import annotations
+
+import json
+import os
+from collections import deque
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from semantic_gs_slam.errors import ConfigError, FrameError, MapFormatError
+from semantic_gs_slam.labels import OBJECT_ID, LabelConfig, LabelStage, predict_pose
+from semantic_gs_slam.labels.geometry import (
+    FIRST_INSTANCE_ID,
+    FLOOR,
+    TABLE,
+    WALL,
+    GeometryLabeller,
+    connected_components,
+)
+from semantic_gs_slam.labels.names import main as names_main
+from semantic_gs_slam.labels.names import name_instance, read_names
+from semantic_gs_slam.synthetic import CLASS_ID, HomeRenderer, default_intrinsics, trajectory
+
+
+def _bfs_components(mask, join_h, join_v):
+    """Reference: breadth-first flood fill."""
+    h, w = mask.shape
+    lab = np.zeros((h, w), int)
+    n = 0
+    for y in range(h):
+        for x in range(w):
+            if mask[y, x] and not lab[y, x]:
+                n += 1
+                lab[y, x] = n
+                q = deque([(y, x)])
+                while q:
+                    a, b = q.popleft()
+                    for c, d, ok in ((a, b + 1, b + 1 < w and join_h[a, b]), (a, b - 1, b > 0 and join_h[a, b - 1]),
+                                     (a + 1, b, a + 1 < h and join_v[a, b]), (a - 1, b, a > 0 and join_v[a - 1, b])):
+                        if ok and mask[c, d] and not lab[c, d]:
+                            lab[c, d] = n
+                            q.append((c, d))
+    return lab, n
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_connected_components_match_a_flood_fill(seed):
+    rng = np.random.default_rng(seed)
+    mask = rng.random((23, 31)) < 0.7
+    jh, jv = rng.random((23, 30)) < 0.8, rng.random((22, 31)) < 0.8
+    got, n = connected_components(mask, jh, jv)
+    ref, m = _bfs_components(mask, jh, jv)
+    assert n == m
+    # same partition: a one-to-one map between the two labellings
+    pairs = set(zip(got[mask].tolist(), ref[mask].tolist(), strict=True))
+    assert len(pairs) == n and (got[~mask] == 0).all()
+
+
+@pytest.fixture(scope="module")
+def home_frames():
+    k = default_intrinsics(160, 90)
+    traj = trajectory(10, 20.0)
+    r = HomeRenderer(0)
+    return k, [(traj[i], *r.render(traj[i], k)) for i in (0, 1, 4)]
+
+
+def _share(pred, gt_mask, value):
+    return float((pred[gt_mask] == value).mean())
+
+
+def test_geometry_labels_on_the_synthetic_home(home_frames):
+    k, frames = home_frames
+    lab = GeometryLabeller(k)
+    outs = [lab.label(rgb, depth, c2w) for c2w, rgb, depth, _ in frames]
+    for (_, _, _, sem), out in zip(frames, outs, strict=True):
+        ids = out.ids
+        assert _share(ids, sem == CLASS_ID["floor"], FLOOR) > 0.7
+        assert _share(ids, sem == CLASS_ID["wall"], WALL) > 0.5
+        top = ids == TABLE
+        assert top.sum() > 300 and np.isin(sem[top], [CLASS_ID["table"], CLASS_ID["sofa"], CLASS_ID["chair"]]).mean() \
+            > 0.8  # support surfaces: the table top and seats, not the floor or walls
+        chair = sem == CLASS_ID["chair"]
+        inst = ids[chair][ids[chair] >= FIRST_INSTANCE_ID]
+        vals, cnt = np.unique(inst, return_counts=True)
+        best = vals[np.argmax(cnt)]
+        iou = (chair & (ids == best)).sum() / (chair | (ids == best)).sum()
+        assert iou > 0.3, iou  # the largest chair part is one instance (the chair's legs/back may split)
+    # ids of the chair parts stay the same while the camera moves
+    c0 = set(np.unique(outs[0].ids[frames[0][3] == CLASS_ID["chair"]]).tolist()) - {0, FLOOR, WALL, TABLE}
+    c2 = set(np.unique(outs[2].ids[frames[2][3] == CLASS_ID["chair"]]).tolist()) - {0, FLOOR, WALL, TABLE}
+    assert len(c0 & c2) >= 1
+    assert all(lab.classes[i] == "object" for i in c0)
+
+
+def test_geometry_labeller_rejects_bad_depth(home_frames):
+    k, frames = home_frames
+    lab = GeometryLabeller(k)
+    with pytest.raises(FrameError, match="depth must be"):
+        lab.label(frames[0][1], np.zeros((10, 10)), np.eye(4))
+    out = lab.label(frames[0][1], np.zeros((k.height, k.width)), np.eye(4))  # no depth: nothing, no crash
+    assert (out.ids == 0).all()
+
+
+def test_label_stage_modes(home_frames):
+    k, frames = home_frames
+    c2w, rgb, depth, sem = frames[0]
+    assert LabelStage(LabelConfig(), k, dataset_has_labels=True).mode == "dataset"
+    st = LabelStage(LabelConfig(), k, dataset_has_labels=False)
+    assert st.mode == "geometry"
+    ids = st(rgb, depth, None, c2w)
+    assert set(np.unique(ids).tolist()) <= {0, 1, 2, 3, 4, OBJECT_ID} and (ids == OBJECT_ID).any()
+    assert st.classes[OBJECT_ID] == "object" and st.classes[FLOOR] == "floor"
+    inst = LabelStage(LabelConfig(mode="geometry", map_ids="instance"), k)
+    assert (inst(rgb, depth, None, c2w) >= FIRST_INSTANCE_ID).any()
+    assert LabelStage(LabelConfig(mode="none"), k)(rgb, depth, sem, c2w) is None
+    np.testing.assert_array_equal(LabelStage(LabelConfig(mode="dataset"), k, True)(rgb, depth, sem, c2w), sem)
+    for bad in (LabelConfig(mode="magic"), LabelConfig(mode="onnx"), LabelConfig(map_ids="x")):
+        with pytest.raises(ConfigError):
+            LabelStage(bad, k)
+    with pytest.raises(ConfigError, match="no label images"):
+        LabelStage(LabelConfig(mode="dataset"), k, dataset_has_labels=False)
+    with pytest.raises(ConfigError, match="not found"):
+        LabelStage(LabelConfig(mode="onnx", onnx_model="/nonexistent.onnx"), k)
+
+
+def test_predict_pose_is_constant_velocity():
+    a, b = np.eye(4), np.eye(4)
+    b[0, 3] = 0.1
+    assert predict_pose([a, b])[0, 3] == pytest.approx(0.2)
+    assert predict_pose([], b)[0, 3] == pytest.approx(0.1) and (predict_pose([]) == np.eye(4)).all()
+
+
+# ----------------------------------------------------------------------------- ONNX (layer 2)
+def _export_toy(path, masks: bool = True, fixed: tuple[int, int] | None = None, batched: bool = False,
+                labels=(44, 1)):
+    """A toy 'segmenter' with the torchvision Mask R-CNN signature: detection 0 is every pixel whose red
+    channel is > 0.5 (class ``labels[0]``, score 0.9), detection 1 the rest (score 0.2)."""
+    torch = pytest.importorskip("torch")
+    pytest.importorskip("onnx")
+    pytest.importorskip("onnxruntime")
+
+    class Toy(torch.nn.Module):
+        def forward(self, image):
+            img = image[0] if batched else image
+            m = (img[0:1] > 0.5).float()  # [1, H, W]
+            h, w = img.shape[1], img.shape[2]
+            ys = torch.arange(h, dtype=torch.float32)[:, None] * m[0]
+            xs = torch.arange(w, dtype=torch.float32)[None, :] * m[0]
+            box = torch.stack([torch.zeros(()), torch.zeros(()), xs.max() + 1, ys.max() + 1])
+            boxes = torch.stack([box, box])
+            out = (boxes, torch.tensor(list(labels)), torch.tensor([0.9, 0.2]))
+            return (*out, torch.stack([m, 1 - m])) if masks else out
+
+    shape = (1, 3, *(fixed or (24, 32))) if batched else (3, *(fixed or (24, 32)))
+    names = ["boxes", "labels", "scores"] + (["masks"] if masks else [])
+    dyn = None if fixed else {"image": ({2: "h", 3: "w"} if batched else {1: "h", 2: "w"})}
+    torch.onnx.export(Toy(), (torch.rand(*shape),), str(path), input_names=["image"], output_names=names,
+                      dynamic_axes=dyn, dynamo=False)
+    return str(path)
+
+
+def _scene(k):
+    """Floor-like depth with a box standing on it; the box is red (what the toy model 'detects')."""
+    depth = np.full((k.height, k.width), 2.0)
+    rgb = np.full((k.height, k.width, 3), 0.2)
+    y0, y1, x0, x1 = k.height // 3, 2 * k.height // 3, k.width // 3, 2 * k.width // 3
+    depth[y0:y1, x0:x1] = 1.5
+    rgb[y0:y1, x0:x1, 0] = 0.9
+    return rgb, depth, (slice(y0, y1), slice(x0, x1))
+
+
+def test_onnx_segmenter_masks_name_pixels(tmp_path, home_frames):
+    k = default_intrinsics(64, 48)
+    path = _export_toy(tmp_path / "toy.onnx")
+    st = LabelStage(LabelConfig(mode="onnx", onnx_model=path), k)
+    assert st.model is not None and st.model.provider == "CPUExecutionProvider"
+    rgb, depth, box = _scene(k)
+    ids = st(rgb, depth, None, np.eye(4))
+    assert (ids[box] == 54).mean() > 0.95  # COCO 44 = bottle -> semantic id 10 + 44
+    assert st.classes[54] == "bottle"
+    assert not (ids == 11).any()  # the 0.2-score detection is below the threshold
+
+
+def test_onnx_detector_names_the_geometry_instance(tmp_path):
+    k = default_intrinsics(64, 48)
+    path = _export_toy(tmp_path / "det.onnx", masks=False, batched=True, labels=(46, 1))  # coco80 46 = "banana"
+    st = LabelStage(LabelConfig(mode="onnx", onnx_model=path, onnx_label_space="coco80",
+                                geometry=__import__("semantic_gs_slam.labels.geometry", fromlist=["x"])
+                                .GeometryLabelConfig(max_planes=0)), k)
+    rgb, depth, box = _scene(k)
+    ids = st(rgb, depth, None, np.eye(4))
+    assert (ids[box] == 10 + 52).mean() > 0.9 and st.classes[62] == "banana"
+
+
+def test_onnx_fixed_input_size_is_resized_back(tmp_path):
+    k = default_intrinsics(64, 48)
+    path = _export_toy(tmp_path / "fixed.onnx", fixed=(24, 32))
+    from semantic_gs_slam.labels.onnx_model import OnnxSegmenter
+
+    seg = OnnxSegmenter(path)
+    assert seg.fixed_hw == (24, 32)
+    rgb, _, box = _scene(k)
+    (sem_id, score, mask, bx), = seg(rgb)
+    assert sem_id == 54 and score == pytest.approx(0.9) and mask.shape == (48, 64)
+    assert mask[box].mean() > 0.9 and mask.mean() < 0.2
+    assert bx[2] == pytest.approx(2 * 64 // 3, abs=3)  # box scaled back to the frame
+    with pytest.raises(FrameError):
+        seg(np.zeros((4, 4)))
+
+
+def test_onnx_bad_model_file(tmp_path):
+    p = tmp_path / "junk.onnx"
+    p.write_bytes(b"not a model")
+    pytest.importorskip("onnxruntime")
+    with pytest.raises(ConfigError, match="cannot load"):
+        LabelStage(LabelConfig(mode="onnx", onnx_model=str(p)), default_intrinsics(64, 48))
+
+
+# ----------------------------------------------------------------------------- names from people (layer 3)
+def test_name_instance_round_trip(tmp_path, capsys):
+    sj = tmp_path / "semantic.json"
+    sj.write_text(json.dumps({"segmentation": [{"id": 1, "class": "floor"}, {"id": 130, "class": "object"}]}))
+    assert name_instance(str(sj), 130, "  my   mug ") == "object"
+    assert read_names(str(sj)) == {1: "floor", 130: "my mug"}
+    with pytest.raises(MapFormatError, match="no id 7"):
+        name_instance(str(sj), 7, "cup")
+    with pytest.raises(ValueError):
+        name_instance(str(sj), 130, "   ")
+    assert names_main(["--map", str(tmp_path), "--list"]) == 0 and "130 my mug" in capsys.readouterr().out
+    assert names_main(["--map", str(tmp_path / "nope"), "--id", "1", "--name", "x"]) == 2
+    assert "no semantic.json" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------------- CLI on a label-less real layout
+def test_cli_runs_a_7scenes_layout_with_geometry_labels(tiny_home, tmp_path, capsys):
+    from semantic_gs_slam.datasets import load_dataset
+    from semantic_gs_slam.run import main
+
+    src = load_dataset(str(tiny_home))
+    seq = tmp_path / "seq-01"
+    os.makedirs(seq)
+    k = src.intrinsics
+    np.savetxt(seq / "camera-intrinsics.txt", k.as_matrix())
+    for i in range(3):
+        f = src[i]
+        Image.fromarray((f.rgb * 255 + 0.5).astype(np.uint8)).save(seq / f"frame-{i:06d}.color.jpg")
+        Image.fromarray((f.depth * 1000).round().astype(np.uint16)).save(seq / f"frame-{i:06d}.depth.png")
+        np.savetxt(seq / f"frame-{i:06d}.pose.txt", f.gt_c2w)
+    out = tmp_path / "map"
+    rc = main(["--dataset", str(seq), "--out", str(out), "--size", f"{k.width // 2 * 2}x{k.height // 2 * 2}",
+               "--frames", "3", "--mapping-iters", "2", "--quiet", "--eval",
+               "--config", _write(tmp_path / "c.json", {"mapping": {"first_frame_iters": 3}})])
+    assert rc == 0, capsys.readouterr().err
+    names = read_names(str(out / "semantic.json"))
+    assert names[OBJECT_ID] == "object" and names[FLOOR] == "floor"
+    assert "ATE RMSE" in capsys.readouterr().out
+    assert main(["--dataset", str(seq), "--out", str(out), "--labels", "dataset"]) == 2
+    assert "no label images" in capsys.readouterr().err
+
+
+def _write(path, obj) -> str:
+    path.write_text(json.dumps(obj))
+    return str(path)

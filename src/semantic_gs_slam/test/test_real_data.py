@@ -1,0 +1,198 @@
+"""Real-sensor dataset layouts: 7-Scenes and TUM RGB-D from real-format files the tests write, working-size
+resizing with scaled intrinsics, frame ranges, and (when present) the shared 7-Scenes sequence."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from semantic_gs_slam.datasets import (
+    detect_layout,
+    frame_indices,
+    load_7scenes,
+    load_dataset,
+    load_tum,
+    parse_size,
+    resize_nearest,
+)
+from semantic_gs_slam.errors import DatasetError
+from semantic_gs_slam.geometry import quat_to_rotmat
+
+SHARED_7SCENES = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", "..", "..", "..", "shared", "data",
+                                              "7scenes-redkitchen-0-499"))
+
+
+def _pose(i: int) -> np.ndarray:
+    m = np.eye(4)
+    a = 0.05 * i
+    m[:3, :3] = [[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]
+    m[:3, 3] = (0.1 * i, -0.02 * i, 0.3)
+    return m
+
+
+def write_7scenes(root, n: int = 3, w: int = 64, h: int = 48, k_file: bool = True, poses: bool = True):
+    """A tiny 7-Scenes sequence in the real format: JPEG colour, 16-bit mm depth (0 and 65535 invalid)."""
+    os.makedirs(root, exist_ok=True)
+    rng = np.random.default_rng(0)
+    depths = []
+    for i in range(n):
+        rgb = (rng.random((h, w, 3)) * 255).astype(np.uint8)
+        Image.fromarray(rgb).save(os.path.join(root, f"frame-{i:06d}.color.jpg"), quality=95)
+        d = (1000 + 100 * i + np.arange(w)[None, :] * 10 + np.zeros((h, 1))).astype(np.uint16)
+        d[0, 0] = 0
+        d[0, 1] = 65535
+        depths.append(d)
+        Image.fromarray(d).save(os.path.join(root, f"frame-{i:06d}.depth.png"))
+        if poses:
+            np.savetxt(os.path.join(root, f"frame-{i:06d}.pose.txt"), _pose(i))
+    if k_file:
+        np.savetxt(os.path.join(root, "camera-intrinsics.txt"), [[58.5, 0, 32], [0, 58.5, 24], [0, 0, 1]])
+    return depths
+
+
+def test_7scenes_layout_is_detected_and_read_in_metres(tmp_path):
+    depths = write_7scenes(tmp_path / "seq-01")
+    assert detect_layout(str(tmp_path / "seq-01")) == "7scenes"
+    ds = load_dataset(str(tmp_path / "seq-01"))
+    assert len(ds) == 3
+    k = ds.intrinsics
+    assert (k.width, k.height, k.fx, k.fy, k.cx, k.cy) == (64, 48, 58.5, 58.5, 32.0, 24.0)
+    f = ds[2]
+    assert f.rgb.shape == (48, 64, 3) and f.rgb.dtype == np.float32 and 0 <= f.rgb.min() and f.rgb.max() <= 1
+    assert f.depth[0, 0] == 0 and f.depth[0, 1] == 0  # both invalid codes
+    np.testing.assert_allclose(f.depth[5, 7], depths[2][5, 7] / 1000.0, rtol=1e-6)
+    np.testing.assert_allclose(f.gt_c2w, _pose(2), atol=1e-12)
+    assert f.timestamp == pytest.approx(2 / 30.0) and f.semantics is None
+
+
+def test_7scenes_without_pose_files_or_k_file(tmp_path):
+    write_7scenes(tmp_path, k_file=False, poses=False)
+    ds = load_7scenes(str(tmp_path))
+    assert ds.poses is None
+    assert ds.intrinsics.fx == 585.0  # the Kinect default (and its 640x480 size: frames then do not match)
+    with pytest.raises(DatasetError, match="does not match the intrinsics"):
+        ds[0]
+
+
+@pytest.mark.parametrize("breakage, message", [
+    ("depth", "no depth image"), ("pose", "no pose file"), ("badpose", "4x4"), ("badk", "3x3")])
+def test_7scenes_bad_files_are_reported(tmp_path, breakage, message):
+    write_7scenes(tmp_path)
+    if breakage == "depth":
+        os.remove(tmp_path / "frame-000001.depth.png")
+    elif breakage == "pose":
+        os.remove(tmp_path / "frame-000002.pose.txt")
+    elif breakage == "badpose":
+        np.savetxt(tmp_path / "frame-000001.pose.txt", np.eye(3))
+    else:
+        (tmp_path / "camera-intrinsics.txt").write_text("585 0 320\n0 585 240\n")
+    with pytest.raises(DatasetError, match=message):
+        load_dataset(str(tmp_path))
+
+
+def test_7scenes_scene_folder_names_its_sequences(tmp_path):
+    write_7scenes(tmp_path / "seq-01")
+    os.makedirs(tmp_path / "seq-02")
+    with pytest.raises(DatasetError, match="seq-01, seq-02"):
+        load_7scenes(str(tmp_path))
+    with pytest.raises(DatasetError, match="cannot tell the layout"):
+        load_dataset(str(tmp_path))
+
+
+def test_resized_dataset_scales_intrinsics_and_never_blends_depth(tmp_path):
+    depths = write_7scenes(tmp_path)
+    ds = load_dataset(str(tmp_path), size=(32, 24))
+    k = ds.intrinsics
+    assert (k.width, k.height) == (32, 24)
+    assert (k.fx, k.fy, k.cx, k.cy) == (29.25, 29.25, 15.75, 11.75)
+    assert ds.native_intrinsics.width == 64
+    f = ds[1]
+    assert f.rgb.shape == (24, 32, 3) and f.depth.shape == (24, 32)
+    native = set((depths[1] / 1000.0).astype(np.float32).ravel().tolist()) | {0.0}
+    assert set(f.depth.ravel().tolist()) <= native  # nearest: only measured values (or 0), no blends
+    # a point projects to the same place (in units of the image) before and after
+    full = load_dataset(str(tmp_path))
+    x, z = 0.2, 1.5
+    u0 = full.intrinsics.fx * x / z + full.intrinsics.cx
+    u1 = k.fx * x / z + k.cx
+    assert (u1 + 0.5) / 32 == pytest.approx((u0 + 0.5) / 64)
+    # colour: area average of the 2x2 block
+    np.testing.assert_allclose(f.rgb[3, 4], full[1].rgb[6:8, 8:10].mean((0, 1)), atol=1e-5)
+    with pytest.raises(DatasetError):
+        ds.resized(0, 10)
+
+
+def test_resize_nearest_keeps_ids():
+    ids = np.arange(12).reshape(3, 4)
+    np.testing.assert_array_equal(resize_nearest(ids, 2, 3), ids[:, [1, 3]])  # the pixel under each new centre
+    assert resize_nearest(ids, 8, 6).shape == (6, 8)
+
+
+def test_frame_indices_and_size_parsing():
+    assert frame_indices(10, start=2, stride=3) == [2, 5, 8]
+    assert frame_indices(10, stride=2, frames=3) == [0, 2, 4]
+    assert frame_indices(10, start=1, stop=4) == [1, 2, 3]
+    for bad in ({"stride": 0}, {"start": 10}, {"start": -1}):
+        with pytest.raises(DatasetError):
+            frame_indices(10, **bad)
+    assert parse_size("320x240") == (320, 240) and parse_size(" 64X48 ") == (64, 48)
+    for bad in ("320", "0x10", "axb", "320x240x3"):
+        with pytest.raises(DatasetError, match="WIDTHxHEIGHT"):
+            parse_size(bad)
+
+
+def write_tum(root, w: int = 64, h: int = 48):
+    """A TUM RGB-D sequence in the real format: headers, float timestamps, 30 Hz images with a depth stream
+    offset by a few ms, 100 Hz ground truth with quaternions, 5000-scaled 16-bit depth."""
+    os.makedirs(root / "rgb")
+    os.makedirs(root / "depth")
+    t0 = 1305031102.175304
+    rgb_lines = ["# color images", "# file: 'rgbd_dataset_freiburg1_xyz.bag'", "# timestamp filename"]
+    depth_lines = ["# depth maps", "# file: 'rgbd_dataset_freiburg1_xyz.bag'", "# timestamp filename"]
+    for i in range(4):
+        tr, td = t0 + i / 30.0, t0 + i / 30.0 + 0.012
+        Image.fromarray(np.full((h, w, 3), 40 * i, np.uint8)).save(root / "rgb" / f"{tr:.6f}.png")
+        d = np.full((h, w), 5000 * (1 + 0.1 * i), np.float64).astype(np.uint16)
+        d[:2] = 0
+        Image.fromarray(d).save(root / "depth" / f"{td:.6f}.png")
+        rgb_lines.append(f"{tr:.6f} rgb/{tr:.6f}.png")
+        depth_lines.append(f"{td:.6f} depth/{td:.6f}.png")
+    gt = ["# ground truth trajectory", "# file: 'rgbd_dataset_freiburg1_xyz.bag'", "# timestamp tx ty tz qx qy qz qw"]
+    for j in range(-5, 20):
+        t = t0 + j / 100.0
+        gt.append(f"{t:.4f} {1.3 + 0.01 * j:.4f} 0.6 1.6 0.0 0.0 0.38268343 0.92387953")  # 45 deg about z
+    (root / "rgb.txt").write_text("\n".join(rgb_lines) + "\n")
+    (root / "depth.txt").write_text("\n".join(depth_lines) + "\n")
+    (root / "groundtruth.txt").write_text("\n".join(gt) + "\n")
+
+
+def test_tum_real_format_sequence(tmp_path):
+    write_tum(tmp_path)
+    assert detect_layout(str(tmp_path)) == "tum"
+    ds = load_tum(str(tmp_path), intrinsics=None)
+    assert len(ds) == 4 and ds.intrinsics.fx == 525.0
+    ds = load_dataset(str(tmp_path), intrinsics=ds.intrinsics.__class__(64, 48, 52.5, 52.5, 31.95, 23.95))
+    f = ds[2]
+    assert f.depth[0, 0] == 0 and f.depth[10, 10] == pytest.approx(1.2, abs=1e-4)  # 5000 per metre
+    assert f.rgb[0, 0, 0] == pytest.approx(80 / 255)
+    assert f.timestamp == pytest.approx(1305031102.175304 + 2 / 30.0)
+    r = quat_to_rotmat(__import__("torch").tensor([0.92387953, 0.0, 0.0, 0.38268343], dtype=__import__("torch")
+                                                  .float64)).numpy()
+    np.testing.assert_allclose(f.gt_c2w[:3, :3], r, atol=1e-6)
+    assert f.gt_c2w[0, 0] == pytest.approx(np.cos(np.pi / 4), abs=1e-6)
+    assert f.gt_c2w[0, 3] == pytest.approx(1.3 + 0.01 * 7, abs=1e-4)  # nearest gt sample (t0 + 0.0667 s ~ j=7)
+    small = ds.resized(32, 24)
+    assert small[2].depth.shape == (24, 32) and small.intrinsics.fx == pytest.approx(26.25)
+
+
+@pytest.mark.skipif(not os.path.isdir(SHARED_7SCENES), reason="the shared 7-Scenes sequence is not here")
+def test_shared_7scenes_sequence_reads_at_working_size():
+    ds = load_dataset(SHARED_7SCENES, size=(320, 240))
+    assert len(ds) == 500 and ds.intrinsics.fx == pytest.approx(292.5)
+    f = ds[0]
+    assert f.rgb.shape == (240, 320, 3)
+    assert 0.8 < (f.depth > 0).mean() < 0.97 and 0.3 < np.median(f.depth[f.depth > 0]) < 4.0
+    np.testing.assert_allclose(f.gt_c2w, np.loadtxt(os.path.join(SHARED_7SCENES, "frame-000000.pose.txt")))

@@ -1,0 +1,47 @@
+"""The streaming engine adapter's labelling stage (no ROS): label-less frames get geometry labels and
+their names reach the engine's classes; bad settings are a StreamingError."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from semantic_gs_slam.labels import OBJECT_ID
+from semantic_gs_slam.slam import SLAM
+from semantic_gs_slam.synthetic import HomeRenderer, default_intrinsics, trajectory
+from semantic_gs_slam_ros.engine import EngineAdapter, make_labels
+from semantic_gs_slam_ros.errors import StreamingError
+
+
+class _Recorder(SLAM):
+    """The real engine class with its per-frame work replaced by a record of what it was given (the
+    adapter's wiring is under test here; the engine has its own tests)."""
+
+    def __init__(self) -> None:
+        self.classes, self.poses, self.initial_c2w, self.given = {}, [], None, []
+
+    def add_frame(self, rgb, depth, semantics=None, timestamp=None, gt_c2w=None):
+        self.given.append(semantics)
+        self.poses.append(np.eye(4))
+        return np.eye(4)
+
+
+def test_adapter_labels_label_less_frames():
+    k = default_intrinsics(96, 54)
+    rgb, depth, _ = HomeRenderer(0).render(trajectory(4, 10.0)[0], k)
+    slam = _Recorder()
+    slam.classes = {200: "object"}  # a resumed map: new instance ids start above its ids
+    stage = make_labels("auto", "", k, streamed_labels=False)
+    adapter = EngineAdapter(slam, stage)
+    assert stage.mode == "geometry" and stage.geometry.next_id == 201
+    adapter.add_frame((rgb * 255).astype(np.uint8), depth, None, 0.0)
+    sem = slam.given[-1]
+    assert sem is not None and sem.shape == depth.shape and (sem == OBJECT_ID).any()
+    assert slam.classes[OBJECT_ID] == "object" and slam.classes[1] == "floor"
+    assert make_labels("auto", "", k, streamed_labels=True).mode == "dataset"
+
+
+@pytest.mark.parametrize("mode, model", [("magic", ""), ("onnx", ""), ("onnx", "/nonexistent.onnx")])
+def test_make_labels_bad_settings(mode, model):
+    with pytest.raises(StreamingError, match="labels"):
+        make_labels(mode, model, default_intrinsics(32, 18), streamed_labels=False)
