@@ -26,13 +26,11 @@ import math
 import time
 
 import numpy as np
-import rclpy
 from action_msgs.msg import GoalStatus
 from geometry_msgs.msg import PoseStamped
 from nav2_msgs.action import NavigateToPose
 from nav_msgs.msg import OccupancyGrid as GridMsg
 from rclpy.action import ActionClient
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image
@@ -41,6 +39,7 @@ from std_msgs.msg import String
 from home_robot_exploration.errors import ConfigError, ExplorationError
 from home_robot_exploration.explorer import Exploration, ExplorerConfig, Finished, NavGoal
 from home_robot_exploration.frontiers import FrontierConfig
+from home_robot_exploration.nodemain import run_node
 from home_robot_exploration.occupancy import UNKNOWN, GridConfig
 
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
@@ -273,21 +272,7 @@ class ExplorerNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    rclpy.init(args=args)
-    try:
-        node = ExplorerNode()
-    except ConfigError as exc:
-        rclpy.logging.get_logger("explorer").fatal(f"configuration error: {exc}")
-        rclpy.try_shutdown()
-        return 2
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(ExplorerNode, "explorer", args)
 
 
 if __name__ == "__main__":

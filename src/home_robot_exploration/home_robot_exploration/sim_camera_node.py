@@ -26,15 +26,14 @@ import threading
 from concurrent.futures import Future, ThreadPoolExecutor
 
 import numpy as np
-import rclpy
 from geometry_msgs.msg import PoseStamped
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from rclpy.time import Time
 from sensor_msgs.msg import CameraInfo, Image
 
 from home_robot_exploration.errors import ConfigError
+from home_robot_exploration.nodemain import run_node
 from home_robot_exploration.simcam import CameraConfig
 
 POSE_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
@@ -162,21 +161,7 @@ def image_msg(array: np.ndarray, encoding: str) -> Image:
 
 
 def main(args: list[str] | None = None) -> int:
-    rclpy.init(args=args)
-    try:
-        node = SimCameraNode()
-    except ConfigError as exc:
-        rclpy.logging.get_logger("sim_camera").fatal(f"configuration error: {exc}")
-        rclpy.try_shutdown()
-        return 2
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return run_node(SimCameraNode, "sim_camera", args)
 
 
 if __name__ == "__main__":
