@@ -4,8 +4,8 @@ SHELL := /bin/bash
 ENV := source scripts/env.sh >/dev/null &&
 PYTEST_ARGS ?= -n 2
 
-.PHONY: setup demo demo-explore test lint clean bench bench-object-query bench-decision-maker bench-voice bench-slam bench-slam-streaming \
-	setup-gpu bench-gpu gpu-wheels
+.PHONY: setup demo demo-explore test lint clean bench bench-object-query bench-decision-maker bench-voice bench-voice-stop bench-slam \
+	bench-slam-streaming setup-gpu bench-gpu gpu-wheels
 
 setup:
 	@bash scripts/setup.sh
@@ -23,7 +23,7 @@ lint: setup
 	@$(ENV) ruff check .
 
 # Benchmarks print figures (and the ratio to the seed's method where there is one); minutes each.
-bench: bench-object-query bench-decision-maker bench-voice bench-slam bench-slam-streaming
+bench: bench-object-query bench-decision-maker bench-voice bench-voice-stop bench-slam bench-slam-streaming
 
 bench-object-query: setup
 	@$(ENV) python bench/object_query_bench.py
@@ -33,6 +33,9 @@ bench-decision-maker: setup
 
 bench-voice: setup
 	@$(ENV) python bench/voice_latency.py
+
+bench-voice-stop: setup
+	@$(ENV) python bench/voice_stop_latency.py
 
 bench-slam: setup
 	@$(ENV) python bench/slam_synthetic.py
