@@ -76,6 +76,7 @@ _PARAMS: dict[str, tuple[object, bool]] = {
     "wake_word_timeout_s": (5.0, False),
     "max_no_speech_prob": (0.6, False),
     "min_avg_logprob": (-1.0, False),
+    "min_stop_avg_logprob": (-1.6, False),  # a stop ("cancel", "stop it") is kept down to this
     "max_compression_ratio": (2.4, False),
     "min_chars": (2, False),
     "max_prompt_echo_words": (8, False),
@@ -141,6 +142,7 @@ class AudioCommandNode(Node):
     def _make_filter(p) -> FilterConfig:  # noqa: ANN001 - a getter
         return FilterConfig(max_no_speech_prob=float(p("max_no_speech_prob")),
                             min_avg_logprob=float(p("min_avg_logprob")),
+                            min_stop_avg_logprob=float(p("min_stop_avg_logprob")),
                             max_compression_ratio=float(p("max_compression_ratio")),
                             min_chars=int(p("min_chars")), max_prompt_echo_words=int(p("max_prompt_echo_words")))
 
@@ -170,8 +172,8 @@ class AudioCommandNode(Node):
 
     def _apply(self, params: list[Parameter]) -> None:
         names = {q.name for q in params}
-        if names & {"max_no_speech_prob", "min_avg_logprob", "max_compression_ratio", "min_chars",
-                    "max_prompt_echo_words"}:
+        if names & {"max_no_speech_prob", "min_avg_logprob", "min_stop_avg_logprob", "max_compression_ratio",
+                    "min_chars", "max_prompt_echo_words"}:
             self._pipeline.set_filter(self._make_filter(self._p))
         if names & {"wake_word", "wake_word_timeout_s"}:
             self._pipeline.set_wake_word(str(self._p("wake_word")), float(self._p("wake_word_timeout_s")))

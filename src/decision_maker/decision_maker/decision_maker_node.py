@@ -53,11 +53,12 @@ from std_msgs.msg import String
 
 from decision_maker.command_types import FrameTransform, load_locations, sanitize_text
 from decision_maker.errors import ConfigError
-from decision_maker.execution import EngineConfig, ExecutionEngine, TaskState, TaskStatus, is_stop_command
+from decision_maker.execution import EngineConfig, ExecutionEngine, TaskState, TaskStatus
 from decision_maker.memory_link import MemoryLink
 from decision_maker.nl_planner import PlanningContext, make_planner
 from decision_maker.ros_robot import RosRobot
 from decision_maker.stage0 import ExplorationGate
+from decision_maker.stop_words import is_stop_command
 from decision_maker.topics import CANCEL_QOS, COMMAND_QOS, HARDWARE_STOP, OBJECT_LIST_QOS, SERVICE_QOS, SUBMIT_COMMAND
 
 #: Longest /object_list message parsed (characters); a longer one is ignored with a warning.

@@ -23,7 +23,6 @@ import dataclasses
 import enum
 import itertools
 import json
-import re
 import threading
 import time
 from collections.abc import Callable
@@ -55,6 +54,7 @@ from decision_maker.errors import (
 from decision_maker.nl_planner import Planner, PlanningContext
 from decision_maker.scenario_library import answer_question
 from decision_maker.stage0 import Hold
+from decision_maker.stop_words import is_stop_command
 
 
 class TaskState(str, enum.Enum):
@@ -223,23 +223,6 @@ class RobotPort(Protocol):
 
 #: Bytes one code point may take in UTF-8: the raw byte bound is this times ``max_text_chars``.
 MAX_UTF8_BYTES_PER_CHAR = 4
-#: Words that, said alone (in any number, with "please", "robot", "now", "it"/"that"/"everything"),
-#: stop the robot at once instead of being queued ("stop", "stop it", "cancel that", "abort!").
-STOP_VERBS = frozenset({"stop", "cancel", "abort", "halt", "freeze"})
-_STOP_FILLERS = frozenset({"it", "that", "this", "now", "please", "robot", "everything", "all", "the", "task",
-                           "emergency", "right", "immediately", "hey", "ok", "okay"})
-
-
-def is_stop_command(text: str) -> bool:
-    """True when ``text`` (sanitised) asks to stop and nothing else: "stop", "Stop it!", "cancel that".
-
-    "stop at the kitchen" or "don't stop" are not stops (other words); those go to the planner.
-    """
-    words = re.findall(r"[a-z']+", text.lower())
-    return bool(words) and len(words) <= 6 and any(w in STOP_VERBS for w in words) and \
-        all(w in STOP_VERBS or w in _STOP_FILLERS for w in words)
-
-
 #: Answers to a confirmation question (normalised words).
 YES_WORDS = frozenset({"yes", "y", "yeah", "yep", "ok", "okay", "confirm", "do it", "go ahead", "sure"})
 NO_WORDS = frozenset({"no", "n", "nope", "don't", "dont", "stop", "cancel", "never mind", "abort"})

@@ -445,7 +445,7 @@ def wait(predicate, timeout):
 @pytest.mark.parametrize("text", ["stop", "Stop it!", "STOP STOP", "cancel", "cancel that", "abort", "please stop",
                                   "halt now", "robot, stop!"])
 def test_stop_phrases(text):
-    from decision_maker.execution import is_stop_command
+    from decision_maker.stop_words import is_stop_command
 
     assert is_stop_command(text)
 
@@ -453,7 +453,7 @@ def test_stop_phrases(text):
 @pytest.mark.parametrize("text", ["", "stop at the kitchen", "don't stop", "give me the bottle", "go home",
                                   "clean table", "stopwatch"])
 def test_not_stop_phrases(text):
-    from decision_maker.execution import is_stop_command
+    from decision_maker.stop_words import is_stop_command
 
     assert not is_stop_command(text)
 

@@ -50,3 +50,14 @@ def test_config_is_validated():
         FilterConfig(max_no_speech_prob=1.5)
     with pytest.raises(ConfigError):
         FilterConfig(min_avg_logprob=0.5)
+
+
+@pytest.mark.parametrize("raw", ["cancel", "Cancel.", "stop it", "abort!"])
+def test_a_stop_is_kept_at_a_lower_confidence_than_other_commands(raw):
+    cfg = FilterConfig()  # min_avg_logprob -1.0, min_stop_avg_logprob -1.6
+    assert judge(raw, 0.1, -1.3, 1.0, cfg).kept  # a missed stop is worse than a spurious one
+    assert judge(raw, 0.1, -1.7, 1.0, cfg).reason == "low_logprob"  # but not at any confidence
+    assert judge("give me the cup", 0.1, -1.3, 1.0, cfg).reason == "low_logprob"
+    assert judge("stop at the kitchen", 0.1, -1.3, 1.0, cfg).reason == "low_logprob"  # not a stop
+    with pytest.raises(ConfigError):
+        FilterConfig(min_stop_avg_logprob=0.5)

@@ -156,3 +156,12 @@ def test_grammar_leaves_other_speech_and_noise_alone(transcriber):
         verdict = judge(tr.text, tr.no_speech_prob, tr.avg_logprob, tr.compression_ratio, FilterConfig(),
                         VOCAB.prompt_words())
         assert not verdict.kept, f"{name} gave {tr.text!r}"
+
+
+def test_a_misheard_cancel_is_recovered_and_kept_as_a_stop(transcriber):
+    """en+m3 at 140 wpm: "cancel" → "console," (prompted); the beam's "cancel" scores about -1.0 to
+    -1.4, under the general floor (-1.0) but over the stop floor (-1.6): it is published."""
+    audio = np.concatenate([ta.silence(0.3), ta.speak("cancel", "en+m3", 140), ta.silence(0.3)])
+    tr = transcriber.transcribe(audio, VOCAB.prompt(), grammar=VOCAB.in_grammar)
+    verdict = judge(tr.text, tr.no_speech_prob, tr.avg_logprob, tr.compression_ratio, FilterConfig())
+    assert verdict.kept and verdict.text == "cancel", (tr, verdict)

@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 
 from decision_maker.speech.errors import ConfigError
 from decision_maker.speech.text import normalise
+from decision_maker.stop_words import is_stop_command
 
 #: Phrases Whisper is known to produce from silence or noise (training-data artefacts).
 DEFAULT_BLOCKLIST: tuple[str, ...] = (
@@ -22,6 +23,8 @@ class FilterConfig:
     Attributes:
         max_no_speech_prob: drop when Whisper's no-speech probability is above this.
         min_avg_logprob: drop when the mean token log-probability is below this.
+        min_stop_avg_logprob: the same for a stop ("stop", "cancel", "abort", ...), lower: a missed stop
+            is worse than a spurious one (it only cancels).
         max_compression_ratio: drop repetitive text (gzip ratio above this; Whisper uses 2.4).
         min_chars: drop texts with fewer letters/digits than this.
         max_words: drop texts with more words than this (commands are short).
@@ -31,6 +34,7 @@ class FilterConfig:
 
     max_no_speech_prob: float = 0.6
     min_avg_logprob: float = -1.0
+    min_stop_avg_logprob: float = -1.6
     max_compression_ratio: float = 2.4
     min_chars: int = 2
     max_words: int = 30
@@ -42,6 +46,8 @@ class FilterConfig:
             raise ConfigError(f"max_no_speech_prob must be in [0, 1], got {self.max_no_speech_prob}")
         if self.min_avg_logprob > 0.0:
             raise ConfigError(f"min_avg_logprob must be <= 0, got {self.min_avg_logprob}")
+        if self.min_stop_avg_logprob > 0.0:
+            raise ConfigError(f"min_stop_avg_logprob must be <= 0, got {self.min_stop_avg_logprob}")
         if self.min_chars < 0 or self.max_words < 1 or self.max_prompt_echo_words < 2:
             raise ConfigError("min_chars >= 0, max_words >= 1 and max_prompt_echo_words >= 2 are required")
 
@@ -93,7 +99,8 @@ def judge(raw_text: str, no_speech_prob: float, avg_logprob: float, compression_
         return Verdict(text, "empty")
     if no_speech_prob > config.max_no_speech_prob:
         return Verdict(text, "no_speech")
-    if avg_logprob < config.min_avg_logprob:
+    floor = config.min_stop_avg_logprob if is_stop_command(text) else config.min_avg_logprob
+    if avg_logprob < floor:
         return Verdict(text, "low_logprob")
     if compression_ratio > config.max_compression_ratio:
         return Verdict(text, "repetitive")
