@@ -22,7 +22,6 @@ import yaml
 from decision_maker_interfaces.srv import MoveObject
 from object_query_interfaces.msg import ObjectMemory as ObjectMemoryMsg
 from object_query_interfaces.srv import MemoryQuery
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
 from decision_maker.execution import TaskState, TaskStatus
@@ -30,14 +29,10 @@ from home_robot_bringup.nodeset import load_nodeset
 from home_robot_bringup.testing import wait_for
 from object_query.object_query_server import bundled_map_paths
 
+from .test_decision_maker_ros import BIN_DROP, COMMAND_QOS, FAST, LATCHED, USER_DROP
+
 pytestmark = pytest.mark.ros
 
-COMMAND_QOS = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
-LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
-FAST = ["mock_nav_server.speed=8.0", "mock_nav_server.turn_rate=30.0",
-        "mock_grasp_server.grasp_duration_s=0.2", "mock_grasp_server.place_duration_s=0.2"]
-USER_DROP = (1.3, 3.95, 0.75)
-BIN_DROP = (5.6, 4.5, 0.5)
 SOFA_SPOT = (1.0, 4.5, 0.45)  # where a person puts the table cup
 
 
