@@ -22,8 +22,8 @@ test: setup
 lint: setup
 	@$(ENV) ruff check .
 
-# bench-voice-stop last: it exits 1 when a spoken stop was missed (a finding, reported after the others ran).
 # Benchmarks print figures (and the ratio to the seed's method where there is one); minutes each.
+# bench-voice-stop last: it exits 1 when a spoken stop was missed (a finding, reported after the others ran).
 bench: bench-object-query bench-decision-maker bench-voice bench-slam bench-slam-streaming bench-voice-stop
 
 bench-object-query: setup
