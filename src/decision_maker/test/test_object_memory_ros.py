@@ -65,6 +65,9 @@ class Person:
 
     def say(self, text: str, timeout: float = 40.0) -> TaskStatus:
         """Send a command and return its one final status."""
+        # a command published before the brain's subscription has matched ours is lost (a topic
+        # has no acknowledgement): wait for the match first
+        assert wait_for(lambda: self._cmd.get_subscription_count() > 0, 20.0), "decision maker not subscribed"
         with self._lock:
             n = len(self.statuses)
         self._cmd.publish(String(data=text))
