@@ -88,6 +88,28 @@ class _Watch:
                              "(process died or lost its network)")
 
 
+
+def _wait_ready(ready: Callable[[], bool], deadline: float, abort: AbortToken, unavailable: str) -> None:
+    """Poll ``ready()`` every 50 ms (an abort wakes it at once) until it holds or ``deadline``.
+
+    Raises:
+        ActionCancelled: the abort token was set first.
+        ServerUnavailable: ``deadline`` passed (message ``unavailable``).
+    """
+    wake = threading.Event()
+    remove = abort.add_waker(wake)
+    try:
+        while not ready():
+            if abort.is_set():
+                raise ActionCancelled(abort.reason)
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise ServerUnavailable(unavailable)
+            wake.wait(min(0.05, left))
+            wake.clear()
+    finally:
+        remove()
+
 class RosRobot:
     """Navigation, grasp, place and object lookup for the execution engine.
 
@@ -135,20 +157,8 @@ class RosRobot:
 
     def locate(self, name: str, timeout_s: float, abort: AbortToken) -> Point3:
         deadline = time.monotonic() + timeout_s
-        wake = threading.Event()
-        remove = abort.add_waker(wake)
-        try:
-            while not self._query.wait_for_service(timeout_sec=0.0):
-                if abort.is_set():
-                    raise ActionCancelled(abort.reason)
-                left = deadline - time.monotonic()
-                if left <= 0:
-                    raise ServerUnavailable(f"object query service /{self._query_name} not available "
-                                            f"after {timeout_s:.1f} s")
-                wake.wait(min(0.05, left))
-                wake.clear()
-        finally:
-            remove()
+        _wait_ready(lambda: self._query.wait_for_service(timeout_sec=0.0), deadline, abort,
+                    f"object query service /{self._query_name} not available after {timeout_s:.1f} s")
         future = self._query.query_async(name)
         watch = _Watch(lambda: self._query.wait_for_service(timeout_sec=0.0),
                        f"object query service /{self._query_name}")
@@ -248,20 +258,8 @@ class RosRobot:
         start = time.monotonic()
         deadline = start + timeout_s
         server_deadline = min(deadline, start + self._server_wait_s)
-        wake = threading.Event()
-        remove = abort.add_waker(wake)
-        try:
-            while not client.server_is_ready():
-                if abort.is_set():
-                    raise ActionCancelled(abort.reason)
-                left = server_deadline - time.monotonic()
-                if left <= 0:
-                    raise ServerUnavailable(f"{what} server /{self._names[id(client)]} not available "
-                                            f"after {server_deadline - start:.1f} s")
-                wake.wait(min(0.05, left))
-                wake.clear()
-        finally:
-            remove()
+        _wait_ready(client.server_is_ready, server_deadline, abort,
+                    f"{what} server /{self._names[id(client)]} not available after {server_deadline - start:.1f} s")
         send_future = client.send_goal_async(goal)
         if self._on_goal_sent is not None:
             self._on_goal_sent(what)
