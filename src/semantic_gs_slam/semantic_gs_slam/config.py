@@ -80,6 +80,9 @@ class TrackingConfig:
     photometric_iters: int = 0  # optional Adam steps on colour + depth L1 after ICP
     photometric_lr_rot: float = 4e-4
     photometric_lr_trans: float = 2e-3
+    odometry_fallback: bool = True  # frames given odom_c2w keep the odometry guess (and are mapped) when ICP
+    # fails, e.g. a robot turning in place faster than the map overlap allows; without odometry they keep
+    # the previous pose and are not mapped
     use_gt_pose: bool = False  # debugging / mapping-only runs: take the ground-truth pose given to add_frame
 
     def check(self) -> None:

@@ -48,6 +48,18 @@ class Keyframe:
     sem: Tensor | None  # [H, W] int64
 
 
+def check_pose(c2w: np.ndarray, name: str) -> np.ndarray:
+    """A [4, 4] finite rigid transform as float64, else :class:`FrameError` naming ``name``."""
+    m = np.asarray(c2w, np.float64)
+    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+        raise FrameError(f"{name} must be a finite [4, 4] matrix, got shape {list(m.shape)}")
+    r = m[:3, :3]
+    if np.abs(r.T @ r - np.eye(3)).max() > 1e-3 or abs(np.linalg.det(r) - 1.0) > 1e-3 or \
+            np.abs(m[3] - [0, 0, 0, 1]).max() > 1e-9:
+        raise FrameError(f"{name} is not a rigid transform (rotation not orthonormal or last row not 0 0 0 1)")
+    return m
+
+
 def _class_balance(sem: Tensor, power: float, cap: float = 20.0) -> Tensor:
     """Per-pixel weights [H, W] proportional to (class pixel frequency)^-power, mean 1, capped."""
     counts = torch.bincount(sem.reshape(-1).clamp_min(0)).double()
@@ -102,12 +114,15 @@ class FrameLog:
     map_loss: float
     track_s: float
     map_s: float
+    pose_source: str = "tracking"  # tracking | odometry (tracking failed, the odometry guess was kept) |
+    # previous (tracking failed, no odometry: previous pose, frame not mapped) | first | ground_truth
 
 
 class SLAM:
     """Semantic Gaussian-splatting RGB-D SLAM, fed frame by frame.
 
-    The map frame is the first frame's pose: ``initial_c2w`` if given, else the ``gt_c2w`` passed with
+    The map frame is the first frame's pose: ``initial_c2w`` if given, else the ``odom_c2w`` passed
+    with the first frame (so a robot's map is in its odometry frame), else the ``gt_c2w`` passed with
     the first frame, else the identity.
     """
 
@@ -126,6 +141,7 @@ class SLAM:
         self.map = GaussianMap(self.device)
         self.poses: list[np.ndarray] = []  # estimated c2w per frame
         self.gt_poses: list[np.ndarray | None] = []
+        self.odom_poses: list[np.ndarray | None] = []  # the odometry c2w given with each frame, if any
         self.timestamps: list[float] = []
         self.keyframes: list[Keyframe] = []
         self.logs: list[FrameLog] = []
@@ -168,7 +184,8 @@ class SLAM:
 
     # ------------------------------------------------------------------ main step
     def add_frame(self, rgb: np.ndarray, depth: np.ndarray, semantics: np.ndarray | None = None,
-                  timestamp: float | None = None, gt_c2w: np.ndarray | None = None) -> np.ndarray:
+                  timestamp: float | None = None, gt_c2w: np.ndarray | None = None,
+                  odom_c2w: np.ndarray | None = None) -> np.ndarray:
         """Track one frame and (on keyframes) update the map.
 
         Args:
@@ -178,6 +195,11 @@ class SLAM:
             timestamp: seconds (defaults to the frame index).
             gt_c2w: [4, 4] ground-truth pose, kept for evaluation (used for tracking only when
                 ``tracking.use_gt_pose``; fixes the map frame on the first frame).
+            odom_c2w: [4, 4] camera-to-world pose from odometry (a robot's wheel odometry moved to the
+                camera), or None. The tracking guess is then the last estimate moved by the odometry's
+                motion since the last frame that had odometry (instead of constant velocity), and
+                when tracking fails that guess is kept and the frame is still mapped
+                (``tracking.odometry_fallback``). Fixes the map frame on the first frame.
 
         Returns:
             [4, 4] estimated camera-to-world pose (float64).
@@ -189,15 +211,18 @@ class SLAM:
         rgb_t, depth_t, sem_t = self._tensors(rgb, depth, semantics)
         idx = len(self.poses)
         gt = None if gt_c2w is None else np.asarray(gt_c2w, np.float64)
-        residual, inliers, failed = float("nan"), 0, False
+        odom = None if odom_c2w is None else check_pose(odom_c2w, "odom_c2w")
+        residual, inliers, failed, source = float("nan"), 0, False, "tracking"
         if idx == 0:
-            c2w = self.initial_c2w if self.initial_c2w is not None else (gt if gt is not None else np.eye(4))
+            source = "first"
+            c2w = next((p for p in (self.initial_c2w, odom, gt) if p is not None), np.eye(4))
         elif self.cfg.tracking.use_gt_pose and gt is not None:
-            c2w = gt
+            c2w, source = gt, "ground_truth"
         else:
-            c2w, residual, inliers, failed = self._track(rgb_t, depth_t)
+            c2w, residual, inliers, failed, source = self._track(rgb_t, depth_t, self._odometry_guess(odom))
         self.poses.append(np.asarray(c2w, np.float64))
         self.gt_poses.append(gt)
+        self.odom_poses.append(odom)
         self.timestamps.append(float(idx if timestamp is None else timestamp))
         t1 = time.perf_counter()
         is_kf = idx % self.cfg.mapping.keyframe_every == 0 and not failed
@@ -209,16 +234,29 @@ class SLAM:
             added = self._densify(idx, rgb_t, depth_t, sem_t, self.poses[-1])
         t2 = time.perf_counter()
         entry = FrameLog(idx, self.timestamps[-1], is_kf, len(self.map), added, pruned, residual, inliers, failed,
-                         loss, t1 - t0, t2 - t1)
+                         loss, t1 - t0, t2 - t1, source)
         self.logs.append(entry)
         ce = self.cfg.checkpoint_every
         if ce > 0 and (idx + 1) % ce == 0:
             self.checkpoint(self.cfg.checkpoint_dir)
         return self.poses[-1].copy()
 
-    def _track(self, rgb: Tensor, depth: Tensor) -> tuple[np.ndarray, float, int, bool]:
+    def _odometry_guess(self, odom: np.ndarray | None) -> np.ndarray | None:
+        """The last estimate moved by the odometry's relative motion since the last frame with odometry."""
+        if odom is None:
+            return None
+        for est, prev_odom in zip(reversed(self.poses), reversed(self.odom_poses), strict=True):
+            if prev_odom is not None:
+                return est @ (np.linalg.inv(prev_odom) @ odom)
+        return None
+
+    def _track(self, rgb: Tensor, depth: Tensor, odom_guess: np.ndarray | None = None
+               ) -> tuple[np.ndarray, float, int, bool, str]:
         prev = self.poses[-1]
-        guess = prev @ (np.linalg.inv(self.poses[-2]) @ prev) if len(self.poses) >= 2 else prev
+        if odom_guess is not None:
+            guess = odom_guess
+        else:
+            guess = prev @ (np.linalg.inv(self.poses[-2]) @ prev) if len(self.poses) >= 2 else prev
         g = torch.as_tensor(guess, device=self.device)
         tc = self.cfg.tracking
         out = self.render_view(guess, scale_shrink=tc.render_scale_shrink, semantic=False)
@@ -229,13 +267,16 @@ class SLAM:
         try:
             res = icp(model_depth, valid, g, depth, self.k, self.cfg.tracking, out.rgb, rgb)
         except TrackingError as exc:
+            if odom_guess is not None and tc.odometry_fallback:
+                log.warning("frame %d: %s; keeping the odometry guess", len(self.poses), exc)
+                return odom_guess, float("nan"), 0, False, "odometry"
             log.warning("frame %d: %s; keeping the previous pose, not mapping this frame", len(self.poses), exc)
-            return prev, float("nan"), 0, True
+            return prev, float("nan"), 0, True, "previous"
         c2w = res.c2w
         if self.cfg.tracking.photometric_iters > 0:
             c2w = photometric_refine(self.map.gaussians(), c2w, rgb, depth, self.k, self.cfg.renderer,
                                      self.cfg.tracking, self.backend)
-        return c2w.cpu().numpy(), res.residual, res.inliers, False
+        return c2w.cpu().numpy(), res.residual, res.inliers, False, "tracking"
 
     def _plane_depth_on(self) -> bool:
         return self.cfg.plane_depth and self.map.has_normals
@@ -412,6 +453,7 @@ class SLAM:
         state = {
             "poses": np.stack(self.poses), "timestamps": np.array(self.timestamps),
             "gt_poses": np.stack([g if g is not None else np.full((4, 4), np.nan) for g in self.gt_poses]),
+            "odom_poses": np.stack([o if o is not None else np.full((4, 4), np.nan) for o in self.odom_poses]),
             "kf_index": np.array([kf.index for kf in kfs], np.int64),
             "kf_c2w": np.stack([kf.c2w.cpu().numpy() for kf in kfs]) if kfs else np.zeros((0, 4, 4)),
             "kf_rgb": np.stack([(kf.rgb.cpu().numpy() * 255 + 0.5).astype(np.uint8) for kf in kfs]) if kfs
@@ -467,6 +509,8 @@ class SLAM:
         eng.poses = [p for p in st["poses"]]
         eng.timestamps = [float(t) for t in st["timestamps"]]
         eng.gt_poses = [None if np.isnan(g).any() else g for g in st["gt_poses"]]
+        odom = st["odom_poses"] if "odom_poses" in st else np.full((len(eng.poses), 4, 4), np.nan)
+        eng.odom_poses = [None if np.isnan(o).any() else o for o in odom]
         for i in range(len(st["kf_index"])):
             sem = st["kf_sem"][i]
             eng.keyframes.append(Keyframe(int(st["kf_index"][i]), torch.as_tensor(st["kf_c2w"][i], device=dev),

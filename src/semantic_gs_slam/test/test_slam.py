@@ -164,3 +164,71 @@ def test_semantic_densification_adds_small_objects_the_map_mislabels(tiny_home, 
         assert new_cups == int(((sem == 8) & (depth > 0)).sum())
     else:
         assert new_cups == 0
+
+
+def _drifted(c2w: np.ndarray, i: int) -> np.ndarray:
+    """Odometry that drifts 1.5 cm and 0.3 degrees (yaw about the world z axis) per frame."""
+    a = np.radians(0.3 * i)
+    d = np.eye(4)
+    d[:3, :3] = [[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]]
+    d[:3, 3] = [0.015 * i, -0.01 * i, 0.0]
+    return d @ c2w
+
+
+def test_odometry_prior_fixes_the_map_frame_and_tracking_corrects_its_drift(tiny_home):
+    ds = load_dataset(str(tiny_home))
+    eng = SLAM(config(ds), ds.classes)
+    odom_err, est_err = [], []
+    for i in range(len(ds)):
+        f = ds[i]
+        odom = _drifted(f.gt_c2w, i)
+        est = eng.add_frame(f.rgb, f.depth, f.semantics, f.timestamp, odom_c2w=odom)
+        odom_err.append(np.linalg.norm(odom[:3, 3] - f.gt_c2w[:3, 3]))
+        est_err.append(np.linalg.norm(est[:3, 3] - f.gt_c2w[:3, 3]))
+    # the map frame is the first odometry pose (= the truth at frame 0 here): no alignment needed
+    np.testing.assert_allclose(eng.poses[0], ds[0].gt_c2w, atol=1e-9)
+    assert [lg.pose_source for lg in eng.logs] == ["first"] + ["tracking"] * (len(ds) - 1)
+    assert odom_err[-1] > 0.08  # about 10 cm of odometry drift by the last frame
+    assert max(est_err) < 0.03, est_err  # tracking from the odometry guess removes it
+
+
+def test_tracking_failure_keeps_the_odometry_guess_and_still_maps(tiny_home):
+    ds = load_dataset(str(tiny_home))
+    cfg = config(ds)
+    cfg.tracking.min_correspondences = 10**9  # every ICP fails
+    with_odom, without = SLAM(cfg, ds.classes), SLAM(cfg, ds.classes)
+    for i in range(5):
+        f = ds[i]
+        with_odom.add_frame(f.rgb, f.depth, f.semantics, f.timestamp, odom_c2w=f.gt_c2w)
+        without.add_frame(f.rgb, f.depth, f.semantics, f.timestamp)
+    assert [lg.pose_source for lg in with_odom.logs] == ["first"] + ["odometry"] * 4
+    assert not any(lg.tracking_failed for lg in with_odom.logs)
+    assert [lg.keyframe for lg in with_odom.logs] == [True, False, False, False, True]
+    np.testing.assert_allclose(with_odom.poses[4], ds[4].gt_c2w, atol=1e-9)
+    assert [lg.pose_source for lg in without.logs] == ["first"] + ["previous"] * 4
+    assert all(lg.tracking_failed for lg in without.logs[1:]) and len(without.keyframes) == 1
+    cfg.tracking.odometry_fallback = False
+    strict = SLAM(cfg, ds.classes)
+    for i in range(2):
+        f = ds[i]
+        strict.add_frame(f.rgb, f.depth, f.semantics, f.timestamp, odom_c2w=f.gt_c2w)
+    assert strict.logs[1].pose_source == "previous" and strict.logs[1].tracking_failed
+
+
+def test_odometry_poses_survive_checkpoint_and_bad_ones_are_refused(tiny_home, tmp_path):
+    ds = load_dataset(str(tiny_home))
+    ck = str(tmp_path / "ck")
+    eng = SLAM(config(ds, checkpoint_every=2, checkpoint_dir=ck), ds.classes)
+    for i in range(2):
+        f = ds[i]
+        eng.add_frame(f.rgb, f.depth, f.semantics, f.timestamp, odom_c2w=f.gt_c2w if i == 1 else None)
+    back = SLAM.resume(ck)
+    assert back.odom_poses[0] is None
+    np.testing.assert_allclose(back.odom_poses[1], ds[1].gt_c2w)
+    f = ds[2]
+    skew = ds[2].gt_c2w.copy()
+    skew[:3, :3] *= 2.0
+    for bad, match in ((np.eye(3), "finite"), (np.full((4, 4), np.nan), "finite"), (skew, "rigid")):
+        with pytest.raises(FrameError, match=match):
+            back.add_frame(f.rgb, f.depth, f.semantics, f.timestamp, odom_c2w=bad)
+    assert len(back.poses) == 2
