@@ -55,6 +55,7 @@ class ExplorationGate:
         self._done = mode == "off"
         self._seen: float | None = None
         self._reason = ""
+        self._state = ""
 
     def on_progress(self, data: str) -> bool:
         """Take one progress message. Returns True when it ends exploration (first ``done``).
@@ -71,6 +72,7 @@ class ExplorationGate:
         with self._lock:
             if math.isfinite(seen):
                 self._seen = min(100.0, max(0.0, seen))
+            self._state = state[:40]
             if state == "done" and not self._done:
                 self._done = True
                 self._reason = str(doc.get("reason", ""))[:200]
@@ -99,4 +101,7 @@ class ExplorationGate:
             if self._clock() >= self._deadline:
                 return None
             seen = "" if self._seen is None else f" ({self._seen:.0f} % of the home seen)"
+            mapping = self._state == "mapping"
+        if mapping:  # explored; the SLAM map of what was seen is being finished
+            return Hold(f"still finishing the map{seen}", f"Still finishing the map{seen}", self.mode == "reject")
         return Hold(f"still exploring{seen}", f"Still exploring{seen}", self.mode == "reject")

@@ -64,6 +64,9 @@ def test_gate_holds_until_done_and_says_how_much_is_seen() -> None:
     assert gate.on_progress(progress("travelling", 61.6)) is False
     h = gate.hold()
     assert h is not None and h.sentence == "Still exploring (62 % of the home seen)"
+    assert gate.on_progress(progress("mapping", 96.0)) is False  # explored; SLAM finishing its map
+    h = gate.hold()
+    assert h is not None and h.sentence == "Still finishing the map (96 % of the home seen)"
     assert gate.on_progress(progress("done", 97.0, "no reachable frontier left")) is True
     assert gate.hold() is None and gate.done_reason == "no reachable frontier left"
     assert gate.on_progress(progress("done")) is False  # only the first done ends it

@@ -1,18 +1,20 @@
 """``demo_explore``: Stage 0 end to end in the simulated home (``make demo-explore``).
 
 Brings up the whole simulated robot (node set ``sim_robot``, with the decision maker in
-``exploration_mode=queue``) plus the camera on the base and the frontier explorer, on a freshly
-leased ROS_DOMAIN_ID with loopback-only discovery. The robot starts from an empty occupancy grid;
-"give me the bottle" is said at once and is answered "Still exploring (...); I will do it after."
-The demo prints the exploration's progress as it goes, then the command's steps, and ends with
-figures: the free area seen vs the home's true free area, exploration time, goals and frames,
-and each object's error (the object database's position vs the simulator's truth).
-
-Not yet in the loop (see docs/exploration.md): the SLAM map is not rebuilt from the explorer's
-frames, so the object positions come from the bundled map.
+``exploration_mode=queue``) plus the camera on the base, the frontier explorer and the streaming
+SLAM server (node set ``slam_sim_camera``), on a freshly leased ROS_DOMAIN_ID with loopback-only
+discovery. The robot starts from an empty occupancy grid **and an empty object map**: the object
+database waits for the map that SLAM builds from the camera's frames while the robot explores
+(tracking guided by the base's simulated wheel odometry) and reloads it every 10 frames and at
+the end. "give me the bottle" is said at once and is answered "Still exploring (...); I will do it
+after." The demo prints the exploration's progress and the objects found as it goes, then the
+command's steps on the self-built map, and ends with figures: the free area seen vs the home's true
+free area, time, SLAM's and the odometry's trajectory error against the simulator's ground truth,
+and each object's error (the self-built map's position vs the simulator's truth).
 
 Options: ``--set NODE.PARAM=VALUE`` (e.g. ``sim_camera.width=150``), ``--timeout`` (s), ``--verbose``,
-``--view`` (also serve the live 3-D view, viser, at the printed URL; ``--view-port``).
+``--view`` (also serve the live 3-D view, viser, at the printed URL; ``--view-port``), ``--map-dir``
+(keep the map there; default a temporary folder), ``--no-slam`` (the bundled map instead: no mapping).
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import sys
 import threading
 import time
@@ -52,12 +55,29 @@ class Watch:
         self.progress: dict = {}
         self.grid = None
         self.objects: dict = {}
+        self.objects_at_done: dict | None = None  # /object_list when exploration (and mapping) ended
         self._last_line = ("", -math.inf)
         self._ros = BackgroundNode(domain_id, "demo_explore_watch", threads=1)
         node = self._ros.node
         node.create_subscription(String, "exploration/progress", self._on_progress, latched)
         node.create_subscription(GridMsg, "map", self._on_map, latched)
         node.create_subscription(String, "object_list", self._on_objects, latched)
+        from geometry_msgs.msg import PoseStamped
+
+        self.truth: dict[int, np.ndarray] = {}  # stamp (ns) -> camera c2w, the simulator's ground truth
+        self.odometry: dict[int, np.ndarray] = {}  # stamp (ns) -> camera c2w from the wheel odometry
+        node.create_subscription(PoseStamped, "camera_pose", lambda m: self._on_pose(m, self.truth), 50)
+        node.create_subscription(PoseStamped, "odom_camera_pose", lambda m: self._on_pose(m, self.odometry), 50)
+
+    def _on_pose(self, msg, into: dict) -> None:
+        from semantic_gs_slam_ros.run_gs_slam_server import pose_to_matrix
+
+        try:
+            c2w = np.asarray(pose_to_matrix(msg))
+        except ValueError:
+            return
+        with self._lock:
+            into[msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec] = c2w
 
     def _on_progress(self, msg) -> None:
         try:
@@ -67,12 +87,17 @@ class Watch:
         now = time.monotonic()
         with self._lock:
             self.progress = p
+            if p.get("state") == "done" and self.objects_at_done is None:
+                self.objects_at_done = dict(self.objects)  # before the command moves anything
             state, last = self._last_line
             show = p.get("state") != state or now - last >= 5.0
             if show:
                 self._last_line = (str(p.get("state")), now)
         if show:
-            self._echo.write(f"demo: {now - self._t0:6.1f} s  exploring: {p.get('state')}, "
+            m = p.get("mapping") or {}
+            slam = f", SLAM {m.get('state')}: {m.get('frames', 0)} frames mapped" if m.get("state") not in \
+                (None, "off") else ""
+            self._echo.write(f"demo: {now - self._t0:6.1f} s  exploring: {p.get('state')}{slam}, "
                              f"{p.get('explored_m2', 0):.1f} m2 free seen ({p.get('seen_percent', 0):.0f} %), "
                              f"{p.get('frontiers_left', 0)} frontiers left, {p.get('goals', 0)} goals, "
                              f"{p.get('frames', 0)} frames" + (f" - {p['reason']}" if p.get("reason") else "") + "\n")
@@ -89,11 +114,22 @@ class Watch:
             return
         if isinstance(doc, dict):
             with self._lock:
+                new = sorted(set(doc) - set(self.objects))
                 self.objects = doc
+            if new:
+                self._echo.write(f"demo: {time.monotonic() - self._t0:6.1f} s  objects in the map: "
+                                 f"{', '.join(sorted(doc))} (new: {', '.join(new)})\n")
+                self._echo.flush()
+
+    def poses(self) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray]]:
+        with self._lock:
+            return dict(self.truth), dict(self.odometry)
 
     def snapshot(self) -> tuple[dict, object, dict]:
+        """(progress, /map, the objects when exploration ended, or now if it has not)."""
         with self._lock:
-            return dict(self.progress), self.grid, dict(self.objects)
+            objects = self.objects if self.objects_at_done is None else self.objects_at_done
+            return dict(self.progress), self.grid, dict(objects)
 
     def close(self) -> None:
         self._ros.close()
@@ -136,6 +172,52 @@ def object_errors(objects: dict) -> list[str]:
     return lines or ["  (no graspable object in the database)"]
 
 
+def save_camera_poses(path: str, truth: dict[int, np.ndarray], odometry: dict[int, np.ndarray]) -> None:
+    """The camera's true and odometry poses by stamp (``stamps_ns`` [N], ``truth`` / ``odometry``
+    [N, 4, 4], NaN where missing): with the SLAM work folder's frames, enough to replay the run
+    offline (``bench/slam_explore_replay.py``)."""
+    stamps = sorted(truth)
+    if not stamps:
+        return
+    nan = np.full((4, 4), np.nan)
+    np.savez_compressed(path, stamps_ns=np.array(stamps, np.int64), truth=np.stack([truth[t] for t in stamps]),
+                        odometry=np.stack([odometry.get(t, nan) for t in stamps]))
+
+
+def trajectory_errors(map_path: str, truth: dict[int, np.ndarray], odometry: dict[int, np.ndarray]
+                      ) -> list[str]:
+    """SLAM's and the odometry's camera positions against the simulator's truth, on the frames SLAM
+    mapped (matched by stamp): RMSE in the map frame (both start at the true pose, so no alignment)."""
+    try:
+        with np.load(map_path) as z:
+            stamps, rots, trans = z["timestamps"], z["cam_unnorm_rots"][0].T, z["cam_trans"][0].T
+    except (OSError, KeyError, ValueError) as exc:
+        return [f"  trajectory: cannot read {map_path}: {exc}"]
+    est_err, odo_err = [], []
+    for t, q, tr in zip(stamps, rots, trans, strict=True):
+        ns = int(round(t * 1e9))
+        key = min(truth, key=lambda k: abs(k - ns), default=None)
+        if key is None or abs(key - ns) > 5_000_000:
+            continue
+        w, x, y, z = q / np.linalg.norm(q)
+        r = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                      [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                      [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+        centre = -r.T @ tr  # w2c -> camera position
+        est_err.append(np.linalg.norm(centre - truth[key][:3, 3]))
+        if key in odometry:
+            odo_err.append(np.linalg.norm(odometry[key][:3, 3] - truth[key][:3, 3]))
+    if not est_err:
+        return ["  trajectory: no SLAM frame matched the simulator's poses"]
+
+    def rmse(e: list[float]) -> float:
+        return float(np.sqrt(np.mean(np.square(e)))) * 100
+
+    return [f"  trajectory ({len(est_err)} frames mapped): SLAM ATE {rmse(est_err):.1f} cm (max "
+            f"{max(est_err) * 100:.1f} cm); the wheel odometry alone {rmse(odo_err):.1f} cm (max "
+            f"{max(odo_err, default=0) * 100:.1f} cm), against the simulator's ground truth"]
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(prog="demo_explore", description=__doc__.split("\n")[0])
     ap.add_argument("--set", action="append", default=[], metavar="NODE.PARAM=VALUE",
@@ -145,6 +227,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--view-port", type=int, default=8080, help="port of the live view (loopback)")
     ap.add_argument("--ready-timeout", type=float, default=120.0)
     ap.add_argument("--timeout", type=float, default=540.0, help="seconds for exploration and the command")
+    ap.add_argument("--map-dir", default="", help="where SLAM writes the map (default: a temporary folder)")
+    ap.add_argument("--no-slam", action="store_true", help="no mapping: the object database serves the bundled map")
     opts = ap.parse_args(argv)
 
     from decision_maker.command_types import load_locations
@@ -158,11 +242,35 @@ def main(argv: list[str] | None = None) -> int:
 
         specs.append(NodeSpec("live_view", "home_robot_exploration", "live_view_node",
                               parameters={"port": opts.view_port}, ready="ready:"))
-    specs = apply_overrides(specs, ["decision_maker.exploration_mode=queue", *opts.set])
+    overrides = ["decision_maker.exploration_mode=queue"]
+    map_dir = ""
+    if not opts.no_slam:
+        import tempfile
+
+        from semantic_gs_slam.synthetic import CLASSES
+
+        map_dir = os.path.abspath(opts.map_dir) if opts.map_dir else tempfile.mkdtemp(prefix="explore_map_")
+        for name in ("params.npz", "semantic.json"):  # from an empty map
+            if os.path.exists(os.path.join(map_dir, name)):
+                os.remove(os.path.join(map_dir, name))
+        specs += load_nodeset("slam_sim_camera")
+        classes = json.dumps({str(i): name for i, name, _ in CLASSES if i > 0})
+        # slower turns in 45 degree steps: consecutive frames overlap, so tracking has something to hold on to
+        overrides += ["mock_nav_server.turn_rate=0.6", "explorer.look_steps=8",
+                      f"run_gs_slam_server.work_dir={os.path.join(map_dir, 'work')}",
+                      f"run_gs_slam_server.map_dir={map_dir}", "explorer.slam_action=run_gs_slam",
+                      f"explorer.slam_map_dir={map_dir}",
+                      f"object_query_server.map_path={os.path.join(map_dir, 'params.npz')}",
+                      f"object_query_server.semantic_path={os.path.join(map_dir, 'semantic.json')}",
+                      "object_query_server.wait_for_map=true"]
+    specs = apply_overrides(specs, [*overrides, *opts.set])
+    if map_dir:  # a JSON string: set directly (an override's value is read as YAML, i.e. a mapping)
+        specs = [s.with_parameters(slam_classes=classes) if s.name == "explorer" else s for s in specs]
     with DomainLease() as lease:
         env = node_environment(lease.domain_id)
         print(f"demo: ROS_DOMAIN_ID={lease.domain_id}, discovery LOCALHOST; starting the simulated robot with its "
-              "camera and the explorer (empty map)...", flush=True)
+              "camera, the explorer" + (f" and SLAM (empty map, written to {map_dir})" if map_dir else
+                                        " (empty grid; objects from the bundled map)") + "...", flush=True)
         t0 = time.monotonic()
         sup = Supervisor(specs, env, echo=sys.stdout if opts.verbose else None)
         try:
@@ -204,19 +312,32 @@ def main(argv: list[str] | None = None) -> int:
                 print("  explored: no map received", flush=True)
             print(f"  command: {time.monotonic() - t_cmd:.0f} s from 'give me the bottle' to its end "
                   "(exploration included)", flush=True)
-            print("  objects (object database on the bundled map; the SLAM map is not rebuilt yet):", flush=True)
+            if map_dir:
+                m = progress.get("mapping") or {}
+                print(f"  SLAM: {m.get('state')}, {m.get('frames', 0)} frames mapped, {m.get('gaussians', 0)} "
+                      f"Gaussians, map {m.get('map_path') or '-'}" + (f" ({m['message']})" if m.get("message") else ""),
+                      flush=True)
+                truth, odometry = watch.poses()
+                save_camera_poses(os.path.join(map_dir, "camera_poses.npz"), truth, odometry)
+                if m.get("map_path"):
+                    print("\n".join(trajectory_errors(m["map_path"], truth, odometry)), flush=True)
+            print("  objects when exploration ended (" + ("the map the robot built while exploring" if map_dir else
+                                                          "the bundled map") + " vs the simulator's truth):", flush=True)
             print("\n".join(object_errors(objects)), flush=True)
             final = op.finals.get(COMMAND)
             user = locations["user"].drop_point()
             bottle = world["objects"]["bottle"]["position"] if world else [math.nan] * 3
+            mapped = not map_dir or (progress.get("mapping") or {}).get("state") == "done"
             ok = bool(done and final is not None and final.state.value == "succeeded"
-                      and math.dist(bottle, (user.x, user.y, user.z)) < 0.15 and cov >= 0.85)
+                      and math.dist(bottle, (user.x, user.y, user.z)) < 0.15 and cov >= 0.85 and mapped)
         finally:
             for closeable in (op, watch):
                 if closeable is not None:
                     closeable.close()
             sup.stop()
-        print("demo: " + ("OK - explored, then the bottle is with the user" if ok else "FAILED"), flush=True)
+        what = "explored and mapped, then the bottle is with the user (found in the self-built map)" if map_dir \
+            else "explored, then the bottle is with the user"
+        print("demo: " + (f"OK - {what}" if ok else "FAILED"), flush=True)
         return 0 if ok else 1
 
 

@@ -12,6 +12,15 @@ changes), ``exploration/progress`` (std_msgs/String JSON, latched: ``state``, ``
 is ``done`` at the end), and ``NavigateToPose`` goals on ``action_name`` (the navigation server:
 ``mock_nav_server`` or a real Nav2).
 
+Mapping while exploring (``slam_action`` set, e.g. ``run_gs_slam``; "" = no mapping): before the robot
+moves, a ``RunSlam`` goal starts the streaming SLAM server on the camera's topics (``map_dir`` =
+``slam_map_dir``, class names ``slam_classes``) and exploration waits for its ``slam_start_signal``;
+when exploration ends, ``data_transfer_done`` asks the server to map its backlog and save (a stop
+cancels the goal, which also saves). Meanwhile ``state`` is ``mapping``; it becomes ``done`` when the
+map is written and the object-query server asked to reload it (or a deadline passed: ``mapping``
+says why). The ``mapping`` field of the progress has the run's state, frames, Gaussians and map path.
+See :mod:`.mapping`.
+
 Every decision is taken in a timer (``tick_hz``) that never waits: goals and results are chained
 with ``add_done_callback``. The navigation server must appear within ``server_timeout_s``, else
 exploration ends with that reason. A malformed frame is logged and skipped.
@@ -39,6 +48,7 @@ from std_msgs.msg import String
 from home_robot_exploration.errors import ConfigError, ExplorationError
 from home_robot_exploration.explorer import Exploration, ExplorerConfig, Finished, NavGoal
 from home_robot_exploration.frontiers import FrontierConfig
+from home_robot_exploration.mapping import MappingConfig, MappingResult, MappingRun
 from home_robot_exploration.nodemain import run_node
 from home_robot_exploration.occupancy import UNKNOWN, GridConfig
 
@@ -53,6 +63,8 @@ DEFAULTS: dict[str, object] = {
     "robot_radius": 0.25, "min_cluster_cells": 8, "gain_weight": 1.0, "cost_weight": 0.5, "visited_radius": 0.5,
     "action_name": "navigate_to_pose", "pose_topic": "robot_pose", "map_frame": "map", "tick_hz": 5.0,
     "map_publish_hz": 1.0, "server_timeout_s": 30.0,
+    "slam_action": "", "slam_map_dir": "", "slam_classes": "", "slam_start_timeout_s": 60.0,
+    "slam_finish_timeout_s": 600.0,
 }
 
 
@@ -107,6 +119,20 @@ class ExplorerNode(Node):
         self._last_map = -math.inf
         self._map_dirty = True
         self._nav = ActionClient(self, NavigateToPose, str(v["action_name"]))
+        self._slam_action = str(v["slam_action"])
+        self._slam_goal = (str(v["slam_map_dir"]), str(v["slam_classes"]))
+        self.mapping = MappingRun(MappingConfig(bool(self._slam_action), float(v["slam_start_timeout_s"]),
+                                                float(v["slam_finish_timeout_s"])), time.monotonic())
+        self._slam = None
+        self._slam_handle = None
+        self._slam_sent = False
+        self._done_reported = False
+        if self._slam_action:
+            from semantic_gs_slam_interfaces.action import RunSlam
+
+            self._slam = ActionClient(self, RunSlam, self._slam_action)
+            self._done_pub = self.create_publisher(String, "data_transfer_done", LATCHED)
+            self.create_subscription(String, "slam_start_signal", self._on_slam_start, LATCHED)
         self._map_pub = self.create_publisher(GridMsg, "map", LATCHED)
         self._progress_pub = self.create_publisher(String, "exploration/progress", LATCHED)
         self.create_subscription(Image, "depth", self._on_depth, IMAGE_QOS)
@@ -181,6 +207,56 @@ class ExplorerNode(Node):
     def _on_cancel(self, msg: String) -> None:
         if self.core.finished is None:
             self._finish(self.core.cancel(f"cancelled ({msg.data[:60]!r})"))
+        elif self.mapping.state == "finishing" and self._slam_handle is not None:
+            self.get_logger().info("stop while the map is being finished: SLAM run cancelled (it still saves)")
+            self._slam_handle.cancel_goal_async()
+
+    # --- the SLAM run (mapping while exploring) -----------------------------------------------------
+
+    def _send_slam_goal(self) -> None:
+        from semantic_gs_slam_interfaces.action import RunSlam
+
+        goal = RunSlam.Goal()
+        goal.map_dir, goal.semantic_classes = self._slam_goal
+        goal.dataset_name = "exploration"
+        self._slam_sent = True
+        self.get_logger().info(f"starting the SLAM run on {self._slam_action}")
+        self._slam.send_goal_async(goal, feedback_callback=self._on_slam_feedback).add_done_callback(
+            self._on_slam_accepted)
+
+    def _on_slam_accepted(self, future) -> None:
+        gh = future.result() if future.exception() is None else None
+        if gh is None or not gh.accepted:
+            self.mapping.rejected(f"{self._slam_action} refused the goal (a run already in progress?)")
+            self.get_logger().warn(f"SLAM run not started: {self.mapping.reason}; exploring without mapping")
+            return
+        self._slam_handle = gh
+        self.mapping.accepted(bytes(gh.goal_id.uuid).hex(), time.monotonic())
+        gh.get_result_async().add_done_callback(self._on_slam_result)
+
+    def _on_slam_start(self, msg: String) -> None:
+        try:
+            goal = json.loads(msg.data)["goal"]
+        except (ValueError, KeyError, TypeError):
+            self.get_logger().warn(f"malformed slam_start_signal {msg.data[:80]!r} ignored")
+            return
+        if self.mapping.start_signal(str(goal)):
+            self.get_logger().info("SLAM run started: exploring")
+
+    def _on_slam_feedback(self, msg) -> None:
+        fb = msg.feedback
+        self.mapping.feedback(fb.frames_processed, fb.num_gaussians)
+
+    def _on_slam_result(self, future) -> None:
+        self._slam_handle = None
+        if future.exception() is not None:
+            self.mapping.ended(MappingResult(False, "", 0, f"SLAM result failed: {future.exception()}"))
+        else:
+            r = future.result().result
+            self.mapping.ended(MappingResult(bool(r.success), r.map_path, int(r.frames_processed), r.message))
+        (self.get_logger().info if self.mapping.state == "done" else self.get_logger().warn)(
+            f"SLAM run ended ({self.mapping.state}): {self.mapping.result.message}")
+        self._publish(self._now())
 
     # --- loop ---------------------------------------------------------------------------------------
 
@@ -188,7 +264,15 @@ class ExplorerNode(Node):
         return self.get_clock().now().nanoseconds * 1e-9
 
     def _tick(self) -> None:
+        now = self._now()
+        late = self.mapping.tick(time.monotonic())
+        if late:
+            self.get_logger().warn(late)
+            if self._slam_handle is not None and self.mapping.state == "failed":
+                self._slam_handle.cancel_goal_async()
         if self.core.finished is not None:
+            if not self._done_reported and (self.mapping.settled() or now - self._last_map >= self._map_period):
+                self._publish(now)  # "mapping" now and then, "done" once the map is written
             return
         if self._pose is None:
             return
@@ -196,7 +280,10 @@ class ExplorerNode(Node):
             if time.monotonic() - self._started_wall > self._server_timeout:
                 self._finish(self.core.cancel(f"navigation server not available after {self._server_timeout:g} s"))
             return
-        now = self._now()
+        if self.mapping.state == "connecting" and not self._slam_sent and self._slam.server_is_ready():
+            self._send_slam_goal()
+        if not self.mapping.ready_to_explore():
+            return
         action = self.core.tick(*self._pose, now)
         if isinstance(action, NavGoal):
             self._send(action)
@@ -243,6 +330,12 @@ class ExplorerNode(Node):
             self._goal_handle = None
         self._goal_seq += 1  # results still in flight are ignored
         self._map_dirty = True
+        if self.mapping.finish(time.monotonic()):
+            if fin.reason.startswith("cancelled") and self._slam_handle is not None:
+                self._slam_handle.cancel_goal_async()  # a stop: the server stops at once and still saves
+            else:
+                self._done_pub.publish(String(data=json.dumps({"goal": self.mapping.goal_id, "frames_sent": 0})))
+            self.get_logger().info("exploration ended: the SLAM server finishes and saves the map")
         self._publish(self._now())
         p = self.core.progress()
         self.get_logger().info(f"done: {fin.reason}; explored {p.explored_m2:.1f} m2 with {p.goals} goals, "
@@ -265,9 +358,14 @@ class ExplorerNode(Node):
             self._map_pub.publish(msg)
         p = self.core.progress(now)
         seen = seen_percent(states) if p.frames else 0.0
-        doc = {"state": p.state, "explored_m2": round(p.explored_m2, 2), "seen_percent": round(seen, 1),
+        state = p.state
+        if state == "done" and not self.mapping.settled():
+            state = "mapping"
+        elif state == "done":
+            self._done_reported = True
+        doc = {"state": state, "explored_m2": round(p.explored_m2, 2), "seen_percent": round(seen, 1),
                "frontiers_left": p.frontiers_left, "elapsed_s": round(p.elapsed_s, 1), "goals": p.goals,
-               "frames": p.frames, "reason": p.reason}
+               "frames": p.frames, "reason": p.reason, "mapping": self.mapping.summary()}
         self._progress_pub.publish(String(data=json.dumps(doc)))
 
 

@@ -10,7 +10,12 @@ time the pose was taken) and ``frame_id``:
   of :data:`semantic_gs_slam.synthetic.CLASSES`), ``camera_info`` — the names the streaming SLAM
   server subscribes, so it maps what this camera sees with no remapping;
 * ``camera_pose`` (``PoseStamped`` in ``map_frame``): the camera-to-map pose (OpenCV camera axes),
-  the ground truth the explorer builds its grid with and SLAM is scored against.
+  the ground truth the explorer builds its grid with and SLAM is scored against;
+* ``odom_camera_pose`` (``PoseStamped``, same stamp): the same camera pose as the robot's wheel
+  odometry estimates it (:class:`~home_robot_exploration.simcam.WheelOdometry`: systematic scale
+  errors ``odom_trans_scale_error`` / ``odom_rot_scale_error`` plus ``odom_noise``, integrated over
+  every ``robot_pose`` update), the prior a SLAM server takes with ``odometry_topic``. It drifts as
+  a real base's odometry does; all zero = perfect odometry.
 
 Rendering runs on one worker thread (the callbacks never wait on it); a tick that finds the worker
 still busy is skipped (counted in the log), so the real rate is at most what the CPU renders. A
@@ -34,7 +39,7 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from home_robot_exploration.errors import ConfigError
 from home_robot_exploration.nodemain import run_node
-from home_robot_exploration.simcam import CameraConfig
+from home_robot_exploration.simcam import CameraConfig, OdometryConfig, WheelOdometry
 
 POSE_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 IMAGE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -44,6 +49,7 @@ DEFAULTS: dict[str, object] = {
     "width": 300, "height": 170, "hfov_deg": 90.0, "mount_height": 1.0, "tilt_deg": 20.0,
     "forward_offset": 0.0, "rate_hz": 1.0, "pose_topic": "robot_pose", "frame_id": "camera",
     "map_frame": "map", "seed": 0, "supersample": 1,
+    "odom_trans_scale_error": 0.02, "odom_rot_scale_error": 0.02, "odom_noise": 0.01,
 }
 
 
@@ -83,14 +89,19 @@ class SimCameraNode(Node):
         self._k = k
         self._intrinsics = Intrinsics(self.cam.width, self.cam.height, k[0, 0], k[1, 1], k[0, 2], k[1, 2])
         self._renderer = HomeRenderer(int(v["seed"]))
-        self._lock = threading.Lock()  # guards _pose, _busy, _skipped
+        self._odometry = WheelOdometry(OdometryConfig(float(v["odom_trans_scale_error"]),
+                                                      float(v["odom_rot_scale_error"]), float(v["odom_noise"]),
+                                                      int(v["seed"])))
+        self._lock = threading.Lock()  # guards _pose, _odom, _busy, _skipped
         self._pose: tuple[float, float, float] | None = None
+        self._odom: tuple[float, float, float] | None = None  # the odometry estimate of _pose
         self._busy: Future | None = None
         self._skipped = 0
         self._worker = ThreadPoolExecutor(max_workers=1, thread_name_prefix="render")
         self._pubs = {s: self.create_publisher(Image, s, IMAGE_QOS) for s in ("rgb", "depth", "semantic")}
         self._info_pub = self.create_publisher(CameraInfo, "camera_info", IMAGE_QOS)
         self._pose_pub = self.create_publisher(PoseStamped, "camera_pose", IMAGE_QOS)
+        self._odom_pub = self.create_publisher(PoseStamped, "odom_camera_pose", IMAGE_QOS)
         self.create_subscription(PoseStamped, str(v["pose_topic"]), self._on_pose, POSE_QOS)
         self.create_timer(1.0 / rate, self._tick)
         self.frames = 0
@@ -107,19 +118,21 @@ class SimCameraNode(Node):
             return
         with self._lock:
             self._pose = (p.x, p.y, yaw)
+            self._odom = self._odometry.update(p.x, p.y, yaw)
 
     def _tick(self) -> None:
         with self._lock:
-            pose = self._pose
-            if pose is None:
+            pose, odom = self._pose, self._odom
+            if pose is None or odom is None:
                 return
             if self._busy is not None and not self._busy.done():
                 self._skipped += 1
                 return
             stamp = self.get_clock().now()
-            self._busy = self._worker.submit(self._render_and_publish, pose, stamp)
+            self._busy = self._worker.submit(self._render_and_publish, pose, odom, stamp)
 
-    def _render_and_publish(self, pose: tuple[float, float, float], stamp: Time) -> None:
+    def _render_and_publish(self, pose: tuple[float, float, float], odom: tuple[float, float, float],
+                            stamp: Time) -> None:
         try:
             c2w = self.cam.c2w(*pose)
             rgb, depth, sem = self._renderer.render(c2w, self._intrinsics, self._supersample)
@@ -139,12 +152,8 @@ class SimCameraNode(Node):
             info.distortion_model = "plumb_bob"
             info.d = [0.0] * 5
             self._info_pub.publish(info)
-            pm = PoseStamped()
-            pm.header.stamp, pm.header.frame_id = header_stamp, self._map_frame
-            pm.pose.position.x, pm.pose.position.y, pm.pose.position.z = (float(a) for a in c2w[:3, 3])
-            q = quaternion_of(c2w[:3, :3])
-            pm.pose.orientation.x, pm.pose.orientation.y, pm.pose.orientation.z, pm.pose.orientation.w = q
-            self._pose_pub.publish(pm)
+            self._pose_pub.publish(pose_msg(c2w, header_stamp, self._map_frame))
+            self._odom_pub.publish(pose_msg(self.cam.c2w(*odom), header_stamp, self._map_frame))
             self.frames += 1
         except Exception as exc:  # noqa: BLE001 - a failed frame is logged, the camera goes on
             self.get_logger().error(f"frame failed: {type(exc).__name__}: {exc}")
@@ -152,6 +161,16 @@ class SimCameraNode(Node):
     def destroy_node(self) -> None:
         self._worker.shutdown(wait=True, cancel_futures=True)  # at most one render (bounded) is running
         super().destroy_node()
+
+
+def pose_msg(c2w: np.ndarray, stamp, frame_id: str) -> PoseStamped:
+    """[4, 4] pose -> PoseStamped."""
+    pm = PoseStamped()
+    pm.header.stamp, pm.header.frame_id = stamp, frame_id
+    pm.pose.position.x, pm.pose.position.y, pm.pose.position.z = (float(a) for a in c2w[:3, 3])
+    q = quaternion_of(c2w[:3, :3])
+    pm.pose.orientation.x, pm.pose.orientation.y, pm.pose.orientation.z, pm.pose.orientation.w = q
+    return pm
 
 
 def image_msg(array: np.ndarray, encoding: str) -> Image:

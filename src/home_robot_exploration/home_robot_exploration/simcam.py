@@ -87,3 +87,66 @@ def coverage(grid: OccupancyGrid, truth: np.ndarray | None = None) -> float:
     """Fraction (0..1) of the true free area that the grid has seen free."""
     truth = true_free_mask(grid) if truth is None else truth
     return float(((grid.states() == 0) & truth).sum()) / max(1, int(truth.sum()))
+
+
+@dataclass(frozen=True)
+class OdometryConfig:
+    """Errors of the simulated wheel odometry (what a real base's encoders do to its pose estimate).
+
+    Attributes:
+        trans_scale_error: systematic error of the distance travelled (0.02: 2 % too long, e.g. a
+            wheel radius off by 2 %).
+        rot_scale_error: systematic error of the angle turned (fraction).
+        noise: standard deviation of a random error per update, as a fraction of that update's
+            distance and angle.
+        seed: random seed of the noise.
+    """
+
+    trans_scale_error: float = 0.02
+    rot_scale_error: float = 0.02
+    noise: float = 0.01
+    seed: int = 0
+
+    def check(self) -> None:
+        for name in ("trans_scale_error", "rot_scale_error"):
+            if not -0.5 <= getattr(self, name) <= 0.5:
+                raise ConfigError(f"odometry {name} must be within [-0.5, 0.5], got {getattr(self, name)}")
+        if not 0.0 <= self.noise <= 0.5:
+            raise ConfigError(f"odometry noise must be within [0, 0.5], got {self.noise}")
+
+
+class WheelOdometry:
+    """Dead reckoning from successive true base poses with systematic and random errors.
+
+    The first pose is taken as it is (the robot knows where it starts: the map frame); each later
+    true motion (in the base frame) is scaled by the systematic errors, perturbed by the noise and
+    integrated, so the estimate drifts with the distance travelled and the angle turned, like real
+    wheel odometry.
+    """
+
+    def __init__(self, cfg: OdometryConfig | None = None) -> None:
+        self.cfg = cfg or OdometryConfig()
+        self.cfg.check()
+        self._rng = np.random.default_rng(self.cfg.seed)
+        self._true: tuple[float, float, float] | None = None
+        self.pose: tuple[float, float, float] | None = None  # the estimate (x, y, yaw)
+
+    def update(self, x: float, y: float, yaw: float) -> tuple[float, float, float]:
+        """Feed the next true base pose; returns the odometry estimate (x, y, yaw)."""
+        if self._true is None or self.pose is None:
+            self._true = self.pose = (x, y, yaw)
+            return self.pose
+        tx, ty, tyaw = self._true
+        c, s = math.cos(tyaw), math.sin(tyaw)
+        fwd = c * (x - tx) + s * (y - ty)  # the true motion in the previous base frame
+        side = -s * (x - tx) + c * (y - ty)
+        dyaw = math.atan2(math.sin(yaw - tyaw), math.cos(yaw - tyaw))
+        n = self.cfg.noise
+        kt = 1.0 + self.cfg.trans_scale_error + (n * float(self._rng.standard_normal()) if n else 0.0)
+        kr = 1.0 + self.cfg.rot_scale_error + (n * float(self._rng.standard_normal()) if n else 0.0)
+        ex, ey, eyaw = self.pose
+        c, s = math.cos(eyaw), math.sin(eyaw)
+        self.pose = (ex + kt * (c * fwd - s * side), ey + kt * (s * fwd + c * side),
+                     math.atan2(math.sin(eyaw + kr * dyaw), math.cos(eyaw + kr * dyaw)))
+        self._true = (x, y, yaw)
+        return self.pose

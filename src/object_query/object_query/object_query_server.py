@@ -142,6 +142,9 @@ class ObjectQueryServer(Node):
         self.declare_parameter("trim_fraction", defaults.trim_fraction, number)
         self.declare_parameter("query_position", defaults.query_position)
         self.declare_parameter("auto_reload", True)
+        self.declare_parameter("wait_for_map", False, ParameterDescriptor(
+            read_only=True, description="a missing map at start: serve no objects and load it when it appears "
+                                        "(a map SLAM is about to write); false = refuse to start"))
         self.declare_parameter("reload_poll_period", 1.0, ParameterDescriptor(read_only=True))
         self.declare_parameter("frame_id", "map")
         self.declare_parameter("memory_path", "", ParameterDescriptor(
@@ -184,7 +187,7 @@ class ObjectQueryServer(Node):
         db = self._snapshot()
         self.get_logger().info(f"ready: {len(db.names())} objects from {self._paths()[0]} ({', '.join(db.names())})"
                                f"{'; provisional class centroids, instances being built' if db.provisional else ''}")
-        if not staged.done:
+        if staged is not None and not staged.done:
             self._staged_started = True
             staged.start()  # after the services exist: answers never wait for the instances
 
@@ -240,11 +243,21 @@ class ObjectQueryServer(Node):
         db = ObjectDatabase.from_files(map_path, sem_path, self._config(), load_synonyms(syn_path))
         return db, signature
 
-    def _load_initial(self) -> StagedBuild:
+    def _load_initial(self) -> StagedBuild | None:
         """Read the map and serve its class centroids; the returned build (not started yet) makes
-        the full database in a background thread and swaps it in (:meth:`_on_initial_build`)."""
+        the full database in a background thread and swaps it in (:meth:`_on_initial_build`).
+        With ``wait_for_map`` and no map files yet: serve an empty database (None returned); the
+        poll loads the map when it appears."""
         map_path, sem_path, syn_path = self._paths()
         signature = self._signature_now()
+        if self.get_parameter("wait_for_map").value and not (os.path.isfile(map_path) and os.path.isfile(sem_path)):
+            db = ObjectDatabase({}, synonyms=load_synonyms(syn_path))
+            with self._lock:
+                self._db, self._signature, self._seen_signature = db, signature, signature
+            self._list_pub.publish(String(data=db.to_json()))
+            self._publish_status(db, "waiting", f"no map yet at {map_path}; it is loaded when it appears")
+            self.get_logger().info(f"no map yet at {map_path} (wait_for_map): serving no objects until it appears")
+            return None
         semantic_map = load_semantic_map(map_path, sem_path)
         staged = StagedBuild(semantic_map, self._config(), load_synonyms(syn_path), self._on_initial_build,
                              self._on_initial_build_failed)

@@ -272,7 +272,7 @@ class GaussianMap:
 
 
 def save_params(path: str, gmap: GaussianMap, k: Intrinsics, est_w2c: list[np.ndarray],
-                gt_w2c: list[np.ndarray | None], keyframes: list[int]) -> None:
+                gt_w2c: list[np.ndarray | None], keyframes: list[int], timestamps: list[float] | None = None) -> None:
     """Write ``params.npz`` with the full SplaTAM / SGS-SLAM key set.
 
     Args:
@@ -282,6 +282,8 @@ def save_params(path: str, gmap: GaussianMap, k: Intrinsics, est_w2c: list[np.nd
         est_w2c: estimated world-to-camera pose per frame (T of them).
         gt_w2c: ground-truth world-to-camera per frame or None (stored as NaN).
         keyframes: keyframe frame indices.
+        timestamps: each frame's time stamp (s), stored as ``timestamps`` [T] float64 (an extra key
+            SplaTAM's readers ignore), so a trajectory can be matched to another clock's poses.
     """
     from semantic_gs_slam.geometry import rotmat_to_quat
 
@@ -300,6 +302,8 @@ def save_params(path: str, gmap: GaussianMap, k: Intrinsics, est_w2c: list[np.nd
         "org_width": np.array(k.width), "org_height": np.array(k.height),
         "gt_w2c_all_frames": gt.astype(np.float32),
         "keyframe_time_indices": np.array(keyframes, np.int64)})
+    if timestamps is not None:
+        a["timestamps"] = np.asarray(timestamps, np.float64)
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     np.savez_compressed(path, **a)
 

@@ -219,13 +219,13 @@ class SLAM:
         elif self.cfg.tracking.use_gt_pose and gt is not None:
             c2w, source = gt, "ground_truth"
         else:
-            c2w, residual, inliers, failed, source = self._track(rgb_t, depth_t, self._odometry_guess(odom))
+            c2w, residual, inliers, failed, source = self._track(rgb_t, depth_t, self.odometry_guess(odom))
         self.poses.append(np.asarray(c2w, np.float64))
         self.gt_poses.append(gt)
         self.odom_poses.append(odom)
         self.timestamps.append(float(idx if timestamp is None else timestamp))
         t1 = time.perf_counter()
-        is_kf = idx % self.cfg.mapping.keyframe_every == 0 and not failed
+        is_kf = (idx % self.cfg.mapping.keyframe_every == 0 or self._new_view(self.poses[-1])) and not failed
         added = pruned = 0
         loss = float("nan")
         if is_kf:
@@ -241,7 +241,17 @@ class SLAM:
             self.checkpoint(self.cfg.checkpoint_dir)
         return self.poses[-1].copy()
 
-    def _odometry_guess(self, odom: np.ndarray | None) -> np.ndarray | None:
+    def _new_view(self, c2w: np.ndarray) -> bool:
+        """Whether ``c2w`` moved or turned past ``mapping.keyframe_motion_*`` from the last keyframe."""
+        mc = self.cfg.mapping
+        if not self.keyframes or (mc.keyframe_motion_m <= 0 and mc.keyframe_motion_deg <= 0):
+            return False
+        rel = np.linalg.inv(self.poses[self.keyframes[-1].index]) @ c2w  # numpy: no device round trip
+        angle = math.degrees(math.acos(min(1.0, max(-1.0, (float(np.trace(rel[:3, :3])) - 1) / 2))))
+        return bool((mc.keyframe_motion_m > 0 and np.linalg.norm(rel[:3, 3]) > mc.keyframe_motion_m) or
+                    (mc.keyframe_motion_deg > 0 and angle > mc.keyframe_motion_deg))
+
+    def odometry_guess(self, odom: np.ndarray | None) -> np.ndarray | None:
         """The last estimate moved by the odometry's relative motion since the last frame with odometry."""
         if odom is None:
             return None
@@ -264,8 +274,10 @@ class SLAM:
         valid = sil > tc.min_silhouette
         md = out.depth / sil.clamp_min(1e-6)
         model_depth = torch.where(valid & (md > 0), md, torch.zeros_like(out.depth))
+        icp_cfg = tc if odom_guess is None else replace(tc, prior_sigma_trans=tc.odometry_sigma_trans,
+                                                         prior_sigma_rot=tc.odometry_sigma_rot)
         try:
-            res = icp(model_depth, valid, g, depth, self.k, self.cfg.tracking, out.rgb, rgb)
+            res = icp(model_depth, valid, g, depth, self.k, icp_cfg, out.rgb, rgb)
         except TrackingError as exc:
             if odom_guess is not None and tc.odometry_fallback:
                 log.warning("frame %d: %s; keeping the odometry guess", len(self.poses), exc)
@@ -430,7 +442,7 @@ class SLAM:
         paths = {"params": os.path.join(out_dir, "params.npz"), "semantic": os.path.join(out_dir, "semantic.json")}
         w2c = [np.linalg.inv(p) for p in self.poses]
         gt = [None if g is None else np.linalg.inv(g) for g in self.gt_poses]
-        save_params(paths["params"], self.map, self.k, w2c, gt, [kf.index for kf in self.keyframes])
+        save_params(paths["params"], self.map, self.k, w2c, gt, [kf.index for kf in self.keyframes], self.timestamps)
         save_semantic_json(paths["semantic"], {i: c for i, c in self.classes.items() if i > 0})
         if ply:
             paths["ply"] = os.path.join(out_dir, "map.ply")

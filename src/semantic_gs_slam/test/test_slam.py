@@ -232,3 +232,23 @@ def test_odometry_poses_survive_checkpoint_and_bad_ones_are_refused(tiny_home, t
         with pytest.raises(FrameError, match=match):
             back.add_frame(f.rgb, f.depth, f.semantics, f.timestamp, odom_c2w=bad)
     assert len(back.poses) == 2
+
+
+def test_a_new_view_is_a_keyframe_whatever_its_index(tiny_home):
+    """Frames 2 degrees apart map every 4th; a frame 18 degrees from the last keyframe maps at once."""
+    ds = load_dataset(str(tiny_home))
+    eng = SLAM(config(ds), ds.classes)
+    for i in (0, 1, 9):
+        f = ds[i]
+        eng.add_frame(f.rgb, f.depth, f.semantics, f.timestamp, odom_c2w=f.gt_c2w)
+    assert [lg.keyframe for lg in eng.logs] == [True, False, True]
+    cfg = config(ds)
+    cfg.mapping.keyframe_motion_deg = cfg.mapping.keyframe_motion_m = 0.0  # off: by index only
+    off = SLAM(cfg, ds.classes)
+    for i in (0, 1, 9):
+        f = ds[i]
+        off.add_frame(f.rgb, f.depth, f.semantics, f.timestamp, odom_c2w=f.gt_c2w)
+    assert [lg.keyframe for lg in off.logs] == [True, False, False]
+    with pytest.raises(ConfigError, match="keyframe_motion"):
+        cfg.mapping.keyframe_motion_m = -1.0
+        cfg.check()

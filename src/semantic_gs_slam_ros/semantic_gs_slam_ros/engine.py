@@ -22,14 +22,18 @@ class EngineAdapter:
             labels.reserve_ids(slam.classes)
 
     def add_frame(self, rgb: np.ndarray, depth: np.ndarray, semantics: np.ndarray | None,
-                  timestamp: float) -> np.ndarray:
+                  timestamp: float, odom_c2w: np.ndarray | None = None) -> np.ndarray:
         if self.labels is not None:
             from semantic_gs_slam.labels import predict_pose
 
-            semantics = self.labels(rgb, depth, semantics, predict_pose(self.slam.poses, self.slam.initial_c2w))
+            guess = self.slam.odometry_guess(odom_c2w) if odom_c2w is not None and self.slam.poses else None
+            if guess is None:
+                guess = odom_c2w if odom_c2w is not None and not self.slam.poses else \
+                    predict_pose(self.slam.poses, self.slam.initial_c2w)
+            semantics = self.labels(rgb, depth, semantics, guess)
             if self.labels.mode != "dataset":
                 self.slam.classes.update(self.labels.classes)
-        return self.slam.add_frame(rgb, depth, semantics, timestamp)
+        return self.slam.add_frame(rgb, depth, semantics, timestamp, odom_c2w=odom_c2w)
 
     def save_map(self, out_dir: str) -> tuple[str, str]:
         paths = self.slam.save(out_dir, ply=False)

@@ -8,6 +8,9 @@ reads it and asks that server to reload. Cancel stops after the current frame an
 
 Topics (relative names, remap as usual): ``rgb`` (sensor_msgs/Image), ``depth`` (32FC1 metres or
 16UC1), ``semantic`` (optional, integer ids), ``camera_info`` (sensor_msgs/CameraInfo),
+``odometry_topic`` (parameter, "" = none: geometry_msgs/PoseStamped, the camera-to-map pose from the
+robot's odometry in OpenCV camera axes, stamped like the images: the engine's tracking prior and map
+frame, see :meth:`semantic_gs_slam.slam.SLAM.add_frame`),
 ``slam_start_signal`` (std_msgs/String JSON ``{"goal": id, "frames_done": N}``, out; N > 0 after
 a resume: the client skips the first N frames of its sequence), ``data_transfer_done``
 (std_msgs/String JSON ``{"goal": id, "frames_sent": N}``, in). Both are latched (transient local);
@@ -17,11 +20,14 @@ the goal id tells runs apart.
 from __future__ import annotations
 
 import json
+import math
 import os
 import threading
 import time
 
+import numpy as np
 import rclpy
+from geometry_msgs.msg import PoseStamped
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
@@ -73,6 +79,9 @@ class SlamServer(Node):
         p("image_qos_depth", 50)
         p("labels", "auto")  # auto | dataset | geometry | onnx | none (auto: the semantic stream if any, else geometry)
         p("onnx_model", "")  # ONNX COCO instance segmenter/detector for labels:=onnx
+        p("odometry_topic", "")  # PoseStamped camera-to-map odometry (OpenCV axes) as the tracking prior; "" = none
+        p("min_motion_m", 0.0)  # with odometry: skip frames that moved less than this and ...
+        p("min_motion_deg", 0.0)  # ... turned less than this since the last mapped one (0 = take every frame)
         self._busy = threading.Lock()  # held while a goal runs (one goal at a time)
         self._session_lock = threading.Lock()  # guards _session, _subs, _intrinsics
         self._session: StreamingSession | None = None
@@ -105,6 +114,19 @@ class SlamServer(Node):
         streams = ["rgb", "depth"] + (["semantic"] if self.get_parameter("use_semantic").value else [])
         self._subs = [self.create_subscription(Image, s, self._image_cb(s), qos, callback_group=self._images_group)
                       for s in streams]
+        odom = self.get_parameter("odometry_topic").value
+        if odom:
+            self._subs.append(self.create_subscription(PoseStamped, odom, self._on_odometry, qos,
+                                                       callback_group=self._images_group))
+
+    def _on_odometry(self, msg: PoseStamped) -> None:
+        session = self._session
+        if session is None:
+            return
+        try:
+            session.on_odometry(stamp_seconds(msg), pose_to_matrix(msg))
+        except (StreamingError, ValueError) as exc:
+            self.get_logger().warning(f"odometry pose dropped: {exc}", throttle_duration_sec=2.0)
 
     def _unsubscribe(self) -> None:
         for sub in self._subs:
@@ -190,7 +212,8 @@ class SlamServer(Node):
             map_dir=goal.map_dir or g("map_dir").value,
             width=g("width").value, height=g("height").value, depth_scale=g("depth_scale").value,
             sync_tolerance=g("sync_tolerance").value, sync_max_wait=g("sync_max_wait").value,
-            use_semantic=g("use_semantic").value,
+            use_semantic=g("use_semantic").value, use_odometry=bool(g("odometry_topic").value),
+            min_motion_m=float(g("min_motion_m").value), min_motion_deg=float(g("min_motion_deg").value),
             lag_high=g("lag_high").value, lag_low=g("lag_low").value,
             checkpoint_every=g("checkpoint_every").value, export_every=g("export_every").value,
             max_frames=goal.max_frames, clean_start=not goal.resume)
@@ -283,6 +306,28 @@ class SlamServer(Node):
         res = future.result()
         (self.get_logger().info if res.success else self.get_logger().warning)(
             f"object-query reload: {res.message}")
+
+
+def pose_to_matrix(msg: PoseStamped) -> list[list[float]]:
+    """PoseStamped → [4, 4] pose (nested lists).
+
+    Raises:
+        ValueError: a non-finite value or a quaternion far from unit length.
+    """
+    p, q = msg.pose.position, msg.pose.orientation
+    vals = [p.x, p.y, p.z, q.w, q.x, q.y, q.z]
+    if not all(math.isfinite(v) for v in vals):
+        raise ValueError("pose has NaN or inf")
+    n = math.sqrt(q.w * q.w + q.x * q.x + q.y * q.y + q.z * q.z)
+    if abs(n - 1.0) > 1e-2:
+        raise ValueError(f"orientation is not a unit quaternion (norm {n:.3f})")
+    w, x, y, z = q.w / n, q.x / n, q.y / n, q.z / n
+    m = np.eye(4)
+    m[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                 [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                 [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]]
+    m[:3, 3] = (p.x, p.y, p.z)
+    return m.tolist()
 
 
 def parse_classes(text: str) -> dict[int, str]:

@@ -31,13 +31,19 @@ from semantic_gs_slam_ros.lag import LagAction, LagController
 from semantic_gs_slam_ros.sync import FrameMatcher
 from semantic_gs_slam_ros.writer import AsyncFrameWriter, WrittenFrame, prepare_output_dir
 
+#: odometry poses kept for matching (the newest; at 30 Hz a minute of them)
+ODOMETRY_KEEP = 2000
+#: seconds a frame waits for an odometry pose published after its images
+ODOMETRY_WAIT = 0.5
+
 
 class SlamEngine(Protocol):
     """What the session needs of a SLAM engine (see :mod:`semantic_gs_slam_ros.engine`)."""
 
     def add_frame(self, rgb: np.ndarray, depth: np.ndarray, semantics: np.ndarray | None,
-                  timestamp: float) -> np.ndarray:
-        """rgb uint8 [H,W,3], depth float32 metres [H,W], semantics int [H,W] or None → c2w [4,4]."""
+                  timestamp: float, odom_c2w: np.ndarray | None = None) -> np.ndarray:
+        """rgb uint8 [H,W,3], depth float32 metres [H,W], semantics int [H,W] or None, the odometry's
+        camera-to-world pose [4,4] or None → c2w [4,4]."""
 
     def save_map(self, out_dir: str) -> tuple[str, str]:
         """Write ``params.npz`` + ``semantic.json`` into ``out_dir``; returns their paths."""
@@ -60,6 +66,11 @@ class SessionConfig:
         sync_tolerance: largest colour/depth stamp difference of a frame (s).
         sync_max_wait: seconds an image waits for its partner before it is dropped as unmatched.
         use_semantic: also wait for a semantic-id image per frame.
+        use_odometry: pair each frame with the odometry pose of the same stamp (within
+            ``sync_tolerance``; :meth:`StreamingSession.on_odometry`) and give it to the engine as
+            its prior; a frame without one is tracked without.
+        min_motion_m, min_motion_deg: with odometry, a frame whose odometry moved less than both
+            since the last frame given to SLAM is skipped (a robot standing still, 0 = take all).
         lag_high, lag_low: unsubscribe above / resubscribe below this backlog (frames).
         checkpoint_every: save an engine checkpoint every N processed frames (0 = never).
         export_every: write the map to ``map_dir`` every N processed frames (0 = only at the end).
@@ -76,6 +87,9 @@ class SessionConfig:
     sync_tolerance: float = 0.02
     sync_max_wait: float = 5.0
     use_semantic: bool = False
+    use_odometry: bool = False
+    min_motion_m: float = 0.0
+    min_motion_deg: float = 0.0
     lag_high: int = 300
     lag_low: int = 150
     checkpoint_every: int = 20
@@ -102,6 +116,9 @@ class Progress:
     pauses: int = 0
     gaussians: int = 0
     pose: list[list[float]] | None = None  # last c2w [4,4]
+    with_odometry: int = 0  # processed frames that had an odometry pose
+    after_done: int = 0  # images that arrived after data_transfer_done (ignored)
+    still: int = 0  # frames skipped because the odometry says the camera had not moved (min_motion_*)
 
 
 @dataclass
@@ -155,6 +172,8 @@ class StreamingSession:
         self._cancelled = False
         self._ready: collections.deque[WrittenFrame] = collections.deque()  # written, not yet processed
         self._wake = threading.Event()  # set when a frame is written, or on done/cancel
+        self._odometry: collections.OrderedDict[float, np.ndarray] = collections.OrderedDict()  # stamp -> c2w
+        self._last_odom: np.ndarray | None = None  # odometry of the last frame given to SLAM
         # after a resume the folder keeps the earlier frames: continue their numbering
         self._writer = AsyncFrameWriter(config.work_dir, self._on_written,
                                         start_index=0 if config.clean_start else _frames_on_record(config.work_dir))
@@ -168,6 +187,9 @@ class StreamingSession:
             self._progress.received[stream] = self._progress.received.get(stream, 0) + 1
             if self._cancelled:
                 return
+            if self._done_sending:  # a live camera goes on after "done": its later images are not this run's
+                self._progress.after_done += 1
+                return
             frames = self._matcher.push(stream, stamp, image)
             self._progress.matched = self._matcher.stats.matched
             self._progress.dropped = dict(self._matcher.stats.dropped)
@@ -175,6 +197,27 @@ class StreamingSession:
             if not self._writer.submit(frame):
                 with self._lock:
                     self._progress.refused += 1
+
+    def on_odometry(self, stamp: float, c2w: np.ndarray) -> None:
+        """The odometry's camera-to-world pose [4, 4] at ``stamp`` (seconds). Never blocks.
+
+        Raises:
+            StreamingError: not a finite [4, 4] matrix.
+        """
+        m = np.asarray(c2w, dtype=np.float64)
+        if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+            raise StreamingError(f"odometry pose must be a finite [4, 4] matrix, got shape {list(m.shape)}")
+        with self._lock:
+            self._odometry[stamp] = m
+            while len(self._odometry) > ODOMETRY_KEEP:
+                self._odometry.popitem(last=False)
+
+    def _odometry_at(self, stamp: float) -> np.ndarray | None:
+        with self._lock:
+            best = min(self._odometry, key=lambda t: abs(t - stamp), default=None)
+            if best is None or abs(best - stamp) > self.cfg.sync_tolerance:
+                return None
+            return self._odometry[best]
 
     def _prepare(self, stream: str, image: np.ndarray) -> np.ndarray:
         w, h = self.cfg.width, self.cfg.height
@@ -275,8 +318,16 @@ class StreamingSession:
                     on_progress(self.progress())
                 continue
             depth_m = f.depth.astype(np.float32) / np.float32(self.cfg.depth_scale)
+            odom = self._odometry_at(f.stamp) if self.cfg.use_odometry else None
+            if odom is None and self.cfg.use_odometry:
+                odom = self._wait_odometry(f.stamp)
+            if odom is not None and self._still(odom):
+                with self._lock:
+                    self._progress.still += 1
+                continue
             try:
-                c2w = self.engine.add_frame(f.rgb, depth_m, f.semantic, f.stamp)
+                c2w = self.engine.add_frame(f.rgb, depth_m, f.semantic, f.stamp, odom) if odom is not None \
+                    else self.engine.add_frame(f.rgb, depth_m, f.semantic, f.stamp)
             except Exception as exc:  # a frame the engine refuses (e.g. no valid depth) is skipped
                 self._log(f"frame {frame.index} skipped by SLAM: {exc}")
                 with self._lock:
@@ -286,6 +337,7 @@ class StreamingSession:
                 self._progress.processed += 1
                 self._progress.gaussians = int(self.engine.num_gaussians)
                 self._progress.pose = np.asarray(c2w, dtype=float).tolist()
+                self._progress.with_odometry += odom is not None
                 n = self._progress.processed
             try:
                 if self.cfg.checkpoint_every and n % self.cfg.checkpoint_every == 0:
@@ -306,6 +358,9 @@ class StreamingSession:
         dropped = {k: v for k, v in p.dropped.items() if v}
         if dropped or p.refused:
             self._log(f"unmatched images dropped: {dropped or 0}; frames refused (writer or SLAM): {p.refused}")
+        if p.still or p.after_done:
+            self._log(f"frames skipped while the camera stood still: {p.still}; images after "
+                      f"data_transfer_done ignored: {p.after_done}")
         if n == 0:
             return SessionResult(False, "", "", 0, message or "no frame was processed")
         if self.engine is None:
@@ -320,6 +375,29 @@ class StreamingSession:
         ok = self._writer.error is None
         summary = f"{n} frames processed ({rate:.2f} frames/s), {self.progress().gaussians} Gaussians"
         return SessionResult(ok, map_path, sem_path, n, f"{message + ': ' if message else ''}{summary}")
+
+    def _still(self, odom: np.ndarray) -> bool:
+        """Whether the camera moved less than ``min_motion_*`` since the last frame given to SLAM (which
+        ``odom`` then becomes, when it did move)."""
+        last = self._last_odom
+        if last is not None and (self.cfg.min_motion_m > 0 or self.cfg.min_motion_deg > 0):
+            rel = np.linalg.inv(last) @ odom
+            angle = np.degrees(np.arccos(np.clip((np.trace(rel[:3, :3]) - 1) / 2, -1.0, 1.0)))
+            if np.linalg.norm(rel[:3, 3]) < self.cfg.min_motion_m and angle < self.cfg.min_motion_deg:
+                return True
+        self._last_odom = odom
+        return False
+
+    def _wait_odometry(self, stamp: float) -> np.ndarray | None:
+        """The frame's odometry pose when it is late (published after the images), at most
+        ``ODOMETRY_WAIT`` seconds; None if it never comes (the frame is tracked without it)."""
+        deadline = time.monotonic() + ODOMETRY_WAIT
+        while time.monotonic() < deadline:
+            time.sleep(0.02)
+            odom = self._odometry_at(stamp)
+            if odom is not None:
+                return odom
+        return None
 
     def _checkpoint(self, ckpt_dir: str, frame: WrittenFrame) -> None:
         tmp = ckpt_dir + ".incoming"

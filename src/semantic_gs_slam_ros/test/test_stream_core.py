@@ -231,3 +231,81 @@ def test_session_drops_malformed_images_and_keeps_running(tmp_path):
     session.data_transfer_done()
     result = session.run()
     assert result.success and result.frames_processed == 1 and "recorded 1 frames" in result.message
+
+
+class RecordingEngine:
+    """A SlamEngine that records what the session gives it (the session is what is tested here)."""
+
+    def __init__(self) -> None:
+        self.frames: list[tuple[float, np.ndarray | None]] = []
+
+    def add_frame(self, rgb, depth, semantics, timestamp, odom_c2w=None):
+        self.frames.append((timestamp, odom_c2w))
+        return np.eye(4) if odom_c2w is None else odom_c2w
+
+    def save_map(self, out_dir):
+        os.makedirs(out_dir, exist_ok=True)
+        for name in ("params.npz", "semantic.json"):
+            with open(os.path.join(out_dir, name), "w") as fh:
+                fh.write("{}")
+        return os.path.join(out_dir, "params.npz"), os.path.join(out_dir, "semantic.json")
+
+    def save_checkpoint(self, ckpt_dir):
+        pass
+
+    num_gaussians = 0
+
+
+def pose_at(x: float, yaw_deg: float = 0.0) -> np.ndarray:
+    a = np.radians(yaw_deg)
+    m = np.eye(4)
+    m[:3, :3] = [[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]
+    m[0, 3] = x
+    return m
+
+
+def send(session, stamp: float) -> None:
+    session.on_image("depth", stamp, np.ones((4, 4), np.float32))
+    session.on_image("rgb", stamp, np.zeros((4, 4, 3), np.uint8))
+
+
+def test_session_pairs_odometry_by_stamp_skips_still_frames_and_ignores_images_after_done(tmp_path):
+    from semantic_gs_slam_ros.errors import StreamingError
+    from semantic_gs_slam_ros.session import SessionConfig, StreamingSession
+
+    cfg = SessionConfig(work_dir=str(tmp_path), width=0, height=0, checkpoint_every=0, use_odometry=True,
+                        min_motion_m=0.05, min_motion_deg=5.0, sync_tolerance=0.02)
+    engine = RecordingEngine()
+    session = StreamingSession(cfg, engine)
+    poses = {1.0: pose_at(0.0), 2.0: pose_at(0.01), 3.0: pose_at(0.2), 4.0: pose_at(0.21, 10.0)}
+    for t, p in poses.items():
+        session.on_odometry(t + 0.005, p)  # within sync_tolerance of the frame
+    with pytest.raises(StreamingError, match="finite"):
+        session.on_odometry(9.0, np.full((4, 4), np.nan))
+    for t in (1.0, 2.0, 3.0, 4.0):
+        send(session, t)
+    session.data_transfer_done()
+    send(session, 5.0)  # a live camera goes on: not this run's
+    result = session.run()
+    assert result.success
+    stamps = [t for t, _ in engine.frames]
+    assert stamps == [1.0, 3.0, 4.0]  # 2.0 moved 1 cm and did not turn: skipped
+    for t, odom in engine.frames:
+        np.testing.assert_array_equal(odom, poses[t])
+    p = session.progress()
+    assert p.still == 1 and p.after_done == 2 and p.with_odometry == 3
+
+
+def test_session_tracks_a_frame_without_odometry_when_none_is_near_its_stamp(tmp_path, monkeypatch):
+    import semantic_gs_slam_ros.session as session_mod
+    from semantic_gs_slam_ros.session import SessionConfig, StreamingSession
+
+    monkeypatch.setattr(session_mod, "ODOMETRY_WAIT", 0.05)
+    engine = RecordingEngine()
+    session = StreamingSession(SessionConfig(work_dir=str(tmp_path), width=0, height=0, checkpoint_every=0,
+                                             use_odometry=True), engine)
+    session.on_odometry(1.5, pose_at(1.0))  # 0.5 s away from the frame: not its pose
+    send(session, 1.0)
+    session.data_transfer_done()
+    assert session.run().success
+    assert len(engine.frames) == 1 and engine.frames[0][1] is None

@@ -1,0 +1,109 @@
+#!/usr/bin/env python3
+"""Replay a mapping-while-exploring run offline: SLAM on its frames, scored frame by frame.
+
+``make demo-explore`` (``demo_explore --map-dir DIR``) leaves in DIR the SLAM server's work folder
+(``work/``: the frames it received, ``completed.jsonl``) and ``camera_poses.npz`` (the camera's true
+and wheel-odometry poses by stamp). This runs the engine over those frames with the odometry as its
+prior, as the server does, and prints each frame's pose source and error against the truth, the
+ATE of SLAM and of the odometry alone, and the time per frame. ``--config`` takes a JSON of
+SlamConfig sections to try other settings on the same frames::
+
+    source scripts/env.sh && python bench/slam_explore_replay.py /tmp/explore_map
+    python bench/slam_explore_replay.py /tmp/explore_map --config '{"tracking": {"prior_sigma_rot": 0.2}}'
+
+Frames are the work folder's JPEG colour and PNG depth, so figures differ slightly from the live run.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+
+import numpy as np
+
+
+def load(run_dir: str) -> tuple[list[dict], dict[int, np.ndarray], dict[int, np.ndarray]]:
+    with open(os.path.join(run_dir, "work", "completed.jsonl"), encoding="utf-8") as fh:
+        frames = [json.loads(line) for line in fh if line.strip()]
+    with np.load(os.path.join(run_dir, "camera_poses.npz")) as z:
+        stamps, truth, odom = z["stamps_ns"], z["truth"], z["odometry"]
+    return frames, dict(zip(stamps.tolist(), truth, strict=True)), dict(zip(stamps.tolist(), odom, strict=True))
+
+
+def nearest(poses: dict[int, np.ndarray], stamp: float, tol_ns: int = 5_000_000) -> np.ndarray | None:
+    ns = int(round(stamp * 1e9))
+    key = min(poses, key=lambda k: abs(k - ns), default=None)
+    if key is None or abs(key - ns) > tol_ns or np.isnan(poses[key]).any():
+        return None
+    return poses[key]
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("run_dir", help="the --map-dir of a demo_explore run")
+    ap.add_argument("--config", default="", help="JSON of SlamConfig sections, e.g. '{\"tracking\": {...}}'")
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--min-motion", default="0.05,5", help="metres,degrees: skip still frames like the server")
+    args = ap.parse_args(argv)
+
+    from PIL import Image
+
+    from semantic_gs_slam.config import Intrinsics, SlamConfig
+    from semantic_gs_slam.slam import SLAM
+    from semantic_gs_slam.synthetic import CLASSES
+
+    frames, truth, odom = load(args.run_dir)
+    with np.load(os.path.join(args.run_dir, "params.npz")) as z:
+        k = z["intrinsics"]
+        w, h = int(z["org_width"]), int(z["org_height"])
+    cfg = SlamConfig(intrinsics=Intrinsics(w, h, float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2])),
+                     threads=args.threads, device="cpu")
+    if args.config:
+        d = cfg.to_dict()
+        for sec, vals in json.loads(args.config).items():
+            d[sec] = {**d[sec], **vals} if isinstance(vals, dict) else vals
+        cfg = SlamConfig.from_dict(d)
+    eng = SLAM(cfg, {i: n for i, n, _ in CLASSES if i > 0})
+    min_m, min_deg = (float(v) for v in args.min_motion.split(","))
+    last = None
+    est_err, odo_err, times = [], [], []
+    print(" frame  source     SLAM err   odom err   ms", file=sys.stderr)
+    for f in frames:
+        t, o = nearest(truth, f["stamp"]), nearest(odom, f["stamp"])
+        if t is None or o is None:
+            continue
+        if last is not None:
+            rel = np.linalg.inv(last) @ o
+            ang = np.degrees(np.arccos(np.clip((np.trace(rel[:3, :3]) - 1) / 2, -1, 1)))
+            if np.linalg.norm(rel[:3, 3]) < min_m and ang < min_deg:
+                continue
+        last = o
+        rgb = np.asarray(Image.open(os.path.join(args.run_dir, "work", f["rgb"])).convert("RGB"))
+        depth = np.asarray(Image.open(os.path.join(args.run_dir, "work", f["depth"]))).astype(np.float32) / 1000.0
+        sem_p = os.path.join(args.run_dir, "work", f["rgb"].replace("frames/frame", "semantics/semantic")
+                             .replace(".jpg", ".png"))
+        sem = np.asarray(Image.open(sem_p)).astype(np.int64) if os.path.isfile(sem_p) else None
+        t0 = time.perf_counter()
+        est = eng.add_frame(rgb, depth, sem, f["stamp"], odom_c2w=o)
+        times.append(time.perf_counter() - t0)
+        est_err.append(float(np.linalg.norm(est[:3, 3] - t[:3, 3])))
+        odo_err.append(float(np.linalg.norm(o[:3, 3] - t[:3, 3])))
+        lg = eng.logs[-1]
+        print(f"{lg.index:6d}  {lg.pose_source:9s} {est_err[-1] * 100:7.2f} cm {odo_err[-1] * 100:7.2f} cm "
+              f"{times[-1] * 1000:6.0f}", file=sys.stderr)
+
+    def rmse(e: list[float]) -> float:
+        return float(np.sqrt(np.mean(np.square(e)))) * 100 if e else float("nan")
+
+    sources = [lg.pose_source for lg in eng.logs]
+    print(f"frames {len(est_err)}; SLAM ATE {rmse(est_err):.2f} cm (max {max(est_err, default=0) * 100:.2f}); "
+          f"odometry alone {rmse(odo_err):.2f} cm (max {max(odo_err, default=0) * 100:.2f}); odometry-only poses "
+          f"{sources.count('odometry')}; {np.mean(times) * 1000:.0f} ms per frame, {len(eng.map)} Gaussians")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
