@@ -321,8 +321,8 @@ def main(argv: list[str] | None = None) -> int:
                 save_camera_poses(os.path.join(map_dir, "camera_poses.npz"), truth, odometry)
                 if m.get("map_path"):
                     print("\n".join(trajectory_errors(m["map_path"], truth, odometry)), flush=True)
-            print("  objects when exploration ended (" + ("the map the robot built while exploring" if map_dir else
-                                                          "the bundled map") + " vs the simulator's truth):", flush=True)
+            source = "the map the robot built while exploring" if map_dir else "the bundled map"
+            print(f"  objects when exploration ended ({source} vs the simulator's truth):", flush=True)
             print("\n".join(object_errors(objects)), flush=True)
             final = op.finals.get(COMMAND)
             user = locations["user"].drop_point()
