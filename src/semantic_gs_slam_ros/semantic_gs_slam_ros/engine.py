@@ -33,6 +33,8 @@ class EngineAdapter:
             semantics = self.labels(rgb, depth, semantics, guess)
             if self.labels.mode != "dataset":
                 self.slam.classes.update(self.labels.classes)
+        if odom_c2w is None:
+            return self.slam.add_frame(rgb, depth, semantics, timestamp)
         return self.slam.add_frame(rgb, depth, semantics, timestamp, odom_c2w=odom_c2w)
 
     def save_map(self, out_dir: str) -> tuple[str, str]:
