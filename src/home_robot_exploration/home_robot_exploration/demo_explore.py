@@ -254,6 +254,8 @@ def main(argv: list[str] | None = None) -> int:
             if os.path.exists(os.path.join(map_dir, name)):
                 os.remove(os.path.join(map_dir, name))
         specs += load_nodeset("slam_sim_camera")
+        if opts.view:  # the view shows the map SLAM is building (re-read each time it is written)
+            overrides += [f"live_view.map_path={os.path.join(map_dir, 'params.npz')}", "live_view.map_check_s=2.0"]
         classes = json.dumps({str(i): name for i, name, _ in CLASSES if i > 0})
         # slower turns in 45 degree steps: consecutive frames overlap, so tracking has something to hold on to
         overrides += ["mock_nav_server.turn_rate=0.6", "explorer.look_steps=8",
