@@ -80,6 +80,8 @@ class SlamServer(Node):
         p("labels", "auto")  # auto | dataset | geometry | onnx | none (auto: the semantic stream if any, else geometry)
         p("onnx_model", "")  # ONNX COCO instance segmenter/detector for labels:=onnx
         p("odometry_topic", "")  # PoseStamped camera-to-map odometry (OpenCV axes) as the tracking prior; "" = none
+        p("live_view_port", 0)  # > 0: serve the map as it grows and the camera's path in a browser (viser)
+        p("live_view_host", "127.0.0.1")  # loopback by default
         p("min_motion_m", 0.0)  # with odometry: skip frames that moved less than this and ...
         p("min_motion_deg", 0.0)  # ... turned less than this since the last mapped one (0 = take every frame)
         self._busy = threading.Lock()  # held while a goal runs (one goal at a time)
@@ -104,6 +106,13 @@ class SlamServer(Node):
                                     goal_callback=self._on_goal, cancel_callback=self._on_cancel,
                                     callback_group=self._action_group)
         self.create_timer(0.2, self._tick, callback_group=self._timer_group)
+        self.viewer = None
+        port = int(self.get_parameter("live_view_port").value)
+        if port > 0:
+            from semantic_gs_slam.viewer import MapViewer
+
+            self.viewer = MapViewer(str(self.get_parameter("live_view_host").value), port)  # ConfigError/OSError: main
+            self.get_logger().info(f"live view at {self.viewer.url} (the map as it is written, the camera's path)")
         self.get_logger().info("ready: waiting for a run_gs_slam goal")
 
     # ------------------------------------------------------------------ images
@@ -268,6 +277,8 @@ class SlamServer(Node):
 
         def feedback(p: Progress) -> None:
             goal_handle.publish_feedback(to_feedback(p))
+            if self.viewer is not None and p.pose is not None:
+                self.viewer.show_camera(np.asarray(p.pose))
 
         out = session.run(on_progress=feedback)
         result.success, result.map_path, result.semantic_path = out.success, out.map_path, out.semantic_path
@@ -291,7 +302,17 @@ class SlamServer(Node):
         return None
 
     def _request_reload(self, map_path: str, semantic_path: str) -> None:
-        """Ask the object-query server to load the map just written (SLAM thread; bounded wait)."""
+        """Show the map just written in the live view, and ask the object-query server to load it
+        (SLAM thread; bounded wait)."""
+        if self.viewer is not None:
+            from semantic_gs_slam.errors import SlamError
+
+            try:
+                with np.load(map_path) as z:
+                    n = self.viewer.show_map({k: z[k] for k in z.files})
+                self.get_logger().info(f"live view: {n} Gaussians")
+            except (OSError, ValueError, SlamError) as exc:
+                self.get_logger().warning(f"live view not updated: {exc}")
         if self._reload is None:
             return
         if not self._reload.wait_for_service(timeout_sec=2.0):
@@ -365,7 +386,12 @@ def to_feedback(p: Progress) -> RunSlam.Feedback:
 
 def main(args: list[str] | None = None) -> int:
     rclpy.init(args=args)
-    node = SlamServer()
+    try:
+        node = SlamServer()
+    except (OSError, ValueError) as exc:  # e.g. the live view's port is taken, a bad parameter
+        rclpy.logging.get_logger("run_gs_slam_server").fatal(f"cannot start: {exc}")
+        rclpy.try_shutdown()
+        return 2
     executor = MultiThreadedExecutor(num_threads=4)
     executor.add_node(node)
     try:
@@ -377,6 +403,8 @@ def main(args: list[str] | None = None) -> int:
         if session is not None:
             session.cancel()
         executor.shutdown(timeout_sec=5.0)
+        if node.viewer is not None:
+            node.viewer.close()
         node.destroy_node()
         rclpy.try_shutdown()
     return 0

@@ -262,3 +262,25 @@ def test_client_streams_a_label_less_7scenes_sequence_server_labels_it(launch_no
     assert {"floor", "object"} <= names, names
     saved = np.load(work / "map" / "params.npz")
     assert set(np.unique(saved["semantic_ids"]).tolist()) & {1, 2, 3, 5}
+
+
+def test_live_view_flag_serves_the_map_as_it_is_written(launch_nodes, ros_domain, sequence, tmp_path):
+    """``live_view_port``: the server serves a viser page; each written map is pushed to it."""
+    import re
+    import socket
+    import urllib.request
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    work = tmp_path / "run"
+    sup = launch_nodes(nodes=[server_spec(work, sequence, live_view_port=port, export_every=4)])
+    log = sup.get("run_gs_slam_server").output
+    assert f"live view at http://127.0.0.1:{port}" in log()
+    with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=10) as r:
+        assert r.status == 200 and b"<html" in r.read(4096).lower()
+    client = Client(ros_domain, sequence / "home")
+    assert client.wait() == 0, client.text() + log()
+    assert wait_for(lambda: len(re.findall(r"live view: (\d+) Gaussians", log())) >= 2, 30), log()
+    counts = [int(n) for n in re.findall(r"live view: (\d+) Gaussians", log())]
+    assert counts[0] > 0 and counts[-1] >= counts[0]  # at frame 4, then the final map
