@@ -116,6 +116,10 @@ class MappingConfig:
     init_logit_opacity: float = 3.0
     rare_label_fraction: float = 0.02  # labels on < 2 % of a frame's valid pixels (small objects) are seeded
     # at every pixel (one-pixel radius) instead of every pixel_stride-th
+    label_votes: bool = True  # every tracked frame's labels vote for the Gaussians it sees (depth-tested centres);
+    # at each keyframe the class columns of Gaussians with >= min_votes votes are set to their vote shares, so the
+    # map follows the majority over views, not the last keyframe (flickering labels, bench/slam_label_noise.py)
+    min_votes: float = 2.0
     semantic_densify: bool = True  # keyframes also seed small-object pixels that the map renders with another label
     lr_means: float = 1e-4
     lr_rgb: float = 2.5e-3

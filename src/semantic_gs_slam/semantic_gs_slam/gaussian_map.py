@@ -4,7 +4,8 @@ Parameters (torch leaf tensors in :attr:`GaussianMap.params`): ``means3D`` [N, 3
 [N, 3], ``unnorm_rotations`` [N, 4] (wxyz), ``logit_opacities`` [N, 1], ``log_scales`` [N, 1]
 (isotropic), ``semantic_features`` [N, C] (one column per class in :attr:`GaussianMap.class_slots`,
 seeded one-hot, optimised through rendering; a Gaussian's class is its largest column).
-Non-optimised: ``semantic_ids`` [N] (seed label), ``timestep`` [N] (frame that created the Gaussian)
+Non-optimised: ``semantic_ids`` [N] (seed label), ``votes`` [N, C] (label votes over views, one
+column per class slot: :meth:`GaussianMap.vote`), ``timestep`` [N] (frame that created the Gaussian)
 and ``normals`` [N, 3] (world-frame surface normal measured at seeding, zero when unknown; used by
 tracking to render unbiased depth, see :func:`semantic_gs_slam.tracking.plane_depth_features`).
 
@@ -75,6 +76,7 @@ class GaussianMap:
         self.semantic_ids = torch.zeros(0, dtype=torch.int64, device=dev)  # [N] seed label
         self.timestep = torch.zeros(0, dtype=torch.int64, device=dev)  # [N] creating frame
         self.normals = torch.zeros(0, 3, device=dev)  # [N, 3] world unit normals (zero: unknown)
+        self.votes = torch.zeros(0, 0, device=dev)  # [N, C] label votes over views (class_slots order)
         self.has_normals = False  # some row of normals was ever non-zero (kept on the host: no sync per render)
         for v in self.params.values():
             v.requires_grad_(True)
@@ -100,6 +102,7 @@ class GaussianMap:
         f = p["semantic_features"].detach()
         p["semantic_features"] = torch.cat([f, torch.zeros(f.shape[0], len(new), device=f.device)], 1)
         self._set(p, self.semantic_ids, self.timestep)
+        self.votes = torch.cat([self.votes, torch.zeros(self.votes.shape[0], len(new), device=self.votes.device)], 1)
 
     def one_hot(self, ids: Tensor) -> Tensor:
         """[..., C] one-hot rows of class ids in :attr:`class_slots` order (0 / unknown ids: all zero)."""
@@ -160,6 +163,7 @@ class GaussianMap:
                   torch.cat([self.timestep, torch.full((m,), frame, dtype=torch.int64, device=dev)]))
         nrm = torch.zeros(m, 3, device=dev) if normals is None else normals.float().to(dev)
         self.normals = torch.cat([self.normals, nrm])
+        self.votes = torch.cat([self.votes, sem_col])  # the seeding view's label is the first vote
         if normals is not None and not self.has_normals:
             self.has_normals = bool(nrm.abs().sum() > 0)
         return m
@@ -204,7 +208,48 @@ class GaussianMap:
         if removed:
             self._set({k: v[keep] for k, v in self.params.items()}, self.semantic_ids[keep], self.timestep[keep])
             self.normals = self.normals[keep]
+            self.votes = self.votes[keep]
         return removed
+
+    def vote(self, sem: Tensor, depth: Tensor, w2c: Tensor, k: Intrinsics, tol_m: float = 0.03,
+             tol_rel: float = 0.03) -> None:
+        """Each Gaussian whose centre this frame sees (in the image, in front of the camera, within
+        ``max(tol_m, tol_rel * depth)`` of the measured depth there: not occluded) votes for the label
+        of its pixel; unlabelled pixels (0) and classes without a slot do not vote.
+
+        Args:
+            sem: [H, W] class ids; depth: [H, W] metres (0: missing); w2c: [4, 4] world-to-camera.
+        """
+        if len(self) == 0 or not self.class_slots:
+            return
+        with torch.no_grad():
+            pc = self.params["means3D"].detach() @ w2c[:3, :3].T.float() + w2c[:3, 3].float()  # [N, 3] camera
+            z = pc[:, 2]
+            zs = z.clamp_min(1e-6)
+            u = torch.round(k.fx * pc[:, 0] / zs + k.cx).long()
+            v = torch.round(k.fy * pc[:, 1] / zs + k.cy).long()
+            inside = (z > 1e-3) & (u >= 0) & (u < k.width) & (v >= 0) & (v < k.height)
+            uc, vc = u.clamp(0, k.width - 1), v.clamp(0, k.height - 1)
+            d = depth[vc, uc]
+            seen = inside & (d > 0) & ((z - d).abs() <= torch.clamp(tol_rel * d, min=tol_m))
+            label = torch.where(seen, sem[vc, uc].long(), torch.zeros_like(u))
+            slots = torch.tensor(self.class_slots, dtype=torch.int64, device=label.device)
+            lut = torch.full((int(max(self.class_slots)) + 1,), -1, dtype=torch.int64, device=label.device)
+            lut[slots] = torch.arange(len(slots), device=label.device)
+            slot = torch.where(label < len(lut), lut[label.clamp(0, len(lut) - 1)], -1)  # -1: no vote
+            onehot = torch.nn.functional.one_hot(slot.clamp_min(0), len(slots)).float()  # fixed shape: no sync
+            self.votes = self.votes + onehot * (slot >= 0).float()[:, None]
+
+    def voted_features(self, min_votes: float = 2.0) -> None:
+        """Set the class columns of Gaussians with at least ``min_votes`` votes to their vote shares, so
+        what the map renders (and :meth:`class_ids`) follows the majority over views, not the last
+        keyframe's label (the semantic loss then refines them)."""
+        if len(self) == 0 or not self.class_slots:
+            return
+        with torch.no_grad():
+            total = self.votes.sum(1, keepdim=True)
+            f = self.params["semantic_features"]
+            f.copy_(torch.where(total >= min_votes, self.votes / total.clamp_min(1e-9), f))
 
     def class_ids(self) -> np.ndarray:
         """Semantic id of each Gaussian [N] = its largest optimised class column (0: none)."""
@@ -223,6 +268,7 @@ class GaussianMap:
         out["semantic_ids"] = ids.astype(np.uint8) if (ids.size == 0 or ids.max() < 256) else ids.astype(np.int64)
         out["timestep"] = self.timestep.cpu().numpy().astype(np.float32)
         out["normals"] = self.normals.cpu().numpy().astype(np.float32)
+        out["semantic_votes"] = self.votes.cpu().numpy().astype(np.float32)
         return out
 
     @staticmethod
@@ -268,6 +314,11 @@ class GaussianMap:
             raise MapFormatError(f"'normals' is {list(nrm.shape)}, expected [{n}, 3]")
         m.normals = torch.as_tensor(nrm, device=m.device)
         m.has_normals = bool(np.abs(nrm).sum() > 0)
+        votes = np.asarray(a["semantic_votes"], np.float32) if "semantic_votes" in a and "semantic_feature_ids" in a \
+            else np.zeros((n, len(m.class_slots)), np.float32)
+        if votes.shape != (n, len(m.class_slots)):
+            raise MapFormatError(f"'semantic_votes' is {list(votes.shape)}, expected [{n}, {len(m.class_slots)}]")
+        m.votes = torch.as_tensor(votes, device=m.device)
         return m
 
 

@@ -225,6 +225,9 @@ class SLAM:
         self.odom_poses.append(odom)
         self.timestamps.append(float(idx if timestamp is None else timestamp))
         t1 = time.perf_counter()
+        if sem_t is not None and self.cfg.mapping.label_votes and not failed:
+            w2c = torch.as_tensor(np.linalg.inv(self.poses[-1]), dtype=torch.float32, device=self.device)
+            self.map.vote(sem_t, depth_t, w2c, self.k)
         is_kf = (idx % self.cfg.mapping.keyframe_every == 0 or self._new_view(self.poses[-1])) and not failed
         added = pruned = 0
         loss = float("nan")
@@ -382,6 +385,8 @@ class SLAM:
         kf = Keyframe(idx, torch.as_tensor(c2w, device=self.device), rgb, depth, sem)
         self.keyframes.append(kf)
         window = self._window(kf)
+        if mc.label_votes:
+            self.map.voted_features(mc.min_votes)
         iters = mc.first_frame_iters if idx == 0 else mc.iters
         loss_v = self.optimise(window, iters)
         pruned = 0

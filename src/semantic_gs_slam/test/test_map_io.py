@@ -152,3 +152,32 @@ def test_sgs_slam_file_gets_one_hot_features_from_its_ids():
     bad = dict(a, semantic_features=np.zeros((n, 5)), semantic_feature_ids=np.array([3, 7]))
     with pytest.raises(MapFormatError, match="semantic_features"):
         GaussianMap.from_arrays(bad)
+
+
+def test_label_votes_follow_the_majority_over_views_and_skip_occluded_gaussians():
+    import torch
+
+    from semantic_gs_slam.config import Intrinsics
+    from semantic_gs_slam.gaussian_map import GaussianMap
+
+    k = Intrinsics(8, 8, 8.0, 8.0, 3.5, 3.5)
+    m = GaussianMap()
+    means = torch.tensor([[0.0, 0.0, 2.0], [0.0, 0.0, 3.0], [0.25, 0.0, 2.0]])  # the second one is behind
+    m.add(means, torch.full((3, 3), 0.5), torch.tensor([5, 5, 7]), torch.full((3,), 0.01), frame=0)
+    w2c = torch.eye(4)
+    depth = torch.full((8, 8), 2.0)
+    for label in (6, 6, 6, 0):  # three views say 6, one has no label (no vote)
+        sem = torch.full((8, 8), label)
+        m.vote(sem, depth, w2c, k)
+    assert m.class_slots == [5, 7]  # 6 has no slot yet: its votes are not counted ...
+    m.ensure_classes(torch.tensor([6]))
+    for _ in range(3):
+        m.vote(torch.full((8, 8), 6), depth, w2c, k)
+    votes = dict(zip(m.class_slots, m.votes.T.tolist(), strict=True))
+    assert votes[6] == [3.0, 0.0, 3.0]  # ... now they are; the occluded Gaussian (z = 3 m, depth 2 m) never votes
+    assert votes[5] == [1.0, 1.0, 0.0] and votes[7] == [0.0, 0.0, 1.0]  # the seeding labels
+    m.voted_features(min_votes=2.0)
+    assert m.class_ids().tolist() == [6, 5, 6]  # the majority wins where there were >= 2 votes
+    arrays = m.to_arrays()
+    back = GaussianMap.from_arrays(arrays)
+    assert torch.equal(back.votes, m.votes)
