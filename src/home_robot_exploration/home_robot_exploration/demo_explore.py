@@ -225,11 +225,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--verbose", action="store_true", help="show the nodes' log lines too")
     ap.add_argument("--view", action="store_true", help="also serve the live 3-D view (viser) in a browser")
     ap.add_argument("--view-port", type=int, default=8080, help="port of the live view (loopback)")
+    ap.add_argument("--screenshot", default="", metavar="PNG",
+                    help="at the end, save the live view as headless Chromium draws it (implies --view)")
     ap.add_argument("--ready-timeout", type=float, default=120.0)
     ap.add_argument("--timeout", type=float, default=540.0, help="seconds for exploration and the command")
     ap.add_argument("--map-dir", default="", help="where SLAM writes the map (default: a temporary folder)")
     ap.add_argument("--no-slam", action="store_true", help="no mapping: the object database serves the bundled map")
     opts = ap.parse_args(argv)
+    opts.view = opts.view or bool(opts.screenshot)
 
     from decision_maker.command_types import load_locations
     from decision_maker.decision_maker_node import default_locations_file
@@ -291,6 +294,7 @@ def main(argv: list[str] | None = None) -> int:
                 print("demo: error: the decision maker did not connect", file=sys.stderr)
                 return 1
             print(f"demo: {len(specs)} nodes ready in {time.monotonic() - t0:.1f} s", flush=True)
+            url = ""
             if opts.view:
                 ready = [ln for ln in sup.get("live_view").output().splitlines() if "ready: live view at" in ln]
                 url = ready[-1].split("ready: live view at ")[1].split(" ")[0] if ready else "?"
@@ -329,6 +333,15 @@ def main(argv: list[str] | None = None) -> int:
             final = op.finals.get(COMMAND)
             user = locations["user"].drop_point()
             bottle = world["objects"]["bottle"]["position"] if world else [math.nan] * 3
+            if opts.screenshot:
+                from home_robot_exploration.errors import ConfigError
+                from home_robot_exploration.live_view import browser_screenshot, scene_drawn
+
+                try:
+                    browser_screenshot(url, opts.screenshot, ready=scene_drawn())
+                    print(f"demo: screenshot of the live view: {opts.screenshot}", flush=True)
+                except ConfigError as exc:
+                    print(f"demo: no screenshot: {exc}", flush=True)
             mapped = not map_dir or (progress.get("mapping") or {}).get("state") == "done"
             ok = bool(done and final is not None and final.state.value == "succeeded"
                       and math.dist(bottle, (user.x, user.y, user.z)) < 0.15 and cov >= 0.85 and mapped)

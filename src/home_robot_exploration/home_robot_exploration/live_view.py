@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import threading
+from collections.abc import Callable
 
 import numpy as np
 
@@ -66,6 +67,124 @@ def grid_image(states: np.ndarray) -> np.ndarray:
     return img[::-1].copy()
 
 
+#: where a browser's camera starts (m, map frame) and what it looks at: the simulated home from above its south side
+HOME_VIEW_POSITION = (3.0, -3.0, 7.5)
+HOME_VIEW_LOOK_AT = (3.0, 2.2, 0.0)
+
+
+def browser_screenshot(url: str, path: str, width: int = 1280, height: int = 800, settle_s: float = 6.0,
+                       timeout_s: float = 120.0, ready: Callable[[str], bool] | None = None) -> None:
+    """Load ``url`` in a headless Chromium (software WebGL: no GPU needed) and save a PNG screenshot.
+
+    Driven over the DevTools protocol in real time (not Chromium's ``--screenshot``, whose virtual time
+    raced the scene's websocket): the page loads, then a screenshot is taken every ``settle_s`` seconds
+    until ``ready(path)`` says the scene is drawn (default: the first one after ``settle_s``), at most
+    ``timeout_s`` seconds.
+
+    Raises:
+        ConfigError: no ``chromium`` on the PATH, it did not start, or the scene was not ready in time
+            (the last screenshot is still written).
+    """
+    import base64
+    import json
+    import shutil
+    import socket
+    import subprocess
+    import tempfile
+    import time
+    import urllib.request
+
+    from websockets.sync.client import connect
+
+    exe = shutil.which("chromium") or shutil.which("chromium-browser")
+    if exe is None:
+        raise ConfigError("no chromium on the PATH (Debian: apt-get install chromium)")
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    profile = tempfile.mkdtemp(prefix="live_view_chromium_")
+    proc = subprocess.Popen([exe, "--headless=new", "--no-sandbox", "--disable-gpu", "--enable-unsafe-swiftshader",
+                             "--use-angle=swiftshader", f"--window-size={width},{height}", "--hide-scrollbars",
+                             f"--remote-debugging-port={port}", "--remote-debugging-address=127.0.0.1",
+                             f"--user-data-dir={profile}", "about:blank"],
+                            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + timeout_s
+    try:
+        target = None
+        while target is None and time.monotonic() < deadline:
+            try:
+                with urllib.request.urlopen(f"http://127.0.0.1:{port}/json", timeout=2) as r:
+                    target = next((t for t in json.load(r) if t.get("type") == "page"), None)
+            except OSError:
+                time.sleep(0.2)
+        if target is None:
+            raise ConfigError(f"chromium did not open its DevTools port within {timeout_s:g} s")
+        with connect(target["webSocketDebuggerUrl"], max_size=None, open_timeout=10) as ws:
+            seq = 0
+
+            def call(method: str, **params: object) -> dict:
+                nonlocal seq
+                seq += 1
+                ws.send(json.dumps({"id": seq, "method": method, "params": params}))
+                while True:
+                    msg = json.loads(ws.recv(timeout=max(1.0, deadline - time.monotonic())))
+                    if msg.get("id") == seq:
+                        if "error" in msg:
+                            raise ConfigError(f"chromium {method}: {msg['error']}")
+                        return msg.get("result", {})
+
+            call("Page.enable")
+            call("Emulation.setDeviceMetricsOverride", width=width, height=height, deviceScaleFactor=1, mobile=False)
+            call("Page.navigate", url=url)
+            while True:
+                time.sleep(settle_s)
+                shot = call("Page.captureScreenshot", format="png")
+                with open(path, "wb") as fh:
+                    fh.write(base64.b64decode(shot["data"]))
+                if ready is None or ready(path):
+                    return
+                if time.monotonic() + settle_s > deadline:
+                    raise ConfigError(f"the scene was not drawn within {timeout_s:g} s (last screenshot: {path})")
+    except TimeoutError as exc:
+        raise ConfigError(f"chromium did not answer within {timeout_s:g} s") from exc
+    finally:
+        proc.terminate()
+        try:
+            proc.wait(10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+        shutil.rmtree(profile, ignore_errors=True)
+
+
+def coloured_pixels(png_path: str, min_chroma: int = 20) -> int:
+    """Strongly coloured pixels (max - min channel >= ``min_chroma``) in the scene part of a 1280 x 800
+    screenshot (below the notification, left of the control panel): the map's furniture (blue sofa,
+    brown table and chairs). The background, the grey grid and the floor grid have none, so a scene
+    without the splats drawn has few (the robot's axes, the path, frontier cells)."""
+    from PIL import Image
+
+    img = np.asarray(Image.open(png_path).convert("RGB"), dtype=np.int16)
+    h, w = img.shape[:2]
+    scene = img[int(h * 0.25):int(h * 0.93), int(w * 0.05):int(w * 0.72)]
+    chroma = scene.max(-1) - scene.min(-1)
+    return int((chroma >= min_chroma).sum())
+
+
+def scene_drawn(min_pixels: int = 2000) -> Callable[[str], bool]:
+    """A ``ready`` test for :func:`browser_screenshot`: at least ``min_pixels`` coloured pixels
+    (:func:`coloured_pixels`; 0 on an empty scene, thousands with the home's map) and no more than
+    5 % growth since the previous screenshot (the splats have finished fading in)."""
+    last = [-1]
+
+    def ready(path: str) -> bool:
+        n = coloured_pixels(path)
+        stable = last[0] >= 0 and n <= last[0] * 1.05
+        last[0] = n
+        return n >= min_pixels and stable
+
+    return ready
+
+
 class LiveView:
     """The viser scene. Thread-safe (one lock around scene updates)."""
 
@@ -81,14 +200,11 @@ class LiveView:
         self._labels: dict[str, object] = {}
         self.splats = 0
         self.server.scene.set_up_direction("+z")
-        self.server.on_client_connect(self._place_camera)
+        # every browser starts looking at the home from above its south side (set before any client
+        # connects, so a headless browser's first frame already has it: no race with a connect callback)
+        cam = self.server.initial_camera
+        cam.position, cam.look_at, cam.up = HOME_VIEW_POSITION, HOME_VIEW_LOOK_AT, (0.0, 0.0, 1.0)
         self.server.scene.add_grid("/floor_grid", width=12.0, height=12.0, position=(3.0, 2.5, -0.01))
-
-    @staticmethod
-    def _place_camera(client) -> None:
-        """A new browser looks at the home from above its south side."""
-        client.camera.look_at = (3.0, 2.5, 0.0)
-        client.camera.position = (3.0, -4.0, 7.0)
 
     def clients(self) -> int:
         return len(self.server.get_clients())

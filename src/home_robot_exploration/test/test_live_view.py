@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import shutil
-import subprocess
 import urllib.request
 
 import numpy as np
@@ -12,7 +11,13 @@ import pytest
 from home_robot_bringup.nodeset import NodeSpec
 from home_robot_bringup.testing import wait_for
 from home_robot_exploration.errors import ConfigError
-from home_robot_exploration.live_view import grid_image, splats_from_params
+from home_robot_exploration.live_view import (
+    browser_screenshot,
+    coloured_pixels,
+    grid_image,
+    scene_drawn,
+    splats_from_params,
+)
 from home_robot_exploration.occupancy import FREE, OCCUPIED, UNKNOWN
 
 
@@ -53,13 +58,25 @@ def test_page_loads_in_headless_chromium_with_the_map(launch_nodes, tmp_path):
     with urllib.request.urlopen(url, timeout=30) as resp:  # the page itself
         assert resp.status == 200 and b"<html" in resp.read().lower()
     shot = tmp_path / "view.png"
-    cmd = ["chromium", "--headless=new", "--no-sandbox", "--disable-gpu", "--enable-unsafe-swiftshader",
-           "--use-angle=swiftshader", "--window-size=1280,800", "--virtual-time-budget=15000",
-           f"--screenshot={shot}", url]
-    subprocess.run(cmd, capture_output=True, timeout=180, stdin=subprocess.DEVNULL)
-    # the browser connected to the scene's websocket and received the map
+    # a real headless Chromium loads the page, connects to the scene's websocket and draws the splats
+    # (software WebGL); the screenshot is retaken until the map's colours are there and stable
+    browser_screenshot(url, str(shot), ready=scene_drawn(min_pixels=2000), timeout_s=150)
     assert wait_for(lambda: "browser clients: 1" in proc.output(), 60.0), proc.output()[-2000:]
+    assert coloured_pixels(str(shot)) >= 2000  # the furniture of the map, seen from the home view
+
+
+def test_coloured_pixels_count_the_scene_not_the_page(tmp_path):
     from PIL import Image
 
-    img = np.asarray(Image.open(shot).convert("RGB"), dtype=np.float32)
-    assert img.shape[0] > 100 and img.std() > 5.0  # not a blank page
+    blank = np.full((800, 1280, 3), 255, np.uint8)
+    blank[400:420, 100:900] = 128  # grey grid lines: not coloured
+    blank[20:180, 960:1260] = (40, 120, 230)  # a blue button in the control panel: outside the scene
+    Image.fromarray(blank).save(tmp_path / "blank.png")
+    assert coloured_pixels(str(tmp_path / "blank.png")) == 0
+    sofa = blank.copy()
+    sofa[300:350, 300:400] = (60, 80, 200)  # a blue sofa in the scene
+    Image.fromarray(sofa).save(tmp_path / "sofa.png")
+    assert coloured_pixels(str(tmp_path / "sofa.png")) == 50 * 100
+    ready = scene_drawn(min_pixels=1000)
+    assert not ready(str(tmp_path / "blank.png")) and not ready(str(tmp_path / "sofa.png"))  # not yet stable
+    assert ready(str(tmp_path / "sofa.png"))
