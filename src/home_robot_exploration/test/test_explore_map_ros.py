@@ -2,7 +2,7 @@
 streaming SLAM server, which maps the simulated camera's frames (tracking guided by the simulated
 wheel odometry) while the robot explores; when exploration ends the map is written where the
 object-query server (started with no map, ``wait_for_map``) reads it, and its objects are checked
-against the simulator's ground truth.
+against the simulator's ground truth, with the explored area (/map) against the home's free area.
 
 A 150 x 85 camera keeps the run to a few minutes on 2 cores; everything in the loop is real.
 """
@@ -42,8 +42,15 @@ def test_explores_maps_and_the_object_database_serves_the_self_built_map(launch_
         with lock:
             got["lists"].append(json.loads(msg.data))
 
+    def on_map(msg) -> None:
+        with lock:
+            got["grid"] = msg
+
+    from nav_msgs.msg import OccupancyGrid as GridMsg
+
     ros_node.create_subscription(String, "exploration/progress", on_progress, LATCHED)
     ros_node.create_subscription(String, "object_list", on_objects, LATCHED)
+    ros_node.create_subscription(GridMsg, "map", on_map, LATCHED)
     map_dir = tmp_path / "map"
     classes = json.dumps({str(i): name for i, name, _ in CLASSES if i > 0})
     specs = load_nodeset("explore") + load_nodeset("slam_sim_camera") + load_nodeset("object_query")
@@ -79,5 +86,11 @@ def test_explores_maps_and_the_object_database_serves_the_self_built_map(launch_
         nearest = min(math.dist(objects[name], p) for oid, p in truth.items() if oid.rstrip("_0123456789") == name)
         print(f"{name}: {objects[name]} error {nearest * 100:.1f} cm")
         assert nearest < 0.15, f"{name} at {objects[name]} is {nearest:.2f} m from the nearest true {name}"
+    from home_robot_exploration.demo_explore import coverage_of
+
+    assert wait_for(lambda: "grid" in got, 30)
+    seen, total, cov = coverage_of(got["grid"])
+    print(f"coverage {cov:.3f}: {seen:.1f} of {total:.1f} m2")
+    assert cov > 0.85, f"only {cov:.0%} of the home's free area was seen"
     with np.load(map_dir / "params.npz") as z:
         assert len(z["timestamps"]) == z["cam_trans"].shape[-1] == mapping["frames"]
