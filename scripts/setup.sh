@@ -137,18 +137,21 @@ fi
 # shellcheck source=scripts/env.sh
 HOME_ROBOT_ENV_QUIET=1 source "$ROOT/scripts/env.sh" --no-workspace
 skip=()
-if "$PY" - <<'PY'
+for vendored in nav2_msgs tf2_msgs; do
+  if VENDORED="$vendored" "$PY" - <<'PY'
 import os, sys
-root = os.environ["HOME_ROBOT_ROOT"]
+root, name = os.environ["HOME_ROBOT_ROOT"], os.environ["VENDORED"]
 for p in filter(None, os.environ.get("AMENT_PREFIX_PATH", "").split(":")):
     if os.path.realpath(p).startswith(os.path.join(root, "install")):
         continue
-    if os.path.exists(os.path.join(p, "share", "ament_index", "resource_index", "packages", "nav2_msgs")):
-        print(f"[setup] nav2_msgs found in {p}: our minimal nav2_msgs is not built")
+    if os.path.exists(os.path.join(p, "share", "ament_index", "resource_index", "packages", name)):
+        print(f"[setup] {name} found in {p}: our minimal {name} is not built")
         sys.exit(0)
 sys.exit(1)
 PY
-then skip=(--packages-skip nav2_msgs); fi
+  then skip+=("$vendored"); fi
+done
+if [ ${#skip[@]} -gt 0 ]; then skip=(--packages-skip "${skip[@]}"); fi
 log "colcon build"
 mkdir -p "$ROOT/log"
 colcon build --symlink-install --base-paths src "${skip[@]}" \
@@ -164,5 +167,6 @@ import rclpy
 from object_query_interfaces.srv import ObjectQuery
 from decision_maker_interfaces.action import Grasp, Place
 from nav2_msgs.action import NavigateToPose
+from tf2_msgs.msg import TFMessage
 rclpy.init(); n = rclpy.create_node("setup_smoke"); n.destroy_node(); rclpy.shutdown()'
 log "done in $(( $(date +%s) - t0 )) s — now: source scripts/env.sh"

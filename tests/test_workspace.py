@@ -1,4 +1,4 @@
-"""The colcon workspace itself: package manifests, install layout, the minimal nav2_msgs guard."""
+"""The colcon workspace itself: package manifests, install layout, the minimal nav2_msgs / tf2_msgs guard."""
 
 import glob
 import os
@@ -47,23 +47,24 @@ def test_entry_points_follow_ros2_run_layout():
         assert path.endswith(os.path.join("lib", pkg, exe))
 
 
-def _configure_nav2_msgs(tmp_path, ament_prefix_path: str) -> subprocess.CompletedProcess:
+def _configure_vendored(tmp_path, ament_prefix_path: str, name: str = "nav2_msgs") -> subprocess.CompletedProcess:
     env = {**os.environ, "AMENT_PREFIX_PATH": ament_prefix_path}
     return subprocess.run(
-        ["cmake", "-S", os.path.join(ROOT, "src", "nav2_msgs"), "-B", str(tmp_path / "build"),
+        ["cmake", "-S", os.path.join(ROOT, "src", name), "-B", str(tmp_path / "build"),
          f"-DCMAKE_INSTALL_PREFIX={tmp_path / 'install'}", f"-DPython3_EXECUTABLE={sys.executable}",
          "-DBUILD_TESTING=OFF"],
         env=env, capture_output=True, text=True, timeout=300)
 
 
 @pytest.mark.skipif(shutil.which("cmake") is None, reason="cmake not installed")
-def test_minimal_nav2_msgs_never_shadows_a_real_one(tmp_path):
-    """With a nav2_msgs already installed (a system Nav2), ours configures to an empty install."""
+@pytest.mark.parametrize("name", ["nav2_msgs", "tf2_msgs"])
+def test_minimal_vendored_interfaces_never_shadow_a_real_one(tmp_path, name):
+    """With the package already installed (a system Nav2 / ROS 2), ours configures to an empty install."""
     system = tmp_path / "opt_ros"
-    marker = system / "share" / "ament_index" / "resource_index" / "packages" / "nav2_msgs"
+    marker = system / "share" / "ament_index" / "resource_index" / "packages" / name
     marker.parent.mkdir(parents=True)
     marker.write_text("")
-    res = _configure_nav2_msgs(tmp_path, f"{system}:{os.environ.get('AMENT_PREFIX_PATH', '')}")
+    res = _configure_vendored(tmp_path, f"{system}:{os.environ.get('AMENT_PREFIX_PATH', '')}", name)
     assert res.returncode == 0, res.stdout + res.stderr
     assert "installs nothing" in res.stderr
     subprocess.run(["cmake", "--build", str(tmp_path / "build")], check=True, capture_output=True, timeout=300)
@@ -82,3 +83,9 @@ def test_minimal_nav2_msgs_is_the_jazzy_definition():
         "current_pose": "geometry_msgs/PoseStamped", "navigation_time": "builtin_interfaces/Duration",
         "estimated_time_remaining": "builtin_interfaces/Duration", "number_of_recoveries": "int16",
         "distance_remaining": "float"}
+
+
+def test_minimal_tf2_msgs_is_the_jazzy_definition():
+    from tf2_msgs.msg import TFMessage
+
+    assert TFMessage.get_fields_and_field_types() == {"transforms": "sequence<geometry_msgs/TransformStamped>"}

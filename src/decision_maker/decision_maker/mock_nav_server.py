@@ -9,7 +9,8 @@ base at once and aborts the goal unless its client cancels it within ``stop_grac
 Parameters:
     speed (m/s, 1.0), turn_rate (rad/s, 2.0), rate_hz (simulation/feedback rate, 20),
     initial_pose ([x, y, theta], [0.5, 0.5, 0.0]), frame_id ("map"), action_name
-    ("navigate_to_pose"), pose_topic ("robot_pose"), stop_grace_s (0.5),
+    ("navigate_to_pose"), pose_topic ("robot_pose"), publish_tf (true: the pose also goes to ``/tf`` as
+    frame_id -> base_frame, "base_link"), stop_grace_s (0.5),
     fault: "none" | "fail" (abort after fail_after_s) | "hang" (never moves or finishes; cancel works),
     fail_after_s (0.3), workspace_bound_m (100.0: goals with |x| or |y| beyond it are rejected).
 
@@ -49,8 +50,10 @@ def yaw_of(q) -> float:
 DEFAULTS: dict[str, object] = {
     "speed": 1.0, "turn_rate": 2.0, "rate_hz": 20.0, "initial_pose": [0.5, 0.5, 0.0], "frame_id": "map",
     "action_name": "navigate_to_pose", "pose_topic": "robot_pose", "stop_grace_s": 0.5, "fault": "none",
-    "fail_after_s": 0.3, "workspace_bound_m": 100.0,
+    "fail_after_s": 0.3, "workspace_bound_m": 100.0, "publish_tf": True, "base_frame": "base_link",
 }
+#: TF's topic and QoS (tf2_ros: reliable, volatile, depth 100)
+TF_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE)
 _MAX_DURATION_S = 2.0**31 - 1  # builtin_interfaces/Duration.sec is an int32
 
 
@@ -89,6 +92,13 @@ class MockNavServer(Node):
         self._started = 0.0
         self._stop_deadline: float | None = None  # abort the goal at this time (after /cancel_command)
         self._pose_pub = self.create_publisher(PoseStamped, str(v["pose_topic"]), POSE_QOS)
+        self._base_frame = str(v["base_frame"])
+        self._tf_pub = None
+        if v["publish_tf"]:  # the pose as TF too (frame_id -> base_frame), for RViz and tf2 users
+            from tf2_msgs.msg import TFMessage
+
+            self._tf_msg = TFMessage
+            self._tf_pub = self.create_publisher(TFMessage, "/tf", TF_QOS)
         self._goals = SimGoals(self, NavigateToPose, str(v["action_name"]), self._check_goal, self._start,
                                self._cancelled)
         self.create_subscription(String, "cancel_command", self._on_stop, 10)
@@ -181,7 +191,17 @@ class MockNavServer(Node):
         return msg
 
     def _publish_pose(self) -> None:
-        self._pose_pub.publish(self._pose_msg())
+        msg = self._pose_msg()
+        self._pose_pub.publish(msg)
+        if self._tf_pub is not None:
+            from geometry_msgs.msg import TransformStamped
+
+            t = TransformStamped()
+            t.header = msg.header
+            t.child_frame_id = self._base_frame
+            t.transform.translation.x, t.transform.translation.y = msg.pose.position.x, msg.pose.position.y
+            t.transform.rotation = msg.pose.orientation
+            self._tf_pub.publish(self._tf_msg(transforms=[t]))
 
 
 def main(args: list[str] | None = None) -> int:

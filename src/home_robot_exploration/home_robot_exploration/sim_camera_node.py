@@ -11,6 +11,8 @@ time the pose was taken) and ``frame_id``:
   server subscribes, so it maps what this camera sees with no remapping;
 * ``camera_pose`` (``PoseStamped`` in ``map_frame``): the camera-to-map pose (OpenCV camera axes),
   the ground truth the explorer builds its grid with and SLAM is scored against;
+* ``/tf_static`` (``publish_tf``): ``base_frame`` -> ``frame_id``, where the camera sits on the base
+  (with ``mock_nav_server``'s ``map`` -> ``base_link`` on ``/tf``, RViz can show the camera);
 * ``odom_camera_pose`` (``PoseStamped``, same stamp): the same camera pose as the robot's wheel
   odometry estimates it (:class:`~home_robot_exploration.simcam.WheelOdometry`: systematic scale
   errors ``odom_trans_scale_error`` / ``odom_rot_scale_error`` plus ``odom_noise``, integrated over
@@ -50,6 +52,7 @@ DEFAULTS: dict[str, object] = {
     "forward_offset": 0.0, "rate_hz": 1.0, "pose_topic": "robot_pose", "frame_id": "camera",
     "map_frame": "map", "seed": 0, "supersample": 1,
     "odom_trans_scale_error": 0.02, "odom_rot_scale_error": 0.02, "odom_noise": 0.01,
+    "publish_tf": True, "base_frame": "base_link",
 }
 
 
@@ -103,12 +106,30 @@ class SimCameraNode(Node):
         self._pose_pub = self.create_publisher(PoseStamped, "camera_pose", IMAGE_QOS)
         self._odom_pub = self.create_publisher(PoseStamped, "odom_camera_pose", IMAGE_QOS)
         self.create_subscription(PoseStamped, str(v["pose_topic"]), self._on_pose, POSE_QOS)
+        if v["publish_tf"]:  # where the camera sits on the base, once, latched (tf2's /tf_static)
+            from tf2_msgs.msg import TFMessage
+
+            self._tf_static = self.create_publisher(TFMessage, "/tf_static", POSE_QOS)
+            self._tf_static.publish(TFMessage(transforms=[self._mount_transform(str(v["base_frame"]))]))
         self.create_timer(1.0 / rate, self._tick)
         self.frames = 0
         self.get_logger().info(
             f"ready: simulated camera {self.cam.width}x{self.cam.height}, hfov {self.cam.hfov_deg:g} deg, "
             f"{self.cam.mount_height:g} m high, tilt {self.cam.tilt_deg:g} deg, {rate:g} Hz, pose from "
             f"{v['pose_topic']}")
+
+    def _mount_transform(self, base_frame: str):
+        """base_frame -> the camera's frame_id (OpenCV optical axes), from the mounting."""
+        from geometry_msgs.msg import TransformStamped
+
+        m = self.cam.c2w(0.0, 0.0, 0.0)  # the camera in the frame of a base at the origin, heading +x
+        t = TransformStamped()
+        t.header.stamp = self.get_clock().now().to_msg()
+        t.header.frame_id, t.child_frame_id = base_frame, self._frame_id
+        t.transform.translation.x, t.transform.translation.y, t.transform.translation.z = (float(a) for a in m[:3, 3])
+        r = t.transform.rotation
+        r.x, r.y, r.z, r.w = quaternion_of(m[:3, :3])
+        return t
 
     def _on_pose(self, msg: PoseStamped) -> None:
         p = msg.pose.position
