@@ -127,8 +127,10 @@ def test_grammar_does_not_pull_a_misheard_word_to_another_object(transcriber):
     loose.__dict__.update(transcriber.__dict__, config=TranscriberConfig(grammar_max_drop=5.0))
     loose.__dict__.pop("_window_decoder", None)
     wide = loose.transcribe(audio, VOCAB.prompt(), grammar=VOCAB.in_grammar)
-    if wide.text.lower().rstrip(".") != "bring me the chair":  # without the margin: a wrong command...
-        assert tr.text != wide.text, (tr, wide)  # ...which the default margin does not publish
+    if wide.rescored_from and wide.text.lower().rstrip(".") != "bring me the chair":
+        # without the margin the beam's wrong command was taken, which the default margin does not publish
+        # (when the beam holds no command at all, both keep Whisper's mishearing: nothing to compare)
+        assert tr.text != wide.text, (tr, wide)
 
 
 def test_grammar_path_equals_faster_whisper_when_in_grammar(transcriber):
