@@ -56,6 +56,8 @@ class Watch:
         self.grid = None
         self.objects: dict = {}
         self.objects_at_done: dict | None = None  # /object_list when exploration (and mapping) ended
+        self.explored_s: float | None = None  # seconds from the start until exploration ended ...
+        self.mapped_s: float | None = None  # ... and until the map was finished (state done)
         self._last_line = ("", -math.inf)
         self._ros = BackgroundNode(domain_id, "demo_explore_watch", threads=1)
         node = self._ros.node
@@ -87,8 +89,11 @@ class Watch:
         now = time.monotonic()
         with self._lock:
             self.progress = p
+            if p.get("state") in ("mapping", "done") and self.explored_s is None:
+                self.explored_s = now - self._t0
             if p.get("state") == "done" and self.objects_at_done is None:
                 self.objects_at_done = dict(self.objects)  # before the command moves anything
+                self.mapped_s = now - self._t0
             state, last = self._last_line
             show = p.get("state") != state or now - last >= 5.0
             if show:
@@ -310,9 +315,13 @@ def main(argv: list[str] | None = None) -> int:
             print("demo: figures", flush=True)
             if grid is not None:
                 seen, total, cov = coverage_of(grid)
+                took = (f"exploration ended at {watch.explored_s:.0f} s" if watch.explored_s is not None
+                        else f"{progress.get('elapsed_s', 0):.0f} s")
+                if map_dir and watch.mapped_s is not None:
+                    took += f", map finished at {watch.mapped_s:.0f} s"
                 print(f"  explored: {seen:.1f} m2 of the home's {total:.1f} m2 free area ({cov * 100:.1f} %), "
-                      f"{progress.get('elapsed_s', 0):.0f} s, {progress.get('goals', 0)} goals, "
-                      f"{progress.get('frames', 0)} frames; ended: {progress.get('reason', '?')}", flush=True)
+                      f"{took}, {progress.get('goals', 0)} goals, {progress.get('frames', 0)} camera frames; "
+                      f"ended: {progress.get('reason', '?')}", flush=True)
             else:
                 cov = 0.0
                 print("  explored: no map received", flush=True)
