@@ -111,7 +111,10 @@ class SlamServer(Node):
         if port > 0:
             from semantic_gs_slam.viewer import MapViewer
 
-            self.viewer = MapViewer(str(self.get_parameter("live_view_host").value), port)  # ConfigError/OSError: main
+            try:
+                self.viewer = MapViewer(str(self.get_parameter("live_view_host").value), port)
+            except ImportError as exc:  # ConfigError / OSError (a bad or taken port) are reported by main()
+                raise ValueError(f"live_view_port needs viser (pip install -r requirements/viewer.in): {exc}") from exc
             self.get_logger().info(f"live view at {self.viewer.url} (the map as it is written, the camera's path)")
         self.get_logger().info("ready: waiting for a run_gs_slam goal")
 
