@@ -72,11 +72,13 @@ def run_ours(ds, idx: list[int], args: argparse.Namespace) -> dict:
                 err = f" err {et * 100:6.2f} cm {er:5.2f} deg"
             print(f"ours {n + 1:4d}/{len(idx)} frame {i:5d}{' KF' if lg.keyframe else '   '} gaussians "
                   f"{lg.n_gaussians:7d} track {lg.track_s:5.2f} s map {lg.map_s:5.2f} s{err}"
-                  f"{' TRACKING LOST' if lg.tracking_failed else ''}", file=sys.stderr, flush=True)
+                  f"{' TRACKING LOST' if lg.tracking_failed else ''}{'  ' + lg.loop if lg.loop else ''}",
+                  file=sys.stderr, flush=True)
     wall = time.perf_counter() - t0
     res = evaluate(eng, ds, idx, every=args.eval_every)
     res.update(fps=len(idx) / wall, wall_s=wall, label_ms=1000 * label_s / len(idx),
-               lost=sum(lg.tracking_failed for lg in eng.logs), poses=[p.copy() for p in eng.poses],
+               lost=sum(lg.tracking_failed for lg in eng.logs), loops=list(eng.loops),
+               poses=[p.copy() for p in eng.poses],
                classes=len(eng.classes))
     return res
 
@@ -165,6 +167,9 @@ def main() -> int:
     rows = [("ATE RMSE (cm, aligned)", f"{ate_o:.2f}"), ("PSNR (dB)", f"{ours['psnr']:.2f}"),
             ("SSIM", f"{ours['ssim']:.3f}"), ("depth L1 (cm)", f"{ours['depth_l1_cm']:.2f}"),
             ("FPS", f"{ours['fps']:.2f}"), ("tracking failures reported", str(ours["lost"])),
+            ("drift found and corrected (loop closures)", f"{len(ours['loops'])}" + (
+                f", largest {max(x['found_cm'] for x in ours['loops']):.1f} cm / "
+                f"{max(x['found_deg'] for x in ours['loops']):.2f} deg" if ours["loops"] else "")),
             ("Gaussians", str(ours["gaussians"])), ("labelling ms/frame", f"{ours['label_ms']:.0f}"),
             ("label classes in the map", str(ours["classes"]))]
     print("\n| metric | ours |" + (" Open3D |" if o3 else "") + "\n|---|---|" + ("---|" if o3 else ""))

@@ -150,6 +150,39 @@ class MappingConfig:
 
 
 @dataclass
+class LoopConfig:
+    """Loop closure: each new keyframe is registered against the older keyframe it overlaps most; a
+    disagreement with the tracked pose is drift, reported and spread over the keyframe pose graph."""
+
+    enabled: bool = True
+    min_frame_gap: int = 60  # only keyframes at least this many frames older are loop candidates
+    min_overlap: float = 0.4  # share of the new keyframe's points that must fall inside the candidate's view
+    icp_iters: int = 15  # Gauss-Newton iterations per level of the keyframe-to-keyframe ICP (geometry only)
+    icp_levels: int = 3
+    icp_max_dist: float = 0.2  # metres; associations farther apart are rejected (the drift to be found)
+    verify_dist: float = 0.03  # metres; after registration, a point within this of the candidate's surface agrees
+    min_agreement: float = 0.6  # ... and at least this share of the overlapping points must agree
+    min_correction_m: float = 0.01  # smaller disagreements are not drift worth a correction
+    min_correction_deg: float = 0.5
+    max_correction_m: float = 0.5  # larger ones are treated as a false match and ignored
+    max_correction_deg: float = 15.0
+    sigma_trans: float = 0.01  # metres; confidence of each sequential (tracked) keyframe-to-keyframe motion
+    sigma_rot: float = 0.005  # radians
+    loop_sigma_trans: float = 0.005  # metres; confidence of a verified loop registration
+    loop_sigma_rot: float = 0.0025  # radians
+    check_every: int = 1  # look for a loop at every k-th keyframe
+
+    def check(self) -> None:
+        if self.min_frame_gap < 1 or self.check_every < 1 or self.icp_levels < 1 or self.icp_iters < 1:
+            raise ConfigError("loop.min_frame_gap, check_every, icp_levels and icp_iters must be >= 1")
+        if not 0 < self.min_overlap <= 1 or not 0 < self.min_agreement <= 1:
+            raise ConfigError("loop.min_overlap and loop.min_agreement must be in (0, 1]")
+        for name in ("sigma_trans", "sigma_rot", "loop_sigma_trans", "loop_sigma_rot", "verify_dist", "icp_max_dist"):
+            if not getattr(self, name) > 0:
+                raise ConfigError(f"loop.{name} must be > 0, got {getattr(self, name)}")
+
+
+@dataclass
 class SlamConfig:
     """Whole-engine configuration."""
 
@@ -157,6 +190,7 @@ class SlamConfig:
     renderer: RendererConfig = field(default_factory=RendererConfig)
     tracking: TrackingConfig = field(default_factory=TrackingConfig)
     mapping: MappingConfig = field(default_factory=MappingConfig)
+    loop: LoopConfig = field(default_factory=LoopConfig)
     plane_depth: bool = True  # rendered depth (tracking, densification, evaluation; the mapping loss too with
     # mapping.plane_depth_loss) blends each Gaussian's seeded surface plane, not its centre depth (plane_depth_features)
     depth_min: float = 0.1  # metres; smaller depths are treated as missing
@@ -173,6 +207,7 @@ class SlamConfig:
         self.renderer.check()
         self.tracking.check()
         self.mapping.check()
+        self.loop.check()
         if not 0 < self.depth_min < self.depth_max:
             raise ConfigError(f"need 0 < depth_min < depth_max, got {self.depth_min}, {self.depth_max}")
         if self.checkpoint_every < 0 or (self.checkpoint_every > 0 and not self.checkpoint_dir):
@@ -198,7 +233,8 @@ def _build(cls: type, d: dict[str, Any]) -> Any:
     if unknown:
         raise ConfigError(f"unknown {cls.__name__} field(s): {sorted(unknown)}")
     kw = {}
-    sub = {"intrinsics": Intrinsics, "renderer": RendererConfig, "tracking": TrackingConfig, "mapping": MappingConfig}
+    sub = {"intrinsics": Intrinsics, "renderer": RendererConfig, "tracking": TrackingConfig, "mapping": MappingConfig,
+           "loop": LoopConfig}
     for k, v in d.items():
         if k in sub and isinstance(v, dict):
             kw[k] = _build(sub[k], v)

@@ -198,6 +198,28 @@ class GaussianMap:
         ids = sem[sel] if sem is not None else torch.zeros(world.shape[0], dtype=torch.int64, device=world.device)
         return self.add(world, rgb[sel], ids, radius, frame, logit_opacity, normals)
 
+    def move_by_frame(self, starts: Tensor, transforms: Tensor) -> None:
+        """Move Gaussians rigidly by the frame that created them (a loop closure's pose corrections).
+
+        Args:
+            starts: [K] ascending frame indices (int64): a Gaussian created at frame ``f`` takes the
+                transform of the last start ``<= f`` (the first one when ``f`` is before all).
+            transforms: [K, 4, 4] rigid world-frame corrections (new pose @ inverse of old pose).
+        """
+        if len(self) == 0:
+            return
+        dev = self.params["means3D"].device
+        starts = starts.to(dev)
+        tr = transforms.to(device=dev, dtype=torch.float32)
+        slot = (torch.searchsorted(starts, self.timestep, right=True) - 1).clamp_min(0)  # [N]
+        rot, trans = tr[slot, :3, :3], tr[slot, :3, 3]  # [N, 3, 3], [N, 3]
+        p = {k: v.detach() for k, v in self.params.items()}
+        p["means3D"] = (rot @ p["means3D"][:, :, None])[:, :, 0] + trans
+        qc = _rotmat_to_quat_t(tr[:, :3, :3])[slot]  # [N, 4]
+        p["unnorm_rotations"] = _quat_mul(qc, p["unnorm_rotations"])
+        self.normals = (rot @ self.normals[:, :, None])[:, :, 0]
+        self._set(p, self.semantic_ids, self.timestep)
+
     def prune(self, min_opacity: float, max_scale: float) -> int:
         """Remove near-transparent or huge Gaussians; returns how many were removed."""
         with torch.no_grad():
@@ -412,3 +434,36 @@ def export_ply(path: str, gmap: GaussianMap) -> None:
     with open(path, "wb") as fh:
         fh.write(header.encode("ascii"))
         fh.write(data.astype("<f4").tobytes())
+
+
+def _quat_mul(a: Tensor, b: Tensor) -> Tensor:
+    """Hamilton product of quaternions [..., 4] (w, x, y, z): the rotation ``a`` after ``b``."""
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                        aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], -1)
+
+
+def _rotmat_to_quat_t(r: Tensor) -> Tensor:
+    """Unit quaternions [K, 4] (w, x, y, z) of rotation matrices [K, 3, 3] (torch; for near-identity and general
+    rotations: the largest of the four candidate denominators is used per row)."""
+    m = r
+    tr = m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2]
+    cands = torch.stack([tr, m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]], -1)  # [K, 4]
+    pick = cands.argmax(-1)
+    q = torch.zeros(r.shape[0], 4, dtype=r.dtype, device=r.device)
+    s0 = torch.sqrt((1 + tr).clamp_min(1e-12)) * 2
+    q0 = torch.stack([0.25 * s0, (m[:, 2, 1] - m[:, 1, 2]) / s0, (m[:, 0, 2] - m[:, 2, 0]) / s0,
+                      (m[:, 1, 0] - m[:, 0, 1]) / s0], -1)
+    s1 = torch.sqrt((1 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2]).clamp_min(1e-12)) * 2
+    q1 = torch.stack([(m[:, 2, 1] - m[:, 1, 2]) / s1, 0.25 * s1, (m[:, 0, 1] + m[:, 1, 0]) / s1,
+                      (m[:, 0, 2] + m[:, 2, 0]) / s1], -1)
+    s2 = torch.sqrt((1 + m[:, 1, 1] - m[:, 0, 0] - m[:, 2, 2]).clamp_min(1e-12)) * 2
+    q2 = torch.stack([(m[:, 0, 2] - m[:, 2, 0]) / s2, (m[:, 0, 1] + m[:, 1, 0]) / s2, 0.25 * s2,
+                      (m[:, 1, 2] + m[:, 2, 1]) / s2], -1)
+    s3 = torch.sqrt((1 + m[:, 2, 2] - m[:, 0, 0] - m[:, 1, 1]).clamp_min(1e-12)) * 2
+    q3 = torch.stack([(m[:, 1, 0] - m[:, 0, 1]) / s3, (m[:, 0, 2] + m[:, 2, 0]) / s3, (m[:, 1, 2] + m[:, 2, 1]) / s3,
+                      0.25 * s3], -1)
+    allq = torch.stack([q0, q1, q2, q3], 1)  # [K, 4 candidates, 4]
+    q = allq[torch.arange(r.shape[0], device=r.device), pick]
+    return q / q.norm(dim=-1, keepdim=True)

@@ -30,7 +30,10 @@ from semantic_gs_slam.gaussian_map import (
     save_params,
     save_semantic_json,
 )
+from semantic_gs_slam.loop import LoopMatch, find_loop
 from semantic_gs_slam.metrics import ssim
+from semantic_gs_slam.posegraph import Edge
+from semantic_gs_slam.posegraph import optimise as optimise_graph
 from semantic_gs_slam.render import Gaussians, RenderOutput, select_backend
 from semantic_gs_slam.tracking import icp, photometric_refine, plane_depth_features, plane_depth_image
 
@@ -116,6 +119,7 @@ class FrameLog:
     map_s: float
     pose_source: str = "tracking"  # tracking | odometry (tracking failed, the odometry guess was kept) |
     # previous (tracking failed, no odometry: previous pose, frame not mapped) | first | ground_truth
+    loop: str = ""  # keyframes: what loop detection found ("" = not checked; see SLAM._close_loop)
 
 
 class SLAM:
@@ -145,7 +149,10 @@ class SLAM:
         self.timestamps: list[float] = []
         self.keyframes: list[Keyframe] = []
         self.logs: list[FrameLog] = []
+        self.edges: list[Edge] = []  # keyframe pose graph (nodes: positions in self.keyframes)
+        self.loops: list[dict] = []  # every loop correction: frame, old keyframe frame, cm, deg, agreement
         self._since_prune = 0
+        self._loop_note = ""
 
     # ------------------------------------------------------------------ input
     def _tensors(self, rgb: np.ndarray, depth: np.ndarray, sem: np.ndarray | None
@@ -237,7 +244,7 @@ class SLAM:
             added = self._densify(idx, rgb_t, depth_t, sem_t, self.poses[-1])
         t2 = time.perf_counter()
         entry = FrameLog(idx, self.timestamps[-1], is_kf, len(self.map), added, pruned, residual, inliers, failed,
-                         loss, t1 - t0, t2 - t1, source)
+                         loss, t1 - t0, t2 - t1, source, self._loop_note if is_kf else "")
         self.logs.append(entry)
         ce = self.cfg.checkpoint_every
         if ce > 0 and (idx + 1) % ce == 0:
@@ -378,11 +385,67 @@ class SLAM:
         pick = order[:n - r] + [rest[int(i)] for i in drawn]
         return [current] + [self.keyframes[i] for i in pick]
 
+    def _close_loop(self, idx: int, depth: Tensor) -> str:
+        """Loop closure at a new keyframe (before it is added): register it against its most overlapping old
+        keyframe; verified drift is logged, added to the pose graph as a loop edge and spread over the
+        keyframes (poses, keyframe poses and the Gaussians they created move together). Returns a note."""
+        lc = self.cfg.loop
+        n_kf = len(self.keyframes)
+        if not lc.enabled or n_kf < 2 or n_kf % lc.check_every:
+            return ""
+        c2w = self.poses[-1]
+        match = find_loop(depth, c2w, idx, self.keyframes, self.k, lc, self.cfg.tracking)
+        if match is None:
+            return ""
+        verdict = match.verdict(lc)
+        note = (f"loop with frame {match.frame}: {verdict} ({match.correction_m * 100:.1f} cm, "
+                f"{match.correction_deg:.2f} deg, agreement {match.agreement_before:.0%} -> "
+                f"{match.agreement_after:.0%})")
+        if verdict != "correct":
+            return note
+        log.warning("frame %d: drift found against the keyframe of frame %d: %.1f cm, %.2f deg; correcting the "
+                    "trajectory and the map", idx, match.frame, match.correction_m * 100, match.correction_deg)
+        self._apply_loop(idx, match)
+        return note
+
+    def _apply_loop(self, idx: int, match: LoopMatch) -> None:
+        """Add the current keyframe and the loop edge to the pose graph, optimise it, move poses and Gaussians."""
+        lc = self.cfg.loop
+        old = [kf.c2w.cpu().numpy().astype(np.float64) for kf in self.keyframes] + [self.poses[-1]]
+        cur = len(old) - 1
+        edges = self.edges + [
+            Edge(cur - 1, cur, np.linalg.inv(old[cur - 1]) @ old[cur], lc.sigma_rot, lc.sigma_trans),
+            Edge(match.candidate, cur, np.linalg.inv(old[match.candidate]) @ match.c2w, lc.loop_sigma_rot,
+                 lc.loop_sigma_trans, "loop")]
+        new, cost0, cost1 = optimise_graph(old, edges, fixed=0, iters=5)
+        self.edges.append(edges[-1])  # the loop edge stays; the sequential one is added with the keyframe
+        corr = [n @ np.linalg.inv(o) for n, o in zip(new, old, strict=True)]
+        starts = [kf.index for kf in self.keyframes] + [idx]
+        for f in range(len(self.poses)):
+            slot = int(np.searchsorted(starts, f, side="right")) - 1
+            self.poses[f] = corr[max(slot, 0)] @ self.poses[f]
+        for kf, n in zip(self.keyframes, new[:-1], strict=False):
+            kf.c2w = torch.as_tensor(n, device=self.device)
+        self.map.move_by_frame(torch.as_tensor(starts, dtype=torch.int64, device=self.device),
+                               torch.as_tensor(np.stack(corr), dtype=torch.float32, device=self.device))
+        et, er = (float(x) for x in (np.linalg.norm(corr[-1][:3, 3]), np.degrees(np.arccos(
+            np.clip((np.trace(corr[-1][:3, :3]) - 1) / 2, -1, 1)))))
+        self.loops.append({"frame": idx, "with_frame": match.frame, "found_cm": match.correction_m * 100,
+                           "found_deg": match.correction_deg, "moved_cm": et * 100, "moved_deg": er,
+                           "agreement_before": match.agreement_before, "agreement_after": match.agreement_after,
+                           "graph_cost_before": cost0, "graph_cost_after": cost1})
+
     def _map_keyframe(self, idx: int, rgb: Tensor, depth: Tensor, sem: Tensor | None) -> tuple[int, int, float]:
         mc = self.cfg.mapping
+        self._loop_note = self._close_loop(idx, depth)
         c2w = self.poses[-1]
         added = self._densify(idx, rgb, depth, sem, c2w, keyframe=True)
         kf = Keyframe(idx, torch.as_tensor(c2w, device=self.device), rgb, depth, sem)
+        if self.keyframes:
+            lc = self.cfg.loop
+            prev = self.keyframes[-1].c2w.cpu().numpy().astype(np.float64)
+            self.edges.append(Edge(len(self.keyframes) - 1, len(self.keyframes), np.linalg.inv(prev) @ c2w,
+                                   lc.sigma_rot, lc.sigma_trans))
         self.keyframes.append(kf)
         window = self._window(kf)
         if mc.label_votes:
@@ -479,6 +542,10 @@ class SLAM:
             "kf_sem": np.stack([kf.sem.cpu().numpy() if kf.sem is not None else np.full(kf.depth.shape, -1)
                                 for kf in kfs]) if kfs else np.zeros(0),
             "map_semantic_ids_raw": self.map.semantic_ids.cpu().numpy(),
+            "edge_ij": np.array([[e.i, e.j] for e in self.edges], np.int64).reshape(-1, 2),
+            "edge_rel": np.stack([e.rel for e in self.edges]) if self.edges else np.zeros((0, 4, 4)),
+            "edge_sigma": np.array([[e.sigma_rot, e.sigma_trans] for e in self.edges]).reshape(-1, 2),
+            "edge_loop": np.array([e.kind == "loop" for e in self.edges], bool),
             "since_prune": np.array(self._since_prune)}
         np.savez_compressed(os.path.join(ckpt_dir, "state.npz"), **state)
         meta = {"config": self.cfg.to_dict(), "classes": {str(k): v for k, v in self.classes.items()},
@@ -536,6 +603,10 @@ class SLAM:
                                           None if (sem < 0).all() else
                                           torch.as_tensor(sem.astype(np.int64), device=dev)))
         eng._since_prune = int(st["since_prune"])
+        if "edge_ij" in st:
+            eng.edges = [Edge(int(ij[0]), int(ij[1]), rel, float(sg[0]), float(sg[1]), "loop" if lp else "sequential")
+                         for ij, rel, sg, lp in zip(st["edge_ij"], st["edge_rel"], st["edge_sigma"], st["edge_loop"],
+                                                    strict=True)]
         return eng
 
     @staticmethod

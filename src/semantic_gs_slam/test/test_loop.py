@@ -1,0 +1,172 @@
+"""Loop closure: the pose graph, Gaussians moved with their keyframes, and drift found and corrected."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+import torch
+
+from semantic_gs_slam.config import LoopConfig, MappingConfig, SlamConfig, TrackingConfig
+from semantic_gs_slam.errors import ConfigError
+from semantic_gs_slam.gaussian_map import GaussianMap, _rotmat_to_quat_t
+from semantic_gs_slam.geometry import pose_error, quat_to_rotmat, rotmat_to_quat
+from semantic_gs_slam.posegraph import Edge, optimise, pose_exp, pose_log, so3_exp, so3_log
+from semantic_gs_slam.slam import SLAM
+from semantic_gs_slam.synthetic import HomeRenderer, default_intrinsics, trajectory
+
+
+def test_so3_log_inverts_exp_near_zero_and_near_pi():
+    rng = np.random.default_rng(1)
+    for w in [np.zeros(3), np.array([1e-8, 0, 0]), *rng.normal(0, 1, (5, 3)),
+              np.array([np.pi - 1e-6, 0, 0]), np.array([0, 0, np.pi - 1e-3])]:
+        r = so3_exp(w)
+        assert np.allclose(so3_exp(so3_log(r)), r, atol=1e-6)
+    t = pose_exp(np.array([0.1, -0.2, 0.3, 1.0, 2.0, 3.0]))
+    assert np.allclose(pose_exp(pose_log(t)), t)
+
+
+def _chain(n: int, seed: int = 0) -> list[np.ndarray]:
+    rng = np.random.default_rng(seed)
+    poses = [np.eye(4)]
+    for _ in range(n - 1):
+        poses.append(poses[-1] @ pose_exp(np.r_[rng.normal(0, 0.05, 3), rng.normal(0, 0.2, 3)]))
+    return poses
+
+
+def test_a_loop_edge_spreads_the_drift_of_biased_sequential_edges():
+    truth = _chain(12)
+    bias = pose_exp(np.array([0.0, 0.0, np.radians(0.4), 0.004, 0.0, 0.0]))  # every step measured a bit off
+    seq = [Edge(i, i + 1, np.linalg.inv(truth[i]) @ truth[i + 1] @ bias, 0.005, 0.01) for i in range(11)]
+    dead = [truth[0]]
+    for e in seq:
+        dead.append(dead[-1] @ e.rel)
+    loop = Edge(0, 11, np.linalg.inv(truth[0]) @ truth[11], 0.0025, 0.005, "loop")
+    new, before, after = optimise(dead, seq + [loop])
+    assert after < 0.05 * before
+    err_dead = [pose_error(d, t)[0] for d, t in zip(dead, truth, strict=True)]
+    err_new = [pose_error(p, t)[0] for p, t in zip(new, truth, strict=True)]
+    assert err_dead[-1] > 0.04  # 4.4 cm of drift accumulated
+    assert err_new[-1] < 0.3 * err_dead[-1]
+    assert np.mean(err_new) < 0.5 * np.mean(err_dead)
+    assert np.allclose(new[0], truth[0])  # the gauge stays fixed
+    # without the loop edge the chain is already consistent: nothing moves
+    same, _, _ = optimise(dead, seq)
+    assert max(np.abs(a - b).max() for a, b in zip(same, dead, strict=True)) < 1e-9
+
+
+def test_optimise_refuses_an_edge_to_a_missing_pose():
+    with pytest.raises(ValueError, match="does not join"):
+        optimise([np.eye(4), np.eye(4)], [Edge(0, 2, np.eye(4), 0.01, 0.01)])
+
+
+def test_rotmat_to_quat_matches_numpy_for_general_and_half_turn_rotations():
+    rng = np.random.default_rng(2)
+    rots = [so3_exp(w) for w in rng.normal(0, 1.5, (20, 3))] + [so3_exp(np.array([np.pi, 0, 0])),
+                                                                  so3_exp(np.array([0, np.pi - 1e-4, 0]))]
+    q = _rotmat_to_quat_t(torch.as_tensor(np.stack(rots)))
+    for qi, r in zip(q.numpy(), rots, strict=True):
+        ref = rotmat_to_quat(r)
+        assert min(np.abs(qi - ref).max(), np.abs(qi + ref).max()) < 1e-6
+        assert np.allclose(quat_to_rotmat(torch.as_tensor(qi)).numpy(), r, atol=1e-6)
+
+
+def test_gaussians_move_with_the_transform_of_the_frame_that_created_them():
+    m = GaussianMap("cpu")
+    pts = torch.tensor([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]])
+    for frame, p in zip((0, 5, 9), pts, strict=True):
+        m.add(p[None], torch.rand(1, 3), torch.zeros(1, dtype=torch.int64), torch.full((1,), 0.01), frame,
+              normals=torch.tensor([[0.0, 0.0, 1.0]]))
+    quats0 = m.params["unnorm_rotations"].detach().clone()
+    t1 = pose_exp(np.array([0, 0, np.pi / 2, 1.0, 0, 0]))
+    t2 = pose_exp(np.array([np.pi / 2, 0, 0, 0, 0, 2.0]))
+    m.move_by_frame(torch.tensor([0, 4, 8]), torch.as_tensor(np.stack([np.eye(4), t1, t2])))
+    means = m.params["means3D"].detach().numpy()
+    assert np.allclose(means[0], [1, 0, 0], atol=1e-6)  # frame 0: identity
+    assert np.allclose(means[1], t1[:3, :3] @ [0, 1, 0] + t1[:3, 3], atol=1e-6)  # frame 5: t1
+    assert np.allclose(means[2], t2[:3, :3] @ [0, 0, 1] + t2[:3, 3], atol=1e-6)  # frame 9: t2
+    rot = quat_to_rotmat(m.params["unnorm_rotations"].detach()).numpy()
+    rot0 = quat_to_rotmat(quats0).numpy()
+    assert np.allclose(rot[1], t1[:3, :3] @ rot0[1], atol=1e-6)
+    assert np.allclose(rot[2], t2[:3, :3] @ rot0[2], atol=1e-6)
+    assert np.allclose(m.normals.numpy()[2], t2[:3, :3] @ [0, 0, 1], atol=1e-6)
+    assert m.params["means3D"].requires_grad  # still optimisable
+
+
+def test_loop_config_is_validated():
+    with pytest.raises(ConfigError, match="loop"):
+        LoopConfig(min_overlap=0).check()
+    with pytest.raises(ConfigError, match="loop"):
+        LoopConfig(sigma_trans=0).check()
+    cfg = SlamConfig.from_dict({**SlamConfig(intrinsics=default_intrinsics(64, 36)).to_dict(),
+                                "loop": {"enabled": False}})
+    assert cfg.loop.enabled is False and cfg.loop.min_frame_gap == LoopConfig().min_frame_gap
+
+
+def _out_and_back(n: int) -> list[np.ndarray]:
+    """A path along the orbit and back the same way: its second half revisits the first."""
+    out = trajectory(n, span_deg=50.0)
+    return out + out[::-1]
+
+
+@pytest.fixture(scope="module")
+def frames():
+    k = default_intrinsics(120, 68)
+    ren = HomeRenderer(0)
+    poses = _out_and_back(10)
+    return k, poses, [ren.render(p, k) for p in poses]
+
+
+def _drift(i: int) -> np.ndarray:
+    """Injected drift at frame i: 0.15 deg and 0.35 cm per frame, in the world frame."""
+    return pose_exp(np.array([0.0, 0.0, np.radians(0.15) * i, 0.0035 * i, 0.0, 0.0]))
+
+
+def _run(k, poses, views, drift: bool) -> SLAM:
+    cfg = SlamConfig(intrinsics=k, threads=1, tracking=TrackingConfig(use_gt_pose=True),
+                     mapping=MappingConfig(first_frame_iters=20, iters=4),
+                     loop=LoopConfig(min_frame_gap=8))
+    eng = SLAM(cfg, initial_c2w=poses[0])
+    for i, (p, (rgb, depth, sem)) in enumerate(zip(poses, views, strict=True)):
+        # the "ground truth" handed to a use_gt_pose engine is the drifting estimate of a tracker
+        eng.add_frame(rgb, depth, sem, float(i), _drift(i) @ p if drift else p)
+    return eng
+
+
+def test_drift_is_found_reported_and_corrected_where_the_camera_returns(frames, caplog):
+    k, poses, views = frames
+    with caplog.at_level(logging.WARNING, logger="semantic_gs_slam"):
+        eng = _run(k, poses, views, drift=True)
+    assert eng.loops, [lg.loop for lg in eng.logs if lg.keyframe]
+    assert any("drift found" in r.message for r in caplog.records)
+    for lp in eng.loops:
+        f = lp["frame"]
+        injected = pose_error(_drift(f) @ poses[f], poses[f])
+        now = pose_error(eng.poses[f], poses[f])
+        assert lp["found_cm"] > 1.0
+        # the corrected pose is much closer to the truth than the drifted one (translation and rotation)
+        assert now[0] < 0.5 * injected[0] and now[1] < 0.5 * injected[1], (f, injected, now)
+    # the map moved with the keyframes: the keyframe poses kept in the engine are the corrected ones
+    last = eng.loops[-1]["frame"]
+    kf = next(kf for kf in eng.keyframes if kf.index == last)
+    assert np.allclose(kf.c2w.numpy(), eng.poses[last])
+    assert any(e.kind == "loop" for e in eng.edges)
+
+
+def test_no_correction_without_drift(frames):
+    k, poses, views = frames
+    eng = _run(k, poses, views, drift=False)
+    notes = [lg.loop for lg in eng.logs if lg.loop]
+    assert notes, "loop detection never ran: the test would prove nothing"
+    assert eng.loops == [], notes
+    assert all("consistent" in n for n in notes), notes
+
+
+def test_checkpoint_keeps_the_pose_graph(frames, tmp_path):
+    k, poses, views = frames
+    eng = _run(k, poses[:12], views[:12], drift=True)
+    eng.checkpoint(str(tmp_path / "ck"))
+    back = SLAM.resume(str(tmp_path / "ck"))
+    assert [(e.i, e.j, e.kind) for e in back.edges] == [(e.i, e.j, e.kind) for e in eng.edges]
+    assert np.allclose(np.stack([e.rel for e in back.edges]), np.stack([e.rel for e in eng.edges]))
