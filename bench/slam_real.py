@@ -72,7 +72,8 @@ def run_ours(ds, idx: list[int], args: argparse.Namespace) -> dict:
                 err = f" err {et * 100:6.2f} cm {er:5.2f} deg"
             print(f"ours {n + 1:4d}/{len(idx)} frame {i:5d}{' KF' if lg.keyframe else '   '} gaussians "
                   f"{lg.n_gaussians:7d} track {lg.track_s:5.2f} s map {lg.map_s:5.2f} s{err}"
-                  f"{' TRACKING LOST' if lg.tracking_failed else ''}{'  ' + lg.loop if lg.loop else ''}",
+                  f" agree {lg.track_agreement:4.0%}{' TRACKING LOST' if lg.tracking_failed else ''}"
+                  f"{'  ' + lg.loop if lg.loop else ''}",
                   file=sys.stderr, flush=True)
     wall = time.perf_counter() - t0
     res = evaluate(eng, ds, idx, every=args.eval_every)

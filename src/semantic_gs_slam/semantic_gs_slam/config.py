@@ -77,6 +77,8 @@ class TrackingConfig:
     normal_smoothing: int = 5  # box filter (pixels) on the model depth before vertices/normals (1: off)
     min_silhouette: float = 0.5  # model pixels used only where the map is this opaque (depth normalised by it)
     min_correspondences: int = 100  # fewer raises TrackingError (the frame keeps the previous pose, is not mapped)
+    lost_agreement: float = 0.25  # tracking is lost (reported; handled like too few correspondences) when fewer of
+    # the frame's points that land on the map lie within 3 icp_sigma_geo of its surface at the tracked pose
     photometric_iters: int = 0  # optional Adam steps on colour + depth L1 after ICP
     photometric_lr_rot: float = 4e-4
     photometric_lr_trans: float = 2e-3
@@ -155,7 +157,7 @@ class LoopConfig:
     disagreement with the tracked pose is drift, reported and spread over the keyframe pose graph."""
 
     enabled: bool = True
-    min_frame_gap: int = 60  # only keyframes at least this many frames older are loop candidates
+    min_frame_gap: int = 30  # only keyframes at least this many frames older are loop candidates
     min_overlap: float = 0.4  # share of the new keyframe's points that must fall inside the candidate's view
     icp_iters: int = 15  # Gauss-Newton iterations per level of the keyframe-to-keyframe ICP (geometry only)
     icp_levels: int = 3

@@ -119,6 +119,7 @@ class FrameLog:
     map_s: float
     pose_source: str = "tracking"  # tracking | odometry (tracking failed, the odometry guess was kept) |
     # previous (tracking failed, no odometry: previous pose, frame not mapped) | first | ground_truth
+    track_agreement: float = float("nan")  # TrackResult.agreement (share of the frame on the map's surface)
     loop: str = ""  # keyframes: what loop detection found ("" = not checked; see SLAM._close_loop)
 
 
@@ -153,6 +154,7 @@ class SLAM:
         self.loops: list[dict] = []  # every loop correction: frame, old keyframe frame, cm, deg, agreement
         self._since_prune = 0
         self._loop_note = ""
+        self._agreement = float("nan")
 
     # ------------------------------------------------------------------ input
     def _tensors(self, rgb: np.ndarray, depth: np.ndarray, sem: np.ndarray | None
@@ -220,6 +222,7 @@ class SLAM:
         gt = None if gt_c2w is None else np.asarray(gt_c2w, np.float64)
         odom = None if odom_c2w is None else check_pose(odom_c2w, "odom_c2w")
         residual, inliers, failed, source = float("nan"), 0, False, "tracking"
+        self._agreement = float("nan")
         if idx == 0:
             source = "first"
             c2w = next((p for p in (self.initial_c2w, odom, gt) if p is not None), np.eye(4))
@@ -244,7 +247,7 @@ class SLAM:
             added = self._densify(idx, rgb_t, depth_t, sem_t, self.poses[-1])
         t2 = time.perf_counter()
         entry = FrameLog(idx, self.timestamps[-1], is_kf, len(self.map), added, pruned, residual, inliers, failed,
-                         loss, t1 - t0, t2 - t1, source, self._loop_note if is_kf else "")
+                         loss, t1 - t0, t2 - t1, source, self._agreement, self._loop_note if is_kf else "")
         self.logs.append(entry)
         ce = self.cfg.checkpoint_every
         if ce > 0 and (idx + 1) % ce == 0:
@@ -288,6 +291,10 @@ class SLAM:
                                                          prior_sigma_rot=tc.odometry_sigma_rot)
         try:
             res = icp(model_depth, valid, g, depth, self.k, icp_cfg, out.rgb, rgb)
+            self._agreement = res.agreement
+            if res.agreement < tc.lost_agreement:
+                raise TrackingError(f"tracking lost: only {res.agreement:.0%} of the frame's points on the map lie on "
+                                    f"its surface (< {tc.lost_agreement:.0%})")
         except TrackingError as exc:
             if odom_guess is not None and tc.odometry_fallback:
                 log.warning("frame %d: %s; keeping the odometry guess", len(self.poses), exc)

@@ -27,6 +27,8 @@ class TrackResult:
     c2w: Tensor  # [4, 4] float64
     residual: float  # RMS point-to-plane residual of the last iteration (m)
     inliers: int  # correspondences used in the last iteration
+    agreement: float = float("nan")  # of the live points that land on the model at the final pose, the share
+    # within 3 sigma (point-to-plane) of its surface: low when the pose is wrong (see TrackingConfig.lost_agreement)
 
 
 def normal_map(v: Tensor, valid: Tensor) -> tuple[Tensor, Tensor]:
@@ -183,7 +185,7 @@ def icp(model_depth: Tensor, model_valid: Tensor, guess_c2w: Tensor, live_depth:
         okm[:, [0, -1]] = False
         okm[[0, -1]] = False
         col_img = torch.stack([im, gx, gy, okm.to(dt)], -1)  # [H, W, 4]
-    res_rms, n_in = float("nan"), 0
+    res_rms, n_in, agree = float("nan"), 0, float("nan")
     sg, sc = cfg.icp_sigma_geo, cfg.icp_sigma_col
     wg = cfg.geometric_weight
     dev = live_depth.device
@@ -245,10 +247,12 @@ def icp(model_depth: Tensor, model_valid: Tensor, guess_c2w: Tensor, live_depth:
             a += 1e-9 * eye6 * a.diagonal().mean()
             xi = torch.linalg.solve(a, b)
             est = se3_exp(xi) @ est
-            res_rms, step = torch.stack([torch.sqrt((r * r).mean()), xi.abs().max()]).tolist()  # one host copy
+            on_model = ok.to(dt).sum().clamp_min(1.0)
+            res_rms, step, agree = torch.stack([torch.sqrt((r * r).mean()), xi.abs().max(),
+                                                (r.abs() < 3 * sg).to(dt).sum() / on_model]).tolist()  # one host copy
             if step < 1e-6:
                 break
-    return TrackResult(est, res_rms, n_in)
+    return TrackResult(est, res_rms, n_in, agree)
 
 
 def _quat_from_rot(r: Tensor) -> Tensor:
