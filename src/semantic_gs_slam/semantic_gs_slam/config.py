@@ -173,10 +173,11 @@ class LoopConfig:
     loop_sigma_trans: float = 0.005  # metres; confidence of a verified loop registration
     loop_sigma_rot: float = 0.0025  # radians
     check_every: int = 1  # look for a loop at every k-th keyframe
+    candidates: int = 1  # old keyframes registered per check (the most overlapping, min_frame_gap // 2 apart)
 
     def check(self) -> None:
-        if self.min_frame_gap < 1 or self.check_every < 1 or self.icp_levels < 1 or self.icp_iters < 1:
-            raise ConfigError("loop.min_frame_gap, check_every, icp_levels and icp_iters must be >= 1")
+        if min(self.min_frame_gap, self.check_every, self.icp_levels, self.icp_iters, self.candidates) < 1:
+            raise ConfigError("loop.min_frame_gap, check_every, icp_levels, icp_iters and candidates must be >= 1")
         if not 0 < self.min_overlap <= 1 or not 0 < self.min_agreement <= 1:
             raise ConfigError("loop.min_overlap and loop.min_agreement must be in (0, 1]")
         for name in ("sigma_trans", "sigma_rot", "loop_sigma_trans", "loop_sigma_rot", "verify_dist", "icp_max_dist"):

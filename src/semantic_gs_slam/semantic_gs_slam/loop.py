@@ -98,9 +98,9 @@ def agreement(pts_c: Tensor, c2w: Tensor, ref_depth: Tensor, ref_c2w: Tensor, k:
     return float((ok & seen).sum()) / n
 
 
-def find_loop(depth: Tensor, c2w: np.ndarray, frame: int, keyframes: list, k: Intrinsics, lc: LoopConfig,
-              tc: TrackingConfig) -> LoopMatch | None:
-    """Register the current keyframe against its most overlapping old keyframe.
+def find_loops(depth: Tensor, c2w: np.ndarray, frame: int, keyframes: list, k: Intrinsics, lc: LoopConfig,
+               tc: TrackingConfig) -> list[LoopMatch]:
+    """Register the current keyframe against its most overlapping old keyframes.
 
     Args:
         depth: [H, W] the current depth (metres, 0: missing), on the engine's device.
@@ -110,24 +110,39 @@ def find_loop(depth: Tensor, c2w: np.ndarray, frame: int, keyframes: list, k: In
         k: intrinsics. lc: loop settings. tc: tracking settings (the ICP's other knobs).
 
     Returns:
-        The match (judge it with :meth:`LoopMatch.verdict`), or None when no old keyframe overlaps
-        enough or the registration found too few correspondences.
+        Up to ``lc.candidates`` matches, best overlap first (judge each with :meth:`LoopMatch.verdict`),
+        from keyframes at least ``lc.min_frame_gap`` frames old that overlap by ``lc.min_overlap`` and lie
+        ``lc.min_frame_gap // 2`` frames apart from each other; empty when none qualifies or every
+        registration found too few correspondences.
     """
     pts = sample_points(depth, k)
     if pts.shape[0] < 50:
-        return None
+        return []
     cur = torch.as_tensor(c2w, dtype=torch.float64, device=depth.device)
     world = pts @ cur[:3, :3].T + cur[:3, 3]
-    best, best_ov = -1, 0.0
+    scored = []
     for i, kf in enumerate(keyframes):
         if kf.index > frame - lc.min_frame_gap:
             break
         ov = overlap(world, kf.c2w.double(), k)
-        if ov > best_ov:
-            best, best_ov = i, ov
-    if best < 0 or best_ov < lc.min_overlap:
-        return None
-    ref = keyframes[best]
+        if ov >= lc.min_overlap:
+            scored.append((ov, i))
+    picked: list[tuple[float, int]] = []
+    for ov, i in sorted(scored, reverse=True):
+        if all(abs(keyframes[i].index - keyframes[j].index) >= lc.min_frame_gap // 2 for _, j in picked):
+            picked.append((ov, i))
+        if len(picked) >= lc.candidates:
+            break
+    out = []
+    for ov, i in picked:
+        m = _register(pts, cur, depth, i, keyframes[i], ov, k, lc, tc)
+        if m is not None:
+            out.append(m)
+    return out
+
+
+def _register(pts: Tensor, cur: Tensor, depth: Tensor, pos: int, ref, ov: float, k: Intrinsics, lc: LoopConfig,
+              tc: TrackingConfig) -> LoopMatch | None:
     ref_c2w = ref.c2w.double()
     before = agreement(pts, cur, ref.depth, ref_c2w, k, lc.verify_dist)
     cfg = replace(tc, icp_iters=lc.icp_iters, icp_levels=lc.icp_levels, icp_max_dist=lc.icp_max_dist,
@@ -139,5 +154,5 @@ def find_loop(depth: Tensor, c2w: np.ndarray, frame: int, keyframes: list, k: In
     reg = res.c2w.to(torch.float64)
     after = agreement(pts, reg, ref.depth, ref_c2w, k, lc.verify_dist)
     reg_np = reg.cpu().numpy()
-    dt, dr = pose_error(np.asarray(c2w, np.float64), reg_np)
-    return LoopMatch(best, ref.index, reg_np, best_ov, before, after, dt, dr, res.residual)
+    dt, dr = pose_error(cur.cpu().numpy(), reg_np)
+    return LoopMatch(pos, ref.index, reg_np, ov, before, after, dt, dr, res.residual)

@@ -30,7 +30,7 @@ from semantic_gs_slam.gaussian_map import (
     save_params,
     save_semantic_json,
 )
-from semantic_gs_slam.loop import LoopMatch, find_loop
+from semantic_gs_slam.loop import LoopMatch, find_loops
 from semantic_gs_slam.metrics import ssim
 from semantic_gs_slam.posegraph import Edge
 from semantic_gs_slam.posegraph import optimise as optimise_graph
@@ -394,38 +394,38 @@ class SLAM:
 
     def _close_loop(self, idx: int, depth: Tensor) -> str:
         """Loop closure at a new keyframe (before it is added): register it against its most overlapping old
-        keyframe; verified drift is logged, added to the pose graph as a loop edge and spread over the
-        keyframes (poses, keyframe poses and the Gaussians they created move together). Returns a note."""
+        keyframes (``loop.candidates``); verified drift is logged, added to the pose graph as loop edges and
+        spread over the keyframes (poses, keyframe poses and the Gaussians they created move together).
+        Returns a note for the frame's log."""
         lc = self.cfg.loop
         n_kf = len(self.keyframes)
         if not lc.enabled or n_kf < 2 or n_kf % lc.check_every:
             return ""
-        c2w = self.poses[-1]
-        match = find_loop(depth, c2w, idx, self.keyframes, self.k, lc, self.cfg.tracking)
-        if match is None:
-            return ""
-        verdict = match.verdict(lc)
-        note = (f"loop with frame {match.frame}: {verdict} ({match.correction_m * 100:.1f} cm, "
-                f"{match.correction_deg:.2f} deg, agreement {match.agreement_before:.0%} -> "
-                f"{match.agreement_after:.0%})")
-        if verdict != "correct":
-            return note
-        log.warning("frame %d: drift found against the keyframe of frame %d: %.1f cm, %.2f deg; correcting the "
-                    "trajectory and the map", idx, match.frame, match.correction_m * 100, match.correction_deg)
-        self._apply_loop(idx, match)
-        return note
+        matches = find_loops(depth, self.poses[-1], idx, self.keyframes, self.k, lc, self.cfg.tracking)
+        notes, correct, usable = [], [], []
+        for m in matches:
+            verdict = m.verdict(lc)
+            notes.append(f"loop with frame {m.frame}: {verdict} ({m.correction_m * 100:.1f} cm, "
+                         f"{m.correction_deg:.2f} deg, agreement {m.agreement_before:.0%} -> {m.agreement_after:.0%})")
+            correct += [m] if verdict == "correct" else []
+            usable += [m] if verdict in ("correct", "consistent") else []
+        if correct:
+            m = correct[0]
+            log.warning("frame %d: drift found against the keyframe of frame %d: %.1f cm, %.2f deg; correcting the "
+                        "trajectory and the map", idx, m.frame, m.correction_m * 100, m.correction_deg)
+            self._apply_loop(idx, usable)  # verified registrations that agree with the tracking constrain too
+        return "; ".join(notes)
 
-    def _apply_loop(self, idx: int, match: LoopMatch) -> None:
-        """Add the current keyframe and the loop edge to the pose graph, optimise it, move poses and Gaussians."""
+    def _apply_loop(self, idx: int, matches: list[LoopMatch]) -> None:
+        """Add the current keyframe and the loop edges to the pose graph, optimise it, move poses and Gaussians."""
         lc = self.cfg.loop
         old = [kf.c2w.cpu().numpy().astype(np.float64) for kf in self.keyframes] + [self.poses[-1]]
         cur = len(old) - 1
-        edges = self.edges + [
-            Edge(cur - 1, cur, np.linalg.inv(old[cur - 1]) @ old[cur], lc.sigma_rot, lc.sigma_trans),
-            Edge(match.candidate, cur, np.linalg.inv(old[match.candidate]) @ match.c2w, lc.loop_sigma_rot,
-                 lc.loop_sigma_trans, "loop")]
-        new, cost0, cost1 = optimise_graph(old, edges, fixed=0, iters=5)
-        self.edges.append(edges[-1])  # the loop edge stays; the sequential one is added with the keyframe
+        loops = [Edge(m.candidate, cur, np.linalg.inv(old[m.candidate]) @ m.c2w, lc.loop_sigma_rot,
+                      lc.loop_sigma_trans, "loop") for m in matches]
+        seq = Edge(cur - 1, cur, np.linalg.inv(old[cur - 1]) @ old[cur], lc.sigma_rot, lc.sigma_trans)
+        new, cost0, cost1 = optimise_graph(old, self.edges + [seq] + loops, fixed=0, iters=5)
+        self.edges.extend(loops)  # the loop edges stay; the sequential one is added with the keyframe
         corr = [n @ np.linalg.inv(o) for n, o in zip(new, old, strict=True)]
         starts = [kf.index for kf in self.keyframes] + [idx]
         for f in range(len(self.poses)):
@@ -437,10 +437,11 @@ class SLAM:
                                torch.as_tensor(np.stack(corr), dtype=torch.float32, device=self.device))
         et, er = (float(x) for x in (np.linalg.norm(corr[-1][:3, 3]), np.degrees(np.arccos(
             np.clip((np.trace(corr[-1][:3, :3]) - 1) / 2, -1, 1)))))
-        self.loops.append({"frame": idx, "with_frame": match.frame, "found_cm": match.correction_m * 100,
-                           "found_deg": match.correction_deg, "moved_cm": et * 100, "moved_deg": er,
-                           "agreement_before": match.agreement_before, "agreement_after": match.agreement_after,
-                           "graph_cost_before": cost0, "graph_cost_after": cost1})
+        m = max(matches, key=lambda x: x.correction_m)
+        self.loops.append({"frame": idx, "with_frame": m.frame, "found_cm": m.correction_m * 100,
+                           "found_deg": m.correction_deg, "moved_cm": et * 100, "moved_deg": er,
+                           "agreement_before": m.agreement_before, "agreement_after": m.agreement_after,
+                           "edges": len(matches), "graph_cost_before": cost0, "graph_cost_after": cost1})
 
     def _map_keyframe(self, idx: int, rgb: Tensor, depth: Tensor, sem: Tensor | None) -> tuple[int, int, float]:
         mc = self.cfg.mapping

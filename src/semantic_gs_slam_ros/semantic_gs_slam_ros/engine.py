@@ -48,6 +48,13 @@ class EngineAdapter:
     def num_gaussians(self) -> int:
         return len(self.slam.map)
 
+    def frame_report(self) -> tuple[bool, str]:
+        """(tracking lost, loop-closure note) of the last frame: what the session reports and counts."""
+        if not self.slam.logs:
+            return False, ""
+        lg = self.slam.logs[-1]
+        return bool(lg.tracking_failed), lg.loop
+
 
 def load_slam_config(path: str, intrinsics: tuple[float, float, float, float, int, int],
                      overrides: dict[str, Any] | None = None) -> Any:

@@ -119,6 +119,8 @@ class Progress:
     with_odometry: int = 0  # processed frames that had an odometry pose
     after_done: int = 0  # images that arrived after data_transfer_done (ignored)
     still: int = 0  # frames skipped because the odometry says the camera had not moved (min_motion_*)
+    lost: int = 0  # frames whose tracking was lost (reported by the engine; not mapped)
+    drift_corrections: int = 0  # loop closures that found and corrected drift
 
 
 @dataclass
@@ -333,7 +335,16 @@ class StreamingSession:
                 with self._lock:
                     self._progress.refused += 1
                 continue
+            report = getattr(self.engine, "frame_report", None)
+            lost, loop = report() if report is not None else (False, "")
+            if lost:
+                self._log(f"frame {frame.index}: tracking lost (not mapped; the next frames try again from the "
+                          "last good pose)")
+            if ": correct (" in loop:
+                self._log(f"frame {frame.index}: drift corrected: {loop}")
             with self._lock:
+                self._progress.lost += lost
+                self._progress.drift_corrections += ": correct (" in loop
                 self._progress.processed += 1
                 self._progress.gaussians = int(self.engine.num_gaussians)
                 self._progress.pose = np.asarray(c2w, dtype=float).tolist()
@@ -373,7 +384,10 @@ class StreamingSession:
             return SessionResult(False, "", "", n, f"cannot write the map: {exc}")
         rate = n / max(time.monotonic() - t0, 1e-9)
         ok = self._writer.error is None
-        summary = f"{n} frames processed ({rate:.2f} frames/s), {self.progress().gaussians} Gaussians"
+        p = self.progress()
+        summary = f"{n} frames processed ({rate:.2f} frames/s), {p.gaussians} Gaussians"
+        if p.lost or p.drift_corrections:
+            summary += f", tracking lost on {p.lost} frames, drift corrected {p.drift_corrections} times"
         return SessionResult(ok, map_path, sem_path, n, f"{message + ': ' if message else ''}{summary}")
 
     def _still(self, odom: np.ndarray) -> bool:

@@ -309,3 +309,46 @@ def test_session_tracks_a_frame_without_odometry_when_none_is_near_its_stamp(tmp
     session.data_transfer_done()
     assert session.run().success
     assert len(engine.frames) == 1 and engine.frames[0][1] is None
+
+
+class ReportingEngine(RecordingEngine):
+    """Reports a lost track on its 2nd frame and a drift correction on its 3rd (like EngineAdapter.frame_report)."""
+
+    def frame_report(self):
+        n = len(self.frames)
+        if n == 2:
+            return True, ""
+        if n == 3:
+            return False, "loop with frame 0: correct (4.0 cm, 1.00 deg, agreement 60% -> 85%)"
+        return False, "loop with frame 0: consistent (0.2 cm, 0.10 deg, agreement 90% -> 90%)" if n == 4 else ""
+
+
+def test_session_counts_and_reports_lost_tracks_and_drift_corrections(tmp_path):
+    from semantic_gs_slam_ros.session import SessionConfig, StreamingSession
+
+    logs: list[str] = []
+    cfg = SessionConfig(work_dir=str(tmp_path), width=0, height=0, checkpoint_every=0)
+    session = StreamingSession(cfg, ReportingEngine(), log=logs.append)
+    for t in (1.0, 2.0, 3.0, 4.0):
+        send(session, t)
+    session.data_transfer_done()
+    result = session.run()
+    p = session.progress()
+    assert result.success and p.processed == 4 and p.lost == 1 and p.drift_corrections == 1
+    assert "tracking lost on 1 frames, drift corrected 1 times" in result.message
+    assert any("tracking lost" in m for m in logs) and any("drift corrected" in m for m in logs)
+
+
+def test_engine_adapter_reports_the_engines_last_frame():
+    from semantic_gs_slam.config import SlamConfig
+    from semantic_gs_slam.slam import SLAM
+    from semantic_gs_slam.synthetic import default_intrinsics
+    from semantic_gs_slam_ros.engine import EngineAdapter
+
+    k = default_intrinsics(32, 18)
+    adapter = EngineAdapter(SLAM(SlamConfig(intrinsics=k, threads=1)))
+    assert adapter.frame_report() == (False, "")
+    rgb, depth = np.full((18, 32, 3), 128, np.uint8), np.full((18, 32), 2.0, np.float32)
+    adapter.add_frame(rgb, depth, None, 0.0)
+    assert adapter.frame_report() == (False, "")
+    assert len(adapter.slam.logs) == 1  # the report is the engine's own log of that frame
