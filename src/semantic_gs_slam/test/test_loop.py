@@ -56,6 +56,19 @@ def test_a_loop_edge_spreads_the_drift_of_biased_sequential_edges():
     assert max(np.abs(a - b).max() for a, b in zip(same, dead, strict=True)) < 1e-9
 
 
+def test_batched_residuals_equal_the_scalar_definition():
+    from semantic_gs_slam.posegraph import _residuals, _rigid_inv, edge_residual
+
+    rng = np.random.default_rng(3)
+    ti, tj, rel = (np.stack([pose_exp(np.r_[rng.normal(0, 1, 3), rng.normal(0, 2, 3)]) for _ in range(8)])
+                   for _ in range(3))
+    tj[0] = ti[0] @ rel[0]  # a satisfied edge: zero residual
+    tj[1] = ti[1] @ rel[1] @ pose_exp(np.array([np.pi - 1e-5, 0, 0, 0, 0, 0]))  # a residual near a half turn
+    got = _residuals(ti, tj, _rigid_inv(rel))
+    want = np.stack([edge_residual(a, b, c) for a, b, c in zip(ti, tj, rel, strict=True)])
+    assert np.allclose(got, want, atol=1e-9) and np.abs(got[0]).max() < 1e-9
+
+
 def test_optimise_refuses_an_edge_to_a_missing_pose():
     with pytest.raises(ValueError, match="does not join"):
         optimise([np.eye(4), np.eye(4)], [Edge(0, 2, np.eye(4), 0.01, 0.01)])
