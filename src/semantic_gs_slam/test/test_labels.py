@@ -236,6 +236,42 @@ def test_name_instance_round_trip(tmp_path, capsys):
     assert "no semantic.json" in capsys.readouterr().err
 
 
+def _two_objects_map(folder) -> None:
+    rng = np.random.default_rng(0)
+    mug = rng.normal([0.4, 0.0, 1.6], 0.03, (60, 3))
+    box = rng.normal([1.0, 0.0, 1.6], 0.05, (80, 3))
+    floor = np.c_[rng.uniform(-1, 2, 200), np.full(200, 0.75), rng.uniform(1, 3, 200)]
+    np.savez_compressed(folder / "params.npz", means3D=np.vstack([mug, box, floor]).astype(np.float32),
+                        semantic_ids=np.r_[np.full(140, 5), np.full(200, 1)].astype(np.uint8))
+    (folder / "semantic.json").write_text(json.dumps({"segmentation": [{"id": 1, "class": "floor"},
+                                                                        {"id": 5, "class": "object"}]}))
+
+
+def test_name_by_place_gives_one_object_its_own_id_and_the_object_database_finds_it(tmp_path, capsys):
+    from semantic_gs_slam.labels.names import name_at
+
+    _two_objects_map(tmp_path)
+    new_id, n, was = name_at(str(tmp_path), (0.42, 0.01, 1.61), "  my  mug ")
+    assert (new_id, n, was) == (6, 60, "object")  # all of the mug, none of the box 60 cm away, no floor
+    assert read_names(str(tmp_path / "semantic.json")) == {1: "floor", 5: "object", 6: "my mug"}
+    with np.load(tmp_path / "params.npz") as z:
+        ids = z["semantic_ids"]
+        assert ids.dtype == np.uint8 and list(np.bincount(ids)[[1, 5, 6]]) == [200, 80, 60]
+    semantic_map = pytest.importorskip("object_query.semantic_map")
+    db = semantic_map.ObjectDatabase.from_files(str(tmp_path / "params.npz"), str(tmp_path / "semantic.json"))
+    found = db.query("my mug")
+    assert found.found and np.allclose(found.position, (0.4, 0.0, 1.6), atol=0.03)
+    # nothing to name: only floor near the point; a bad name; the CLI reports and exits 2
+    with pytest.raises(MapFormatError, match="nothing but floor"):
+        name_at(str(tmp_path), (0.0, 0.75, 2.0), "rug", radius=0.1)
+    with pytest.raises(ValueError):
+        name_at(str(tmp_path), (1.0, 0.0, 1.6), "")
+    assert names_main(["--map", str(tmp_path), "--at", "1.0", "0.0", "1.6", "--radius", "0.2", "--name", "box"]) == 0
+    assert "80 Gaussians of 'object'" in capsys.readouterr().out
+    assert names_main(["--map", str(tmp_path), "--at", "5", "5", "5", "--name", "ghost"]) == 2
+    assert "nothing but floor" in capsys.readouterr().err
+
+
 # ----------------------------------------------------------------------------- CLI on a label-less real layout
 def test_cli_runs_a_7scenes_layout_with_geometry_labels(tiny_home, tmp_path, capsys):
     from semantic_gs_slam.datasets import load_dataset

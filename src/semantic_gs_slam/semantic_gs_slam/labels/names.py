@@ -2,9 +2,13 @@
 
 The geometry stage gives every object its own semantic id (named ``object``); naming one rewrites its
 entry in the map's ``semantic.json`` (atomically), so the object-query server finds it by the new name
-after its next reload. Usage::
+after its next reload. With ``map_ids: class`` (the default: every geometry instance is class
+``object``) an id names every object at once, so a thing is named by *place* instead: the Gaussians of
+one class within a radius of a point (where the person pointed, or where the robot looked) get a new
+id with the given name, in ``params.npz`` and ``semantic.json``. Usage::
 
     python -m semantic_gs_slam.labels.names --map /tmp/kitchen_map --id 131 --name "my mug"
+    python -m semantic_gs_slam.labels.names --map /tmp/kitchen_map --at 0.37 -0.05 1.62 --name cup
     python -m semantic_gs_slam.labels.names --map /tmp/kitchen_map --list
 """
 
@@ -14,6 +18,8 @@ import argparse
 import json
 import os
 import sys
+
+import numpy as np
 
 from semantic_gs_slam.errors import MapFormatError, SlamError
 
@@ -58,12 +64,91 @@ def name_instance(semantic_json: str, instance_id: int, name: str) -> str:
     return old
 
 
+def _write_names(semantic_json: str, names: dict[int, str]) -> None:
+    tmp = semantic_json + ".tmp"
+    with open(tmp, "w") as fh:
+        json.dump({"segmentation": [{"id": i, "class": c} for i, c in sorted(names.items())]}, fh, indent=1)
+    os.replace(tmp, semantic_json)
+
+
+STRUCTURE = ("floor", "wall", "ceiling")
+
+
+def name_at(map_dir: str, point: tuple[float, float, float], name: str, radius: float = 0.12,
+            of_class: str | None = None) -> tuple[int, int, str]:
+    """Name the thing at ``point``: Gaussians of one class within ``radius`` metres of it get a new id called
+    ``name`` (``params.npz``'s ``semantic_ids`` and ``semantic.json``, each replaced atomically;
+    ``semantic.json`` first, so a reader never sees an id without a name).
+
+    Args:
+        map_dir: folder with ``params.npz`` and ``semantic.json``.
+        point: world coordinates (the map's frame), metres.
+        name: the name people use.
+        radius: metres around ``point``.
+        of_class: the class to take (e.g. ``object``); default: the most common class near the point
+            that is not floor, wall or ceiling.
+
+    Returns:
+        (new id, Gaussians renamed, the class they had).
+
+    Raises:
+        MapFormatError: unreadable files; no Gaussian of that class near the point.
+        ValueError: a bad name, radius or point.
+    """
+    name = " ".join(name.split())
+    if not name or len(name) > MAX_NAME:
+        raise ValueError(f"a name must have 1 to {MAX_NAME} characters, got {name!r}")
+    p = np.asarray(point, np.float64).reshape(-1)
+    if p.shape != (3,) or not np.all(np.isfinite(p)) or not radius > 0:
+        raise ValueError(f"need a finite point (x, y, z) and a radius > 0, got {point} and {radius}")
+    sj = os.path.join(map_dir, "semantic.json")
+    pz = os.path.join(map_dir, "params.npz")
+    names = read_names(sj)
+    try:
+        with np.load(pz, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+    except (OSError, ValueError) as exc:
+        raise MapFormatError(f"{pz}: not a readable map ({exc})") from exc
+    if "means3D" not in arrays or "semantic_ids" not in arrays:
+        raise MapFormatError(f"{pz} has no means3D / semantic_ids")
+    ids = np.asarray(arrays["semantic_ids"]).reshape(-1)
+    near = np.linalg.norm(arrays["means3D"].astype(np.float64) - p, axis=1) < radius
+    if of_class is not None:
+        want = [i for i, c in names.items() if c == of_class]
+        if not want:
+            raise MapFormatError(f"the map has no class {of_class!r} (classes: {sorted(set(names.values()))})")
+        cls = want[0]
+    else:
+        cand, counts = np.unique(ids[near], return_counts=True)
+        ok = [(n, int(i)) for i, n in zip(cand, counts, strict=True) if i > 0 and names.get(int(i)) not in STRUCTURE]
+        if not ok:
+            raise MapFormatError(f"nothing but floor, wall or ceiling within {radius} m of {tuple(p)}")
+        cls = max(ok)[1]
+    sel = near & (ids == cls)
+    if not sel.any():
+        raise MapFormatError(f"no Gaussian of class {names.get(cls, cls)!r} within {radius} m of {tuple(p)}")
+    new_id = max([*names, int(ids.max(initial=0))]) + 1
+    names[new_id] = name
+    _write_names(sj, names)
+    out = ids.astype(np.int64) if new_id > np.iinfo(ids.dtype).max else ids.copy()
+    out[sel] = new_id
+    arrays["semantic_ids"] = out.reshape(np.asarray(arrays["semantic_ids"]).shape)  # [N] or [N, 1], as saved
+    tmp = pz + ".tmp.npz"
+    np.savez_compressed(tmp, **arrays)
+    os.replace(tmp, pz)
+    return new_id, int(sel.sum()), names.get(cls, str(cls))
+
+
 def main(argv: list[str] | None = None) -> int:
     """Command line (see the module docstring); returns the exit code."""
     ap = argparse.ArgumentParser(description="Name an object instance of a saved map.")
     ap.add_argument("--map", required=True, help="map folder (semantic.json inside)")
     ap.add_argument("--id", type=int, help="semantic id of the instance")
     ap.add_argument("--name", help="the name people use for it, e.g. 'my mug'")
+    ap.add_argument("--at", type=float, nargs=3, metavar=("X", "Y", "Z"),
+                    help="name the thing at this point of the map's frame instead of an id")
+    ap.add_argument("--radius", type=float, default=0.12, help="metres around --at (default 0.12)")
+    ap.add_argument("--of-class", help="with --at: the class to take (default: the most common non-structure one)")
     ap.add_argument("--list", action="store_true", help="print the ids and names")
     args = ap.parse_args(argv)
     path = os.path.join(args.map, "semantic.json")
@@ -72,8 +157,12 @@ def main(argv: list[str] | None = None) -> int:
             for i, c in sorted(read_names(path).items()):
                 print(f"{i:5d} {c}")
             return 0
+        if args.at is not None and args.name is not None:
+            new_id, n, was = name_at(args.map, tuple(args.at), args.name, args.radius, args.of_class)
+            print(f"{n} Gaussians of {was!r} within {args.radius} m of {tuple(args.at)} -> id {new_id} {args.name!r}")
+            return 0
         if args.id is None or args.name is None:
-            ap.error("give --id and --name (or --list)")
+            ap.error("give --id and --name, or --at X Y Z and --name (or --list)")
         old = name_instance(path, args.id, args.name)
         print(f"id {args.id}: {old!r} -> {args.name!r}")
     except (SlamError, ValueError) as exc:
