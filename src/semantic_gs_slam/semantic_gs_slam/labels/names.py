@@ -112,6 +112,7 @@ def name_at(map_dir: str, point: tuple[float, float, float], name: str, radius: 
     if "means3D" not in arrays or "semantic_ids" not in arrays:
         raise MapFormatError(f"{pz} has no means3D / semantic_ids")
     ids = np.asarray(arrays["semantic_ids"]).reshape(-1)
+    where = f"({p[0]:.3f}, {p[1]:.3f}, {p[2]:.3f})"
     near = np.linalg.norm(arrays["means3D"].astype(np.float64) - p, axis=1) < radius
     if of_class is not None:
         want = [i for i, c in names.items() if c == of_class]
@@ -122,11 +123,11 @@ def name_at(map_dir: str, point: tuple[float, float, float], name: str, radius: 
         cand, counts = np.unique(ids[near], return_counts=True)
         ok = [(n, int(i)) for i, n in zip(cand, counts, strict=True) if i > 0 and names.get(int(i)) not in STRUCTURE]
         if not ok:
-            raise MapFormatError(f"nothing but floor, wall or ceiling within {radius} m of {tuple(p)}")
+            raise MapFormatError(f"nothing but floor, wall or ceiling within {radius} m of {where}")
         cls = max(ok)[1]
     sel = near & (ids == cls)
     if not sel.any():
-        raise MapFormatError(f"no Gaussian of class {names.get(cls, cls)!r} within {radius} m of {tuple(p)}")
+        raise MapFormatError(f"no Gaussian of class {names.get(cls, cls)!r} within {radius} m of {where}")
     new_id = max([*names, int(ids.max(initial=0))]) + 1
     names[new_id] = name
     _write_names(sj, names)
