@@ -159,6 +159,9 @@ class LoopConfig:
     enabled: bool = True
     min_frame_gap: int = 30  # only keyframes at least this many frames older are loop candidates
     min_overlap: float = 0.4  # share of the new keyframe's points that must fall inside the candidate's view
+    max_view_angle_deg: float = 25.0  # ... and the two cameras must look the same way within this (ICP between views
+    # far apart is biased by what each sees that the other does not: 2-3 cm on the synthetic orbit's 60 degrees)
+    max_view_distance_m: float = 0.6  # ... and stand within this of each other
     icp_iters: int = 15  # Gauss-Newton iterations per level of the keyframe-to-keyframe ICP (geometry only)
     icp_levels: int = 3
     icp_max_dist: float = 0.2  # metres; associations farther apart are rejected (the drift to be found)
@@ -180,7 +183,8 @@ class LoopConfig:
             raise ConfigError("loop.min_frame_gap, check_every, icp_levels, icp_iters and candidates must be >= 1")
         if not 0 < self.min_overlap <= 1 or not 0 < self.min_agreement <= 1:
             raise ConfigError("loop.min_overlap and loop.min_agreement must be in (0, 1]")
-        for name in ("sigma_trans", "sigma_rot", "loop_sigma_trans", "loop_sigma_rot", "verify_dist", "icp_max_dist"):
+        for name in ("sigma_trans", "sigma_rot", "loop_sigma_trans", "loop_sigma_rot", "verify_dist", "icp_max_dist",
+                     "max_view_angle_deg", "max_view_distance_m"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"loop.{name} must be > 0, got {getattr(self, name)}")
 

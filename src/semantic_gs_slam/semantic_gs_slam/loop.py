@@ -99,7 +99,7 @@ def agreement(pts_c: Tensor, c2w: Tensor, ref_depth: Tensor, ref_c2w: Tensor, k:
 
 
 def find_loops(depth: Tensor, c2w: np.ndarray, frame: int, keyframes: list, k: Intrinsics, lc: LoopConfig,
-               tc: TrackingConfig) -> list[LoopMatch]:
+               tc: TrackingConfig, kf_poses: list[np.ndarray] | None = None) -> list[LoopMatch]:
     """Register the current keyframe against its most overlapping old keyframes.
 
     Args:
@@ -111,7 +111,8 @@ def find_loops(depth: Tensor, c2w: np.ndarray, frame: int, keyframes: list, k: I
 
     Returns:
         Up to ``lc.candidates`` matches, best overlap first (judge each with :meth:`LoopMatch.verdict`),
-        from keyframes at least ``lc.min_frame_gap`` frames old that overlap by ``lc.min_overlap`` and lie
+        from keyframes at least ``lc.min_frame_gap`` frames old that overlap by ``lc.min_overlap``, see the
+        scene from nearly the same viewpoint (``lc.max_view_angle_deg``, ``lc.max_view_distance_m``) and lie
         ``lc.min_frame_gap // 2`` frames apart from each other; empty when none qualifies or every
         registration found too few correspondences.
     """
@@ -121,9 +122,14 @@ def find_loops(depth: Tensor, c2w: np.ndarray, frame: int, keyframes: list, k: I
     cur = torch.as_tensor(c2w, dtype=torch.float64, device=depth.device)
     world = pts @ cur[:3, :3].T + cur[:3, 3]
     scored = []
+    c2w = np.asarray(c2w, np.float64)
     for i, kf in enumerate(keyframes):
         if kf.index > frame - lc.min_frame_gap:
             break
+        kc = kf_poses[i] if kf_poses is not None else kf.c2w.detach().cpu().numpy().astype(np.float64)
+        dist, angle = pose_error(kc, c2w)
+        if dist > lc.max_view_distance_m or angle > lc.max_view_angle_deg:
+            continue
         ov = overlap(world, kf.c2w.double(), k)
         if ov >= lc.min_overlap:
             scored.append((ov, i))

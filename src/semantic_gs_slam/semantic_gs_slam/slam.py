@@ -401,7 +401,8 @@ class SLAM:
         n_kf = len(self.keyframes)
         if not lc.enabled or n_kf < 2 or n_kf % lc.check_every:
             return ""
-        matches = find_loops(depth, self.poses[-1], idx, self.keyframes, self.k, lc, self.cfg.tracking)
+        matches = find_loops(depth, self.poses[-1], idx, self.keyframes, self.k, lc, self.cfg.tracking,
+                             [self.poses[kf.index] for kf in self.keyframes])
         notes, correct, usable = [], [], []
         for m in matches:
             verdict = m.verdict(lc)
