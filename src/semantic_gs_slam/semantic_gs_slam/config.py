@@ -79,6 +79,7 @@ class TrackingConfig:
     min_correspondences: int = 100  # fewer raises TrackingError (the frame keeps the previous pose, is not mapped)
     lost_agreement: float = 0.25  # tracking is lost (reported; handled like too few correspondences) when fewer of
     # the frame's points that land on the map lie within 3 icp_sigma_geo of its surface at the tracked pose
+    # (frames given odometry are never declared lost: the odometry prior holds them)
     photometric_iters: int = 0  # optional Adam steps on colour + depth L1 after ICP
     photometric_lr_rot: float = 4e-4
     photometric_lr_trans: float = 2e-3
