@@ -57,7 +57,7 @@ def speak(text: str, voice: str = "en-us", speed: int = 170) -> np.ndarray:
     with tempfile.TemporaryDirectory(prefix="voice_") as tmp:
         raw, out = os.path.join(tmp, "raw.wav"), os.path.join(tmp, "out.wav")
         _run(["espeak-ng", "-v", voice, "-s", str(speed), "-w", raw, text])
-        _run(["sox", raw, "-r", str(SAMPLE_RATE), "-c", "1", "-b", "16", out,
+        _run(["sox", "-R", raw, "-r", str(SAMPLE_RATE), "-c", "1", "-b", "16", out,  # -R: repeatable dither
               "silence", "1", "0.02", "0.5%", "reverse", "silence", "1", "0.02", "0.5%", "reverse"])
         return read_wav(out)
 
