@@ -158,6 +158,9 @@ class LoopConfig:
     disagreement with the tracked pose is drift, reported and spread over the keyframe pose graph."""
 
     enabled: bool = True
+    with_odometry: bool = False  # also on frames given odometry (a robot's stream): off, because on the exploring
+    # robot's sparse 45-degree-apart frames one raw depth image is too weak a reference (a false 49.6 cm
+    # "correction" in 1 of 2 test runs with an 8-frame gap; docs/exploration.md)
     min_frame_gap: int = 30  # only keyframes at least this many frames older are loop candidates
     min_overlap: float = 0.4  # share of the new keyframe's points that must fall inside the candidate's view
     max_view_angle_deg: float = 25.0  # ... and the two cameras must look the same way within this (ICP between views

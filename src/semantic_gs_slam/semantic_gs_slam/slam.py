@@ -401,7 +401,8 @@ class SLAM:
         Returns a note for the frame's log."""
         lc = self.cfg.loop
         n_kf = len(self.keyframes)
-        if not lc.enabled or n_kf < 2 or n_kf % lc.check_every:
+        if not lc.enabled or n_kf < 2 or n_kf % lc.check_every or \
+                (self.odom_poses[-1] is not None and not lc.with_odometry):
             return ""
         matches = find_loops(depth, self.poses[-1], idx, self.keyframes, self.k, lc, self.cfg.tracking,
                              [self.poses[kf.index] for kf in self.keyframes])

@@ -136,14 +136,15 @@ def _drift(i: int) -> np.ndarray:
     return pose_exp(np.array([0.0, 0.0, np.radians(0.15) * i, 0.0035 * i, 0.0, 0.0]))
 
 
-def _run(k, poses, views, drift: bool) -> SLAM:
+def _run(k, poses, views, drift: bool, odometry: bool = False, with_odometry: bool = False) -> SLAM:
     cfg = SlamConfig(intrinsics=k, threads=1, tracking=TrackingConfig(use_gt_pose=True),
                      mapping=MappingConfig(first_frame_iters=20, iters=4),
-                     loop=LoopConfig(min_frame_gap=8))
+                     loop=LoopConfig(min_frame_gap=8, with_odometry=with_odometry))
     eng = SLAM(cfg, initial_c2w=poses[0])
     for i, (p, (rgb, depth, sem)) in enumerate(zip(poses, views, strict=True)):
         # the "ground truth" handed to a use_gt_pose engine is the drifting estimate of a tracker
-        eng.add_frame(rgb, depth, sem, float(i), _drift(i) @ p if drift else p)
+        est = _drift(i) @ p if drift else p
+        eng.add_frame(rgb, depth, sem, float(i), est, odom_c2w=est if odometry else None)
     return eng
 
 
@@ -174,6 +175,12 @@ def test_no_correction_without_drift(frames):
     assert notes, "loop detection never ran: the test would prove nothing"
     assert eng.loops == [], notes
     assert all("consistent" in n for n in notes), notes
+
+
+def test_frames_with_odometry_are_left_to_the_odometry_unless_asked(frames):
+    k, poses, views = frames
+    assert _run(k, poses, views, drift=True, odometry=True).loops == []  # a robot's stream: off by default
+    assert _run(k, poses, views, drift=True, odometry=True, with_odometry=True).loops  # the same frames, switched on
 
 
 def test_checkpoint_keeps_the_pose_graph(frames, tmp_path):
