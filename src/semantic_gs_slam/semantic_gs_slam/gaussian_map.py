@@ -29,7 +29,7 @@ from torch import Tensor
 
 from semantic_gs_slam.config import Intrinsics
 from semantic_gs_slam.errors import MapFormatError
-from semantic_gs_slam.geometry import backproject
+from semantic_gs_slam.geometry import backproject, rotmat_to_quat
 from semantic_gs_slam.render import Gaussians
 
 PARAM_KEYS = ("means3D", "rgb_colors", "unnorm_rotations", "logit_opacities", "log_scales", "semantic_features")
@@ -215,7 +215,9 @@ class GaussianMap:
         rot, trans = tr[slot, :3, :3], tr[slot, :3, 3]  # [N, 3, 3], [N, 3]
         p = {k: v.detach() for k, v in self.params.items()}
         p["means3D"] = (rot @ p["means3D"][:, :, None])[:, :, 0] + trans
-        qc = _rotmat_to_quat_t(tr[:, :3, :3])[slot]  # [N, 4]
+        # [K, 4] quaternions of the few corrections, computed on the host (a loop closure, not a per-frame cost)
+        qk = np.stack([rotmat_to_quat(r) for r in transforms[:, :3, :3].detach().cpu().numpy()])
+        qc = torch.as_tensor(qk, dtype=torch.float32, device=dev)[slot]  # [N, 4]
         p["unnorm_rotations"] = _quat_mul(qc, p["unnorm_rotations"])
         self.normals = (rot @ self.normals[:, :, None])[:, :, 0]
         self._set(p, self.semantic_ids, self.timestep)
@@ -358,7 +360,6 @@ def save_params(path: str, gmap: GaussianMap, k: Intrinsics, est_w2c: list[np.nd
         timestamps: each frame's time stamp (s), stored as ``timestamps`` [T] float64 (an extra key
             SplaTAM's readers ignore), so a trajectory can be matched to another clock's poses.
     """
-    from semantic_gs_slam.geometry import rotmat_to_quat
 
     a = gmap.to_arrays()
     t = len(est_w2c)
@@ -442,28 +443,3 @@ def _quat_mul(a: Tensor, b: Tensor) -> Tensor:
     bw, bx, by, bz = b.unbind(-1)
     return torch.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
                         aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], -1)
-
-
-def _rotmat_to_quat_t(r: Tensor) -> Tensor:
-    """Unit quaternions [K, 4] (w, x, y, z) of rotation matrices [K, 3, 3] (torch; for near-identity and general
-    rotations: the largest of the four candidate denominators is used per row)."""
-    m = r
-    tr = m[:, 0, 0] + m[:, 1, 1] + m[:, 2, 2]
-    cands = torch.stack([tr, m[:, 0, 0], m[:, 1, 1], m[:, 2, 2]], -1)  # [K, 4]
-    pick = cands.argmax(-1)
-    q = torch.zeros(r.shape[0], 4, dtype=r.dtype, device=r.device)
-    s0 = torch.sqrt((1 + tr).clamp_min(1e-12)) * 2
-    q0 = torch.stack([0.25 * s0, (m[:, 2, 1] - m[:, 1, 2]) / s0, (m[:, 0, 2] - m[:, 2, 0]) / s0,
-                      (m[:, 1, 0] - m[:, 0, 1]) / s0], -1)
-    s1 = torch.sqrt((1 + m[:, 0, 0] - m[:, 1, 1] - m[:, 2, 2]).clamp_min(1e-12)) * 2
-    q1 = torch.stack([(m[:, 2, 1] - m[:, 1, 2]) / s1, 0.25 * s1, (m[:, 0, 1] + m[:, 1, 0]) / s1,
-                      (m[:, 0, 2] + m[:, 2, 0]) / s1], -1)
-    s2 = torch.sqrt((1 + m[:, 1, 1] - m[:, 0, 0] - m[:, 2, 2]).clamp_min(1e-12)) * 2
-    q2 = torch.stack([(m[:, 0, 2] - m[:, 2, 0]) / s2, (m[:, 0, 1] + m[:, 1, 0]) / s2, 0.25 * s2,
-                      (m[:, 1, 2] + m[:, 2, 1]) / s2], -1)
-    s3 = torch.sqrt((1 + m[:, 2, 2] - m[:, 0, 0] - m[:, 1, 1]).clamp_min(1e-12)) * 2
-    q3 = torch.stack([(m[:, 1, 0] - m[:, 0, 1]) / s3, (m[:, 0, 2] + m[:, 2, 0]) / s3, (m[:, 1, 2] + m[:, 2, 1]) / s3,
-                      0.25 * s3], -1)
-    allq = torch.stack([q0, q1, q2, q3], 1)  # [K, 4 candidates, 4]
-    q = allq[torch.arange(r.shape[0], device=r.device), pick]
-    return q / q.norm(dim=-1, keepdim=True)

@@ -30,6 +30,7 @@ from semantic_gs_slam.gaussian_map import (
     save_params,
     save_semantic_json,
 )
+from semantic_gs_slam.geometry import pose_error
 from semantic_gs_slam.loop import LoopMatch, find_loops
 from semantic_gs_slam.metrics import ssim
 from semantic_gs_slam.posegraph import Edge
@@ -423,7 +424,7 @@ class SLAM:
     def _apply_loop(self, idx: int, matches: list[LoopMatch]) -> None:
         """Add the current keyframe and the loop edges to the pose graph, optimise it, move poses and Gaussians."""
         lc = self.cfg.loop
-        old = [kf.c2w.cpu().numpy().astype(np.float64) for kf in self.keyframes] + [self.poses[-1]]
+        old = [self.poses[kf.index] for kf in self.keyframes] + [self.poses[-1]]  # host copies of the kf poses
         cur = len(old) - 1
         loops = [Edge(m.candidate, cur, np.linalg.inv(old[m.candidate]) @ m.c2w, lc.loop_sigma_rot,
                       lc.loop_sigma_trans, "loop") for m in matches]
@@ -439,8 +440,7 @@ class SLAM:
             kf.c2w = torch.as_tensor(n, device=self.device)
         self.map.move_by_frame(torch.as_tensor(starts, dtype=torch.int64, device=self.device),
                                torch.as_tensor(np.stack(corr), dtype=torch.float32, device=self.device))
-        et, er = (float(x) for x in (np.linalg.norm(corr[-1][:3, 3]), np.degrees(np.arccos(
-            np.clip((np.trace(corr[-1][:3, :3]) - 1) / 2, -1, 1)))))
+        et, er = pose_error(np.eye(4), corr[-1])
         m = max(matches, key=lambda x: x.correction_m)
         self.loops.append({"frame": idx, "with_frame": m.frame, "found_cm": m.correction_m * 100,
                            "found_deg": m.correction_deg, "moved_cm": et * 100, "moved_deg": er,
@@ -455,7 +455,7 @@ class SLAM:
         kf = Keyframe(idx, torch.as_tensor(c2w, device=self.device), rgb, depth, sem)
         if self.keyframes:
             lc = self.cfg.loop
-            prev = self.keyframes[-1].c2w.cpu().numpy().astype(np.float64)
+            prev = self.poses[self.keyframes[-1].index]
             self.edges.append(Edge(len(self.keyframes) - 1, len(self.keyframes), np.linalg.inv(prev) @ c2w,
                                    lc.sigma_rot, lc.sigma_trans))
         self.keyframes.append(kf)

@@ -48,12 +48,14 @@ class EngineAdapter:
     def num_gaussians(self) -> int:
         return len(self.slam.map)
 
-    def frame_report(self) -> tuple[bool, str]:
-        """(tracking lost, loop-closure note) of the last frame: what the session reports and counts."""
+    def frame_report(self) -> tuple[bool, bool, str]:
+        """(tracking lost, drift corrected, loop-closure note) of the last frame: what the session reports and
+        counts."""
         if not self.slam.logs:
-            return False, ""
+            return False, False, ""
         lg = self.slam.logs[-1]
-        return bool(lg.tracking_failed), lg.loop
+        corrected = bool(self.slam.loops) and self.slam.loops[-1]["frame"] == lg.index
+        return bool(lg.tracking_failed), corrected, lg.loop
 
 
 def load_slam_config(path: str, intrinsics: tuple[float, float, float, float, int, int],

@@ -336,15 +336,15 @@ class StreamingSession:
                     self._progress.refused += 1
                 continue
             report = getattr(self.engine, "frame_report", None)
-            lost, loop = report() if report is not None else (False, "")
+            lost, corrected, loop = report() if report is not None else (False, False, "")
             if lost:
                 self._log(f"frame {frame.index}: tracking lost (not mapped; the next frames try again from the "
                           "last good pose)")
-            if ": correct (" in loop:
+            if corrected:
                 self._log(f"frame {frame.index}: drift corrected: {loop}")
             with self._lock:
                 self._progress.lost += lost
-                self._progress.drift_corrections += ": correct (" in loop
+                self._progress.drift_corrections += corrected
                 self._progress.processed += 1
                 self._progress.gaussians = int(self.engine.num_gaussians)
                 self._progress.pose = np.asarray(c2w, dtype=float).tolist()

@@ -317,10 +317,11 @@ class ReportingEngine(RecordingEngine):
     def frame_report(self):
         n = len(self.frames)
         if n == 2:
-            return True, ""
+            return True, False, ""
         if n == 3:
-            return False, "loop with frame 0: correct (4.0 cm, 1.00 deg, agreement 60% -> 85%)"
-        return False, "loop with frame 0: consistent (0.2 cm, 0.10 deg, agreement 90% -> 90%)" if n == 4 else ""
+            return False, True, "loop with frame 0: correct (4.0 cm, 1.00 deg, agreement 60% -> 85%)"
+        note = "loop with frame 0: consistent (0.2 cm, 0.10 deg, agreement 90% -> 90%)"
+        return False, False, note if n == 4 else ""
 
 
 def test_session_counts_and_reports_lost_tracks_and_drift_corrections(tmp_path):
@@ -347,8 +348,8 @@ def test_engine_adapter_reports_the_engines_last_frame():
 
     k = default_intrinsics(32, 18)
     adapter = EngineAdapter(SLAM(SlamConfig(intrinsics=k, threads=1)))
-    assert adapter.frame_report() == (False, "")
+    assert adapter.frame_report() == (False, False, "")
     rgb, depth = np.full((18, 32, 3), 128, np.uint8), np.full((18, 32), 2.0, np.float32)
     adapter.add_frame(rgb, depth, None, 0.0)
-    assert adapter.frame_report() == (False, "")
+    assert adapter.frame_report() == (False, False, "")
     assert len(adapter.slam.logs) == 1  # the report is the engine's own log of that frame

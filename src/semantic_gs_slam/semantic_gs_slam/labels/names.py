@@ -57,10 +57,7 @@ def name_instance(semantic_json: str, instance_id: int, name: str) -> str:
         raise MapFormatError(f"{semantic_json} has no id {instance_id} (known: {sorted(names)[:20]} ...)")
     old = names[instance_id]
     names[instance_id] = name
-    tmp = semantic_json + ".tmp"
-    with open(tmp, "w") as fh:
-        json.dump({"segmentation": [{"id": i, "class": c} for i, c in sorted(names.items())]}, fh, indent=1)
-    os.replace(tmp, semantic_json)
+    _write_names(semantic_json, names)
     return old
 
 
