@@ -95,7 +95,6 @@ def part_a(frames: int, width: int, height: int, tmp: str) -> None:
 
 
 def part_b(rates: list[float], seconds: float, tmp: str) -> None:
-    from rclpy.action import ActionClient
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
     from semantic_gs_slam_interfaces.action import RunSlam
     from sensor_msgs.msg import CameraInfo, Image
@@ -105,6 +104,7 @@ def part_b(rates: list[float], seconds: float, tmp: str) -> None:
     from home_robot_bringup.domain import DomainLease
     from home_robot_bringup.nodeset import NodeSpec
     from home_robot_bringup.process import Supervisor, node_environment
+    from home_robot_ros.actions import ActionClient
     from semantic_gs_slam_ros.images import array_to_image_fields
 
     w, h = 1200, 680

@@ -29,13 +29,33 @@ def test_every_package_has_a_standard_manifest():
         email = root.find("maintainer").get("email")
         assert "@" in email and "." in email.split("@")[1]
     assert {"decision_maker", "decision_maker_interfaces", "object_query", "object_query_interfaces", "nav2_msgs",
-            "home_robot_bringup", "semantic_gs_slam", "semantic_gs_slam_ros"} <= set(names)
+            "home_robot_bringup", "home_robot_ros", "semantic_gs_slam", "semantic_gs_slam_ros"} <= set(names)
 
 
 def test_slam_core_package_does_not_depend_on_ros():
     root = ET.parse(os.path.join(ROOT, "src", "semantic_gs_slam", "package.xml")).getroot()
     deps = {e.text for e in root if e.tag.endswith("depend")}
     assert not deps & {"rclpy", "std_msgs", "sensor_msgs"}
+
+
+def test_action_clients_are_the_race_free_one():
+    """Every action client is home_robot_ros.actions.ActionClient (rclpy's loses early replies: ros2/rclpy#1123),
+    and every package that uses it declares the dependency."""
+    offenders, undeclared = [], []
+    for path in glob.glob(os.path.join(ROOT, "src", "**", "*.py"), recursive=True) + \
+            glob.glob(os.path.join(ROOT, "bench", "*.py")):
+        text = open(path).read()
+        rel = os.path.relpath(path, ROOT)
+        if rel.startswith(os.path.join("src", "home_robot_ros")):
+            continue
+        if "from rclpy.action import ActionClient" in text or "rclpy.action.ActionClient(" in text:
+            offenders.append(rel)
+        if "home_robot_ros.actions" in text and rel.startswith("src") and "/test/" not in rel:
+            manifest = os.path.join(ROOT, *rel.split(os.sep)[:2], "package.xml")
+            if "<exec_depend>home_robot_ros</exec_depend>" not in open(manifest).read():
+                undeclared.append(rel)
+    assert not offenders, f"use home_robot_ros.actions.ActionClient in {offenders}"
+    assert not undeclared, f"add <exec_depend>home_robot_ros</exec_depend> to the package of {undeclared}"
 
 
 def test_entry_points_follow_ros2_run_layout():

@@ -29,7 +29,6 @@ from action_msgs.msg import GoalStatus
 from decision_maker_interfaces.action import Grasp, Place
 from geometry_msgs.msg import PointStamped, PoseStamped
 from nav2_msgs.action import NavigateToPose
-from rclpy.action import ActionClient
 from rclpy.action.client import ClientGoalHandle
 from rclpy.callback_groups import CallbackGroup
 from rclpy.node import Node
@@ -46,6 +45,7 @@ from decision_maker.errors import (
     ServerUnavailable,
 )
 from decision_maker.execution import AbortToken
+from home_robot_ros.actions import ActionClient
 from object_query.object_query_client import ObjectQueryClient
 
 _STATUS_NAMES = {GoalStatus.STATUS_SUCCEEDED: "succeeded", GoalStatus.STATUS_ABORTED: "aborted",

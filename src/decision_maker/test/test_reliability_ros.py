@@ -17,13 +17,13 @@ import pytest
 from decision_maker_interfaces.action import Grasp, Place
 from geometry_msgs.msg import PoseStamped
 from nav2_msgs.action import NavigateToPose
-from rclpy.action import ActionClient
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
 from decision_maker.command_client import Ack, CommandClient
 from decision_maker.execution import TaskState, TaskStatus
 from home_robot_bringup.testing import wait_for
+from home_robot_ros.actions import ActionClient
 
 pytestmark = pytest.mark.ros
 

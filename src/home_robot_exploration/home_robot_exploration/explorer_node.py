@@ -39,7 +39,6 @@ from action_msgs.msg import GoalStatus
 from geometry_msgs.msg import PoseStamped
 from nav2_msgs.action import NavigateToPose
 from nav_msgs.msg import OccupancyGrid as GridMsg
-from rclpy.action import ActionClient
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image
@@ -51,6 +50,7 @@ from home_robot_exploration.frontiers import FrontierConfig
 from home_robot_exploration.mapping import MappingConfig, MappingResult, MappingRun
 from home_robot_exploration.nodemain import run_node
 from home_robot_exploration.occupancy import UNKNOWN, GridConfig
+from home_robot_ros.actions import ActionClient
 
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 IMAGE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)

@@ -25,7 +25,6 @@ import time
 
 import numpy as np
 import rclpy
-from rclpy.action import ActionClient
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -34,6 +33,7 @@ from semantic_gs_slam_interfaces.action import RunSlam
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String
 
+from home_robot_ros.actions import ActionClient
 from semantic_gs_slam_ros.images import array_to_image_fields
 
 IMAGE_QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
@@ -126,7 +126,10 @@ class SlamClient(Node):
         self._publish_info(k, 0.0)  # the server needs the camera before the first frame
         sent = self._action.send_goal_async(goal, feedback_callback=self._on_feedback)
         handle = _wait(sent, g("server_timeout"))
-        if handle is None or not handle.accepted:
+        if handle is None:
+            log.error(f"no answer to the run_gs_slam goal within {g('server_timeout'):.0f} s (server busy or gone?)")
+            return 2
+        if not handle.accepted:
             log.error("goal rejected (is another run in progress?)")
             return 2
         self._goal_id = bytes(handle.goal_id.uuid).hex()

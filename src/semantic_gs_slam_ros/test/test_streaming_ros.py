@@ -177,12 +177,12 @@ def test_out_of_order_and_missing_depth_over_ros(launch_nodes, ros_node, tmp_pat
     """The test publishes like a camera driver would, but out of order and with one depth missing:
     every complete frame is written, the lone colour image is dropped, nothing is mispaired."""
     import numpy as np
-    from rclpy.action import ActionClient
     from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
     from semantic_gs_slam_interfaces.action import RunSlam
     from sensor_msgs.msg import CameraInfo, Image
     from std_msgs.msg import String
 
+    from home_robot_ros.actions import ActionClient
     from semantic_gs_slam_ros.run_gs_slam_client import image_msg
 
     work = tmp_path / "run"
