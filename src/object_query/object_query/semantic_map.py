@@ -518,19 +518,24 @@ class ObjectDatabase:
                                         _tuple3(split.instance_max[i]), int(counts[i])))
             class_sum[name] = class_sum.get(name, 0.0) + split.instance_sum[i]
 
-        # a class whose points are all in tiny components still gets one instance (all its points)
+        # a class whose points are all in small components (a small object seen from afar: a cup at a low camera
+        # resolution) still gets instances: its components, however small, largest first. Not all of its points as
+        # one instance: two cups across the room would be answered by the empty space between them.
         valid_count = np.bincount(labels, minlength=k + 1)[:k]
         for j in np.flatnonzero(valid_count > 0):
             name = names[j]
             if name in by_class:
                 continue
             pts = means[labels == j].astype(np.float64)
-            inst = ObjectInstance(name, 1, _tuple3(pts.mean(axis=0)), _tuple3(pts.min(axis=0)),
-                                  _tuple3(pts.max(axis=0)), len(pts))
-            by_class[name] = [inst]
+            small = split_instances(pts, np.zeros(len(pts), np.int64), None, 1, config.voxel_size, 1)
+            centres_j = small.instance_sum / np.maximum(small.instance_count, 1)[:, None]
+            by_class[name] = [ObjectInstance(name, i + 1, _tuple3(centres_j[i]), _tuple3(small.instance_min[i]),
+                                             _tuple3(small.instance_max[i]), int(small.instance_count[i]))
+                              for i in range(len(small.instance_count))]
             class_sum[name] = pts.sum(axis=0)
             warnings.append(f"class {name!r} has only {len(pts)} scattered point(s) (no component of "
-                            f"{config.min_instance_points}+ points); using all of them as one instance")
+                            f"{config.min_instance_points}+ points); answering with its {len(small.instance_count)} "
+                            f"small component(s), largest first ({int(small.instance_count[0])} points)")
         empty = [nm for nm in names if nm not in by_class]
         if empty:
             warnings.append(f"class(es) in the table without (usable) points in the map: {', '.join(empty)}")
