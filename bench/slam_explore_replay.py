@@ -5,8 +5,10 @@
 (``work/``: the frames it received, ``completed.jsonl``) and ``camera_poses.npz`` (the camera's true
 and wheel-odometry poses by stamp). This runs the engine over those frames with the odometry as its
 prior, as the server does, and prints each frame's pose source and error against the truth, the
-ATE of SLAM and of the odometry alone, and the time per frame. ``--config`` takes a JSON of
-SlamConfig sections to try other settings on the same frames::
+ATE of SLAM and of the odometry alone (translation and rotation), the time per frame, and where the
+object database puts the bottle, the cup and the trash in the replayed map against the simulator's
+truth. ``--true-poses`` maps with the true poses instead (the objects' error without pose error).
+``--config`` takes a JSON of SlamConfig sections to try other settings on the same frames::
 
     source scripts/env.sh && python bench/slam_explore_replay.py /tmp/explore_map
     python bench/slam_explore_replay.py /tmp/explore_map --config '{"tracking": {"prior_sigma_rot": 0.2}}'
@@ -41,11 +43,18 @@ def nearest(poses: dict[int, np.ndarray], stamp: float, tol_ns: int = 5_000_000)
     return poses[key]
 
 
+def rotation_error_deg(a: np.ndarray, b: np.ndarray) -> float:
+    rel = a[:3, :3].T @ b[:3, :3]
+    return float(np.degrees(np.arccos(np.clip((np.trace(rel) - 1) / 2, -1, 1))))
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("run_dir", help="the --map-dir of a demo_explore run")
     ap.add_argument("--config", default="", help="JSON of SlamConfig sections, e.g. '{\"tracking\": {...}}'")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--true-poses", action="store_true",
+                    help="map with the simulator's true poses (no tracking): the objects' error without pose error")
     ap.add_argument("--min-motion", default="0.05,5", help="metres,degrees: skip still frames like the server")
     args = ap.parse_args(argv)
 
@@ -66,11 +75,14 @@ def main(argv: list[str] | None = None) -> int:
         for sec, vals in json.loads(args.config).items():
             d[sec] = {**d[sec], **vals} if isinstance(vals, dict) else vals
         cfg = SlamConfig.from_dict(d)
+    if args.true_poses:
+        cfg.tracking.use_gt_pose = True
     eng = SLAM(cfg, {i: n for i, n, _ in CLASSES if i > 0})
     min_m, min_deg = (float(v) for v in args.min_motion.split(","))
     last = None
     est_err, odo_err, times = [], [], []
-    print(" frame  source     SLAM err   odom err   ms", file=sys.stderr)
+    est_rot, odo_rot = [], []
+    print(" frame  source     SLAM err  (deg)   odom err  (deg)   ms", file=sys.stderr)
     for f in frames:
         t, o = nearest(truth, f["stamp"]), nearest(odom, f["stamp"])
         if t is None or o is None:
@@ -87,22 +99,50 @@ def main(argv: list[str] | None = None) -> int:
                              .replace(".jpg", ".png"))
         sem = np.asarray(Image.open(sem_p)).astype(np.int64) if os.path.isfile(sem_p) else None
         t0 = time.perf_counter()
-        est = eng.add_frame(rgb, depth, sem, f["stamp"], odom_c2w=o)
+        est = eng.add_frame(rgb, depth, sem, f["stamp"], gt_c2w=t if args.true_poses else None, odom_c2w=o)
         times.append(time.perf_counter() - t0)
         est_err.append(float(np.linalg.norm(est[:3, 3] - t[:3, 3])))
         odo_err.append(float(np.linalg.norm(o[:3, 3] - t[:3, 3])))
+        est_rot.append(rotation_error_deg(est, t))
+        odo_rot.append(rotation_error_deg(o, t))
         lg = eng.logs[-1]
-        print(f"{lg.index:6d}  {lg.pose_source:9s} {est_err[-1] * 100:7.2f} cm {odo_err[-1] * 100:7.2f} cm "
-              f"{times[-1] * 1000:6.0f}", file=sys.stderr)
+        print(f"{lg.index:6d}  {lg.pose_source:9s} {est_err[-1] * 100:7.2f} cm {est_rot[-1]:5.1f}  "
+              f"{odo_err[-1] * 100:7.2f} cm {odo_rot[-1]:5.1f} {times[-1] * 1000:6.0f}", file=sys.stderr)
 
     def rmse(e: list[float]) -> float:
         return float(np.sqrt(np.mean(np.square(e)))) * 100 if e else float("nan")
 
     sources = [lg.pose_source for lg in eng.logs]
     print(f"frames {len(est_err)}; SLAM ATE {rmse(est_err):.2f} cm (max {max(est_err, default=0) * 100:.2f}); "
-          f"odometry alone {rmse(odo_err):.2f} cm (max {max(odo_err, default=0) * 100:.2f}); odometry-only poses "
+          f"rotation max {max(est_rot, default=0):.1f} deg; "
+          f"odometry alone {rmse(odo_err):.2f} cm (max {max(odo_err, default=0) * 100:.2f}, rotation max "
+          f"{max(odo_rot, default=0):.1f} deg); odometry-only poses "
           f"{sources.count('odometry')}; {np.mean(times) * 1000:.0f} ms per frame, {len(eng.map)} Gaussians")
+    print(object_errors(eng))
     return 0
+
+
+def object_errors(eng) -> str:
+    """Each graspable object's position in the replayed map (the object database's answer) vs the simulator's."""
+    import math
+    import tempfile
+
+    from decision_maker.sim_world import SAMPLE_OBJECTS
+    from object_query.semantic_map import ObjectDatabase
+
+    truth = json.loads(SAMPLE_OBJECTS)
+    with tempfile.TemporaryDirectory() as tmp:
+        eng.save(tmp, ply=False)
+        db = ObjectDatabase.from_files(os.path.join(tmp, "params.npz"), os.path.join(tmp, "semantic.json"))
+    parts = []
+    for name in ("bottle", "cup", "trash"):
+        ans = db.query(f"{name}#1")  # the largest instance (the one the object memory serves)
+        if not ans.found:
+            parts.append(f"{name} not found")
+            continue
+        err = min(math.dist(ans.position, p) for oid, p in truth.items() if oid.rstrip("_0123456789") == name)
+        parts.append(f"{name} {err * 100:.1f} cm at ({', '.join(f'{v:.2f}' for v in ans.position)})")
+    return "objects vs truth: " + ", ".join(parts)
 
 
 if __name__ == "__main__":

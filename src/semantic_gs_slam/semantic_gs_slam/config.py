@@ -87,9 +87,19 @@ class TrackingConfig:
     # odom_c2w): much tighter than the constant-velocity guess's, so partial views after a fast turn cannot drag
     # the pose (measured on the exploration camera: ATE 5.4 -> 3.8 cm, bench/slam_explore_replay.py)
     odometry_sigma_rot: float = 0.005  # radians
-    odometry_fallback: bool = True  # frames given odom_c2w keep the odometry guess (and are mapped) when ICP
-    # fails, e.g. a robot turning in place faster than the map overlap allows; without odometry they keep
-    # the previous pose and are not mapped
+    odometry_fallback: bool = True  # frames given odom_c2w keep the odometry guess when ICP fails, e.g. a robot
+    # turning in place faster than the map overlap allows; without odometry they keep the previous pose
+    odometry_map_unverified: bool = False  # map frames whose pose is the odometry's guess (ICP failed or was
+    # refused by the gate). Off: on four exploration runs such frames' labels and Gaussians put objects up to 19 cm
+    # off (6.2 cm at most without them); the next tracked frame maps the view. On: a stream whose frames rarely
+    # track still grows its map
+    odometry_gate_trans: float = 0.05  # metres; frames given odometry: an ICP result farther than this (plus
+    # odometry_gate_fraction of the step's own motion) from the odometry's guess is refused and the guess kept. One
+    # step of wheel odometry is good to a few percent; ICP on a sparse, partial view can slide by decimetres
+    # (measured on the exploring robot: single-frame jumps of 36 cm and 8 degrees). The frame's pose_source is then
+    # odometry_refused. 0 (with odometry_gate_rot_deg 0) = no gate
+    odometry_gate_rot_deg: float = 3.0  # degrees, the same for rotation
+    odometry_gate_fraction: float = 0.1  # of the odometry step's translation (m) and rotation (degrees)
     use_gt_pose: bool = False  # debugging / mapping-only runs: take the ground-truth pose given to add_frame
 
     def check(self) -> None:
@@ -98,6 +108,9 @@ class TrackingConfig:
         for name in ("prior_sigma_trans", "prior_sigma_rot", "odometry_sigma_trans", "odometry_sigma_rot"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"tracking.{name} must be > 0, got {getattr(self, name)}")
+        for name in ("odometry_gate_trans", "odometry_gate_rot_deg", "odometry_gate_fraction"):
+            if not getattr(self, name) >= 0:
+                raise ConfigError(f"tracking.{name} must be >= 0, got {getattr(self, name)}")
 
 
 @dataclass

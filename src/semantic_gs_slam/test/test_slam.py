@@ -4,11 +4,12 @@ from __future__ import annotations
 
 import json
 import os
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
-from semantic_gs_slam.config import Intrinsics, MappingConfig, SlamConfig
+from semantic_gs_slam.config import Intrinsics, MappingConfig, SlamConfig, TrackingConfig
 from semantic_gs_slam.datasets import load_dataset
 from semantic_gs_slam.errors import ConfigError, FrameError, MapFormatError
 from semantic_gs_slam.evaluate import evaluate
@@ -192,19 +193,72 @@ def test_odometry_prior_fixes_the_map_frame_and_tracking_corrects_its_drift(tiny
     assert max(est_err) < 0.03, est_err  # tracking from the odometry guess removes it
 
 
-def test_tracking_failure_keeps_the_odometry_guess_and_still_maps(tiny_home):
+def test_odometry_gate_refuses_what_one_odometry_step_cannot_explain(tiny_home, caplog):
+    """A frame whose odometry jumped 8 cm (a slip): ICP finds the true pose, 8 cm from the odometry's guess. One
+    step of odometry cannot be that far off, so by default that ICP result is refused and the guess kept (on the
+    exploring robot the same check refuses ICP sliding on partial views); with the gate off ICP's pose is used."""
+    ds = load_dataset(str(tiny_home))
+    slip = np.eye(4)
+    slip[0, 3] = 0.08
+    runs = {}
+    for gate in (True, False):
+        cfg = config(ds)
+        if not gate:
+            cfg.tracking.odometry_gate_trans = cfg.tracking.odometry_gate_rot_deg = 0.0
+        eng = SLAM(cfg, ds.classes)
+        for i in range(5):
+            f = ds[i]
+            eng.add_frame(f.rgb, f.depth, f.semantics, f.timestamp, odom_c2w=slip @ f.gt_c2w if i == 4 else f.gt_c2w)
+        runs[gate] = eng
+    gated, free = runs[True], runs[False]
+    truth = ds[4].gt_c2w
+    assert [lg.pose_source for lg in free.logs] == ["first"] + ["tracking"] * 4
+    assert np.linalg.norm(free.poses[4][:3, 3] - truth[:3, 3]) < 0.02  # ICP's pose is right here ...
+    assert [lg.pose_source for lg in gated.logs] == ["first"] + ["tracking"] * 3 + ["odometry_refused"]
+    guess = gated.poses[3] @ np.linalg.inv(ds[3].gt_c2w) @ (slip @ truth)
+    np.testing.assert_allclose(gated.poses[4], guess, atol=1e-9)  # ... and refused: the odometry's guess is kept
+    assert "from the odometry's guess, more than one odometry step can be off" in caplog.text
+    assert not gated.logs[4].tracking_failed  # not lost ...
+    assert gated.logs[4].added == 0 and not gated.logs[4].keyframe  # ... but not mapped either
+
+
+def test_odometry_gate_grows_with_the_step_and_is_checked():
+    cfg = TrackingConfig()
+    with pytest.raises(ConfigError, match="odometry_gate_fraction"):
+        replace(cfg, odometry_gate_fraction=-0.1).check()
+    eng = SLAM.__new__(SLAM)
+    eng.cfg = SlamConfig(intrinsics=Intrinsics(8, 6, 8.0, 8.0, 3.5, 2.5))
+    prev, guess = np.eye(4), np.eye(4)
+    guess[0, 3] = 1.0  # a 1 m step: 5 cm + 10 cm allowed
+    near, far = guess.copy(), guess.copy()
+    near[0, 3] += 0.14
+    far[0, 3] += 0.16
+    assert eng._odometry_gate(prev, guess, near) == ""
+    assert "16.0 cm / 0.0 deg from the odometry's guess" in eng._odometry_gate(prev, guess, far)
+    eng.cfg.tracking.odometry_gate_trans = eng.cfg.tracking.odometry_gate_rot_deg = 0.0  # off
+    assert eng._odometry_gate(prev, guess, far) == ""
+
+
+def test_tracking_failure_keeps_the_odometry_guess_and_maps_it_only_when_asked(tiny_home):
     ds = load_dataset(str(tiny_home))
     cfg = config(ds)
     cfg.tracking.min_correspondences = 10**9  # every ICP fails
     with_odom, without = SLAM(cfg, ds.classes), SLAM(cfg, ds.classes)
+    mapping = SLAM(replace(cfg, tracking=replace(cfg.tracking, odometry_map_unverified=True)), ds.classes)
     for i in range(5):
         f = ds[i]
         with_odom.add_frame(f.rgb, f.depth, f.semantics, f.timestamp, odom_c2w=f.gt_c2w)
+        mapping.add_frame(f.rgb, f.depth, f.semantics, f.timestamp, odom_c2w=f.gt_c2w)
         without.add_frame(f.rgb, f.depth, f.semantics, f.timestamp)
-    assert [lg.pose_source for lg in with_odom.logs] == ["first"] + ["odometry"] * 4
-    assert not any(lg.tracking_failed for lg in with_odom.logs)
-    assert [lg.keyframe for lg in with_odom.logs] == [True, False, False, False, True]
-    np.testing.assert_allclose(with_odom.poses[4], ds[4].gt_c2w, atol=1e-9)
+    for eng in (with_odom, mapping):
+        assert [lg.pose_source for lg in eng.logs] == ["first"] + ["odometry"] * 4
+        assert not any(lg.tracking_failed for lg in eng.logs)  # not lost: the odometry holds the pose
+        np.testing.assert_allclose(eng.poses[4], ds[4].gt_c2w, atol=1e-9)
+    # by default an unconfirmed pose is not mapped (no keyframe, no new Gaussians, no label votes) ...
+    assert [lg.keyframe for lg in with_odom.logs] == [True] + [False] * 4
+    assert [lg.added for lg in with_odom.logs[1:]] == [0] * 4 and len(with_odom.keyframes) == 1
+    # ... and with tracking.odometry_map_unverified it is
+    assert [lg.keyframe for lg in mapping.logs] == [True, False, False, False, True]
     assert [lg.pose_source for lg in without.logs] == ["first"] + ["previous"] * 4
     assert all(lg.tracking_failed for lg in without.logs[1:]) and len(without.keyframes) == 1
     cfg.tracking.odometry_fallback = False
