@@ -209,9 +209,10 @@ class SLAM:
                 ``tracking.use_gt_pose``; fixes the map frame on the first frame).
             odom_c2w: [4, 4] camera-to-world pose from odometry (a robot's wheel odometry moved to the
                 camera), or None. The tracking guess is then the last estimate moved by the odometry's
-                motion since the last frame that had odometry (instead of constant velocity), and
-                when tracking fails that guess is kept and the frame is still mapped
-                (``tracking.odometry_fallback``). Fixes the map frame on the first frame.
+                motion since the last frame that had odometry (instead of constant velocity); when
+                tracking fails (``tracking.odometry_fallback``) or its pose is refused by the odometry
+                gate (``tracking.odometry_gate_*``) that guess is kept, and the frame is not mapped
+                unless ``tracking.odometry_map_unverified``. Fixes the map frame on the first frame.
 
         Returns:
             [4, 4] estimated camera-to-world pose (float64).
