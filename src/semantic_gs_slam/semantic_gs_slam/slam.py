@@ -527,7 +527,8 @@ class SLAM:
             loss = mapping_loss(out, kf.rgb, kf.depth, sem_imgs[j], labelled[j], sem_w[j], mc)
             opt.zero_grad(set_to_none=True)
             loss.backward()
-            opt.step()
+            with torch.device(self.device):  # some torch versions (2.11) make Adam's step counter on the default device
+                opt.step()
         return float(loss.detach()) if loss is not None else float("nan")  # one host copy per keyframe
 
     def refine(self, iters: int) -> float:

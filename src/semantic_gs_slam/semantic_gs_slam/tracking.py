@@ -314,7 +314,8 @@ def photometric_refine(g: Gaussians, c2w: Tensor, rgb: Tensor, depth: Tensor, k:
             best_t = torch.where(better, t.detach(), best_t)
         opt.zero_grad()
         loss.backward()
-        opt.step()
+        with torch.device(q.device):  # some torch versions (2.11) make Adam's step counter on the default device
+            opt.step()
     with torch.no_grad():
         w2c = w2c_from_quat_trans(best_q.double(), best_t.double())
     return torch.linalg.inv(w2c)

@@ -171,13 +171,21 @@ def _basic_index(x: torch.Tensor, idx) -> torch.Tensor:
 
 
 def test_fixed_shape_pieces_forward_under_fake_cuda():
-    from torch._subclasses.fake_tensor import FakeTensorDeviceMismatchError, FakeTensorMode
+    if torch.cuda.is_available():
+        # measured on an H200 (torch 2.11): real CUDA tensors cached by earlier tests leak into the fake mode
+        # ("Please convert all Tensors to FakeTensors first"); there the real-GPU tests cover this
+        pytest.skip("stands in for a GPU on machines without one")
+    from torch._subclasses import fake_tensor
+    from torch._subclasses.fake_tensor import FakeTensorMode
+
+    # torch 2.13 has a dedicated error; 2.11 (the GPU machine's) raises a plain RuntimeError about the devices
+    mismatch = getattr(fake_tensor, "FakeTensorDeviceMismatchError", RuntimeError)
 
     with FakeTensorMode(), _IndexingAsOps():
         cuda = torch.device("cuda")
         res = _fixed_shape_pieces(cuda, grad=False)
         assert {name: v.device.type for name, v in res.items()} == {name: "cuda" for name in res}
-        with pytest.raises(FakeTensorDeviceMismatchError):  # negative control: a CPU tensor mixed in
+        with pytest.raises(mismatch, match="(?i)device"):  # negative control: a CPU tensor mixed in
             res["uv"] + torch.zeros(res["uv"].shape)
 
 
