@@ -43,11 +43,6 @@ def nearest(poses: dict[int, np.ndarray], stamp: float, tol_ns: int = 5_000_000)
     return poses[key]
 
 
-def rotation_error_deg(a: np.ndarray, b: np.ndarray) -> float:
-    rel = a[:3, :3].T @ b[:3, :3]
-    return float(np.degrees(np.arccos(np.clip((np.trace(rel) - 1) / 2, -1, 1))))
-
-
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("run_dir", help="the --map-dir of a demo_explore run")
@@ -61,6 +56,7 @@ def main(argv: list[str] | None = None) -> int:
     from PIL import Image
 
     from semantic_gs_slam.config import Intrinsics, SlamConfig
+    from semantic_gs_slam.geometry import pose_error
     from semantic_gs_slam.slam import SLAM
     from semantic_gs_slam.synthetic import CLASSES
 
@@ -103,8 +99,8 @@ def main(argv: list[str] | None = None) -> int:
         times.append(time.perf_counter() - t0)
         est_err.append(float(np.linalg.norm(est[:3, 3] - t[:3, 3])))
         odo_err.append(float(np.linalg.norm(o[:3, 3] - t[:3, 3])))
-        est_rot.append(rotation_error_deg(est, t))
-        odo_rot.append(rotation_error_deg(o, t))
+        est_rot.append(pose_error(est, t)[1])
+        odo_rot.append(pose_error(o, t)[1])
         lg = eng.logs[-1]
         print(f"{lg.index:6d}  {lg.pose_source:9s} {est_err[-1] * 100:7.2f} cm {est_rot[-1]:5.1f}  "
               f"{odo_err[-1] * 100:7.2f} cm {odo_rot[-1]:5.1f} {times[-1] * 1000:6.0f}", file=sys.stderr)
@@ -116,33 +112,26 @@ def main(argv: list[str] | None = None) -> int:
     print(f"frames {len(est_err)}; SLAM ATE {rmse(est_err):.2f} cm (max {max(est_err, default=0) * 100:.2f}); "
           f"rotation max {max(est_rot, default=0):.1f} deg; "
           f"odometry alone {rmse(odo_err):.2f} cm (max {max(odo_err, default=0) * 100:.2f}, rotation max "
-          f"{max(odo_rot, default=0):.1f} deg); odometry-only poses "
-          f"{sources.count('odometry')}; {np.mean(times) * 1000:.0f} ms per frame, {len(eng.map)} Gaussians")
+          f"{max(odo_rot, default=0):.1f} deg); odometry-only poses {sources.count('odometry')} (ICP failed) + "
+          f"{sources.count('odometry_refused')} (refused by the gate); {np.mean(times) * 1000:.0f} ms per frame, "
+          f"{len(eng.map)} Gaussians")
     print(object_errors(eng))
     return 0
 
 
 def object_errors(eng) -> str:
-    """Each graspable object's position in the replayed map (the object database's answer) vs the simulator's."""
-    import math
+    """Each graspable object's position in the replayed map (the object database's largest instance, the one the
+    object memory serves) against the simulator's truth, as ``demo_explore`` prints it."""
     import tempfile
 
-    from decision_maker.sim_world import SAMPLE_OBJECTS
+    from home_robot_exploration.demo_explore import object_errors as truth_lines
     from object_query.semantic_map import ObjectDatabase
 
-    truth = json.loads(SAMPLE_OBJECTS)
     with tempfile.TemporaryDirectory() as tmp:
         eng.save(tmp, ply=False)
         db = ObjectDatabase.from_files(os.path.join(tmp, "params.npz"), os.path.join(tmp, "semantic.json"))
-    parts = []
-    for name in ("bottle", "cup", "trash"):
-        ans = db.query(f"{name}#1")  # the largest instance (the one the object memory serves)
-        if not ans.found:
-            parts.append(f"{name} not found")
-            continue
-        err = min(math.dist(ans.position, p) for oid, p in truth.items() if oid.rstrip("_0123456789") == name)
-        parts.append(f"{name} {err * 100:.1f} cm at ({', '.join(f'{v:.2f}' for v in ans.position)})")
-    return "objects vs truth: " + ", ".join(parts)
+    found = {name: list(ans.position) for name in ("bottle", "cup", "trash") if (ans := db.query(f"{name}#1")).found}
+    return "objects vs truth:\n" + "\n".join(truth_lines(found))
 
 
 if __name__ == "__main__":

@@ -306,8 +306,9 @@ class SLAM:
             if odom_guess is None and res.agreement < tc.lost_agreement:
                 raise TrackingError(f"tracking lost: only {res.agreement:.0%} of the frame's points on the map lie on "
                                     f"its surface (< {tc.lost_agreement:.0%})")
+            icp_c2w = res.c2w.cpu().numpy()  # [4, 4] float64: the one host copy of the tracked pose
             if odom_guess is not None:
-                refusal = self._odometry_gate(prev, odom_guess, res.c2w.cpu().numpy())
+                refusal = self._odometry_gate(prev, odom_guess, icp_c2w)
                 if refusal:
                     log.warning("frame %d: %s; keeping the odometry guess", len(self.poses), refusal)
                     return odom_guess, float("nan"), 0, False, "odometry_refused"
@@ -317,11 +318,10 @@ class SLAM:
                 return odom_guess, float("nan"), 0, False, "odometry"
             log.warning("frame %d: %s; keeping the previous pose, not mapping this frame", len(self.poses), exc)
             return prev, float("nan"), 0, True, "previous"
-        c2w = res.c2w
         if self.cfg.tracking.photometric_iters > 0:
-            c2w = photometric_refine(self.map.gaussians(), c2w, rgb, depth, self.k, self.cfg.renderer,
-                                     self.cfg.tracking, self.backend)
-        return c2w.cpu().numpy(), res.residual, res.inliers, False, "tracking"
+            icp_c2w = photometric_refine(self.map.gaussians(), res.c2w, rgb, depth, self.k, self.cfg.renderer,
+                                         self.cfg.tracking, self.backend).cpu().numpy()
+        return icp_c2w, res.residual, res.inliers, False, "tracking"
 
     def _odometry_gate(self, prev: np.ndarray, odom_guess: np.ndarray, c2w: np.ndarray) -> str:
         """Why an ICP pose is farther from the odometry's guess than one odometry step can be wrong, or "".
