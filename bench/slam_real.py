@@ -151,8 +151,11 @@ def main() -> int:
     ap.add_argument("--refine-iters", type=int, default=0,
                     help="after the run, refine the map over all keyframes for N iterations (not counted in FPS)")
     ap.add_argument("--quiet", action="store_true", help="no per-frame lines")
+    ap.add_argument("--colour-calib", default="auto",
+                    help="auto (the dataset's own or the layout's default), none (colour as recorded), or a file")
     args = ap.parse_args()
-    ds = load_dataset(args.dataset, size=parse_size(args.size) if args.size else None)
+    ds = load_dataset(args.dataset, size=parse_size(args.size) if args.size else None,
+                      colour_calib=args.colour_calib)
     idx = frame_indices(len(ds), args.start, args.stride, args.frames)
     if ds.poses is None:
         print("the sequence has no reference poses: ATE cannot be computed", file=sys.stderr)

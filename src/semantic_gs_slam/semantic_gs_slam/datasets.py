@@ -32,6 +32,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from semantic_gs_slam.colour_registration import CALIB_FILE, SEVEN_SCENES_COLOUR, ColourCalib, register, scaled
+from semantic_gs_slam.colour_registration import load as load_colour_calib
 from semantic_gs_slam.config import Intrinsics
 from semantic_gs_slam.errors import DatasetError
 
@@ -74,6 +76,9 @@ class Dataset:
         self.classes = classes or {}
         self.native_intrinsics = intrinsics  # the files' camera; ``intrinsics`` is the working one
         self.invalid_depth_raw: int | None = None  # a raw depth value meaning "no depth" besides 0 (7-Scenes: 65535)
+        # the colour camera relative to the depth camera (native size) when colour is not registered to depth;
+        # frames are then re-sampled into the depth camera's pixels (:mod:`semantic_gs_slam.colour_registration`)
+        self.colour_calib: ColourCalib | None = None
 
     def resized(self, width: int, height: int) -> Dataset:
         """The same frames at a working size ``width`` x ``height`` (a shallow copy; the files are untouched).
@@ -107,7 +112,7 @@ class Dataset:
         if self.invalid_depth_raw is not None:
             depth = np.where(depth == self.invalid_depth_raw, 0, depth)
         depth = depth.astype(np.float32) / self.depth_scale
-        if depth.shape != rgb.shape[:2]:
+        if depth.shape != rgb.shape[:2] and self.colour_calib is None:
             raise DatasetError(f"frame {i}: colour {rgb.shape[:2]} and depth {depth.shape} sizes differ")
         sem = None
         if self.sem_paths is not None:
@@ -118,14 +123,21 @@ class Dataset:
                 raise DatasetError(f"frame {i}: semantic {sem.shape} and depth {depth.shape} sizes differ")
             sem = sem.astype(np.int64)
         k = self.native_intrinsics
-        if rgb.shape[:2] != (k.height, k.width):
-            raise DatasetError(f"frame {i}: image {rgb.shape[1]}x{rgb.shape[0]} does not match the intrinsics "
+        if depth.shape != (k.height, k.width):
+            raise DatasetError(f"frame {i}: image {depth.shape[1]}x{depth.shape[0]} does not match the intrinsics "
                                f"{k.width}x{k.height}")
         w = self.intrinsics
+        sx, sy = w.width / k.width, w.height / k.height
+        native_rgb = rgb.shape[1], rgb.shape[0]
         if (w.width, w.height) != (k.width, k.height):
-            rgb = resize_area(rgb, w.width, w.height)
+            cw, ch = round(rgb.shape[1] * sx), round(rgb.shape[0] * sy)
+            rgb = rgb if (cw, ch) == (rgb.shape[1], rgb.shape[0]) else resize_area(rgb, cw, ch)
             depth = resize_nearest(depth, w.width, w.height)
             sem = None if sem is None else resize_nearest(sem, w.width, w.height)
+        if self.colour_calib is not None:  # at the working size: the colour camera's pixels -> the depth camera's
+            c = self.colour_calib  # for colour images of c.width x c.height (0: the files' size)
+            rgb = register(rgb, depth, w.fx, w.fy, w.cx, w.cy, scaled(c, rgb.shape[1] / (c.width or native_rgb[0]),
+                                                                     rgb.shape[0] / (c.height or native_rgb[1])))
         pose = None if self.poses is None else self.poses[i]
         return Frame(i, self.timestamps[i], rgb, depth, sem, pose)
 
@@ -401,6 +413,7 @@ def load_7scenes(root: str, intrinsics: Intrinsics | None = None, depth_scale: f
     ds = Dataset(k, [rgb[i] for i in ids], [depth[i] for i in ids], None, poses, [i / fps for i in ids],
                  depth_scale)
     ds.invalid_depth_raw = 65535
+    ds.colour_calib = SEVEN_SCENES_COLOUR  # one Kinect v1 recorded the dataset; load_dataset may replace it
     return ds
 
 
@@ -433,7 +446,7 @@ def detect_layout(root: str) -> str:
 
 
 def load_dataset(root: str, layout: str = "auto", intrinsics: Intrinsics | None = None,
-                 size: tuple[int, int] | None = None) -> Dataset:
+                 size: tuple[int, int] | None = None, colour_calib: str = "auto") -> Dataset:
     """Open a dataset folder; ``layout`` is ``auto`` or one of :data:`LAYOUTS`.
 
     Args:
@@ -441,13 +454,25 @@ def load_dataset(root: str, layout: str = "auto", intrinsics: Intrinsics | None 
         layout: ``auto`` tells it from the files (:func:`detect_layout`).
         intrinsics: overrides the layout's (native-size) camera.
         size: (width, height) working size; frames are resized and the intrinsics scaled (None: native).
+        colour_calib: how colour meets depth. ``"auto"``: the folder's ``colour-calibration.json`` when
+            present, else the layout's default (7-Scenes: ``colour_registration.SEVEN_SCENES_COLOUR``; the
+            others are registered already); ``"none"``: colour taken as registered; else a calibration
+            file's path (``python -m semantic_gs_slam.colour_registration`` writes one).
 
     Raises:
-        DatasetError: missing folder, unknown layout, bad files.
+        DatasetError: missing folder, unknown layout, bad files, a bad calibration file.
     """
     if not os.path.isdir(root):
         raise DatasetError(f"dataset folder not found: {root}")
     ds = _load(root, layout, intrinsics)
+    if colour_calib == "auto":
+        own = os.path.join(root, CALIB_FILE)
+        if os.path.isfile(own):
+            ds.colour_calib = load_colour_calib(own)
+    elif colour_calib == "none":
+        ds.colour_calib = None
+    else:
+        ds.colour_calib = load_colour_calib(colour_calib)
     return ds.resized(*size) if size is not None else ds
 
 

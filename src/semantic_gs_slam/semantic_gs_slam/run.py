@@ -74,8 +74,11 @@ def label_frame(stage: LabelStage, eng: SLAM, f) -> np.ndarray | None:
 def main(argv: list[str] | None = None) -> int:
     """Entry point (``semantic_gs_slam_run``); returns the exit code."""
     ap = argparse.ArgumentParser(description="Semantic Gaussian-splatting RGB-D SLAM over a dataset folder.")
-    ap.add_argument("--dataset", required=True, help="folder in the replica / sgs / tum layout")
+    ap.add_argument("--dataset", required=True, help="folder in the replica / sgs / tum / 7scenes layout")
     ap.add_argument("--layout", default="auto", choices=["auto", *LAYOUTS])
+    ap.add_argument("--colour-calib", default="auto",
+                    help="colour registered to depth: auto (the folder's colour-calibration.json, else the layout's "
+                         "default: 7-Scenes' Kinect), none (colour as recorded), or a calibration file")
     ap.add_argument("--out", required=True, help="output folder: params.npz, semantic.json, map.ply")
     ap.add_argument("--frames", type=int, default=0, help="use only the first N frames (0: all)")
     ap.add_argument("--stride", type=int, default=1, help="use every k-th frame")
@@ -101,7 +104,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--quiet", action="store_true", help="no per-frame log lines")
     args = ap.parse_args(argv)
     try:
-        ds = load_dataset(args.dataset, args.layout, size=parse_size(args.size) if args.size else None)
+        ds = load_dataset(args.dataset, args.layout, size=parse_size(args.size) if args.size else None,
+                          colour_calib=args.colour_calib)
         idx = frame_indices(len(ds), args.start, args.stride, args.frames)
         cfg = build_config(args, ds.intrinsics)
         stage = LabelStage(LabelConfig(mode=args.labels, onnx_model=args.onnx_model), ds.intrinsics,

@@ -104,7 +104,7 @@ def test_7scenes_scene_folder_names_its_sequences(tmp_path):
 
 def test_resized_dataset_scales_intrinsics_and_never_blends_depth(tmp_path):
     depths = write_7scenes(tmp_path)
-    ds = load_dataset(str(tmp_path), size=(32, 24))
+    ds = load_dataset(str(tmp_path), size=(32, 24), colour_calib="none")  # colour as recorded: plumbing only
     k = ds.intrinsics
     assert (k.width, k.height) == (32, 24)
     assert (k.fx, k.fy, k.cx, k.cy) == (29.25, 29.25, 15.75, 11.75)
@@ -114,7 +114,7 @@ def test_resized_dataset_scales_intrinsics_and_never_blends_depth(tmp_path):
     native = set((depths[1] / 1000.0).astype(np.float32).ravel().tolist()) | {0.0}
     assert set(f.depth.ravel().tolist()) <= native  # nearest: only measured values (or 0), no blends
     # a point projects to the same place (in units of the image) before and after
-    full = load_dataset(str(tmp_path))
+    full = load_dataset(str(tmp_path), colour_calib="none")
     x, z = 0.2, 1.5
     u0 = full.intrinsics.fx * x / z + full.intrinsics.cx
     u1 = k.fx * x / z + k.cx

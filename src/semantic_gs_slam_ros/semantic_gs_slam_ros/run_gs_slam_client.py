@@ -7,6 +7,8 @@ Any layout the SLAM core reads (Replica / NICE-SLAM, SGS-SLAM with semantics, TU
         -p size:=320x240 -p stride:=2 -p start:=0 -p max_frames:=120
 
 ``size`` (``WIDTHxHEIGHT``, "" = the files' size) resizes every frame and scales the camera_info.
+``colour_calib`` (``auto``, ``none`` or a file) re-samples colour into the depth camera's pixels where
+the recording did not register them (7-Scenes; see ``semantic_gs_slam.colour_registration``).
 
 It publishes ``rgb`` (rgb8), ``depth`` (32FC1, metres), ``semantic`` (16UC1 ids, when the
 dataset has them) and ``camera_info`` with the dataset's timestamps, starting on
@@ -54,6 +56,7 @@ class SlamClient(Node):
         p = self.declare_parameter
         p("dataset", "")
         p("layout", "auto")
+        p("colour_calib", "auto")  # colour registered to depth: auto | none | a calibration file
         p("max_frames", 0)
         p("stride", 1)  # send every k-th frame
         p("start", 0)  # first dataset frame to send
@@ -107,11 +110,11 @@ class SlamClient(Node):
         g = lambda name: self.get_parameter(name).value  # noqa: E731
         log = self.get_logger()
         if not g("dataset"):
-            log.error("parameter 'dataset' is required (a Replica, SGS-SLAM or TUM RGB-D folder)")
+            log.error("parameter 'dataset' is required (a Replica, SGS-SLAM, TUM RGB-D or 7-Scenes folder)")
             return 2
         try:
             size = parse_size(g("size")) if g("size") else None
-            data = load_dataset(g("dataset"), g("layout"), size=size)
+            data = load_dataset(g("dataset"), g("layout"), size=size, colour_calib=g("colour_calib"))
             indices = frame_indices(len(data), g("start"), max(1, g("stride")), g("max_frames"))
         except (SlamError, OSError) as exc:
             log.error(f"cannot read dataset {g('dataset')!r}: {exc}")
