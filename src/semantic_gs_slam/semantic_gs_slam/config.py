@@ -150,6 +150,8 @@ class MappingConfig:
     w_semantic: float = 0.3
     semantic_balance: float = 0.5  # semantic L1 weighted by class frequency^-this per keyframe (0: off)
     w_ssim: float = 0.2  # share of (1 - SSIM) in the colour term
+    exposure_compensation: bool = True  # each tracked frame's exposure relative to the map (per-channel gain and
+    # bias, exposure.fit) is taken out of its colour before it is mapped, and put back into renders for evaluation
     prune_opacity: float = 0.005
     prune_max_scale: float = 0.3  # metres; bigger Gaussians are removed
     prune_every: int = 5  # keyframes between pruning passes

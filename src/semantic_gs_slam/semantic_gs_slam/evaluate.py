@@ -7,6 +7,7 @@ import numpy as np
 import torch
 
 from semantic_gs_slam.datasets import Dataset
+from semantic_gs_slam.exposure import to_frame
 from semantic_gs_slam.metrics import ate_rmse, class_iou, confusion, depth_l1, miou, psnr, ssim
 
 
@@ -34,6 +35,9 @@ def evaluate(eng, ds: Dataset, frame_idx: list[int], every: int = 1) -> dict:
         out = eng.render_view(eng.poses[n])
         rgb = torch.as_tensor(f.rgb, device=eng.device)
         img = out.rgb.clamp(0, 1)
+        exp = eng.exposure_of(n) if hasattr(eng, "exposure_of") else None
+        if exp is not None:  # the map keeps the first frame's exposure: render in this frame's (exposure.py)
+            img = to_frame(img, exp)
         ps.append(psnr(img, rgb))
         ss.append(float(ssim(img, rgb)))
         dl.append(depth_l1(out.depth, torch.as_tensor(f.depth, device=eng.device)))

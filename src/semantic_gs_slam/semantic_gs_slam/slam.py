@@ -22,6 +22,9 @@ from torch import Tensor
 from semantic_gs_slam.config import Intrinsics, MappingConfig, SlamConfig
 from semantic_gs_slam.devices import resolve_device
 from semantic_gs_slam.errors import FrameError, MapFormatError, TrackingError
+from semantic_gs_slam.exposure import fit as fit_exposure
+from semantic_gs_slam.exposure import identity as exposure_identity
+from semantic_gs_slam.exposure import to_map
 from semantic_gs_slam.gaussian_map import (
     GaussianMap,
     export_ply,
@@ -155,9 +158,11 @@ class SLAM:
         self.logs: list[FrameLog] = []
         self.edges: list[Edge] = []  # keyframe pose graph (nodes: positions in self.keyframes)
         self.loops: list[dict] = []  # every loop correction: frame, old keyframe frame, cm, deg, agreement
+        self.exposures: list[Tensor] = []  # [2, 3] per frame: live colour = gain * map colour + bias (exposure.fit)
         self._since_prune = 0
         self._loop_note = ""
         self._agreement = float("nan")
+        self._exposure: Tensor | None = None  # this frame's, once densification has fitted it
 
     # ------------------------------------------------------------------ input
     def _tensors(self, rgb: np.ndarray, depth: np.ndarray, sem: np.ndarray | None
@@ -227,6 +232,7 @@ class SLAM:
         odom = None if odom_c2w is None else check_pose(odom_c2w, "odom_c2w")
         residual, inliers, failed, source = float("nan"), 0, False, "tracking"
         self._agreement = float("nan")
+        self._exposure = None
         if idx == 0:
             source = "first"
             c2w = next((p for p in (self.initial_c2w, odom, gt) if p is not None), np.eye(4))
@@ -254,6 +260,9 @@ class SLAM:
             added, pruned, loss = self._map_keyframe(idx, rgb_t, depth_t, sem_t)
         elif self.cfg.mapping.densify_every_frame and not unmapped:
             added = self._densify(idx, rgb_t, depth_t, sem_t, self.poses[-1])
+        # frames not densified (unmapped, or densify_every_frame off) keep the last exposure: it changes slowly
+        self.exposures.append(self._exposure if self._exposure is not None else
+                              self.exposures[-1] if self.exposures else exposure_identity(self.device))
         t2 = time.perf_counter()
         entry = FrameLog(idx, self.timestamps[-1], is_kf, len(self.map), added, pruned, residual, inliers, failed,
                          loss, t1 - t0, t2 - t1, source, self._agreement, self._loop_note if is_kf else "")
@@ -262,6 +271,12 @@ class SLAM:
         if ce > 0 and (idx + 1) % ce == 0:
             self.checkpoint(self.cfg.checkpoint_dir)
         return self.poses[-1].copy()
+
+    def exposure_of(self, n: int) -> Tensor | None:
+        """Frame ``n``'s exposure [2, 3] (gain, bias) when compensation is on, else None (renders as they are)."""
+        if not self.cfg.mapping.exposure_compensation or n >= len(self.exposures):
+            return None
+        return self.exposures[n]
 
     def _new_view(self, c2w: np.ndarray) -> bool:
         """Whether ``c2w`` moved or turned past ``mapping.keyframe_motion_*`` from the last keyframe."""
@@ -390,6 +405,10 @@ class SLAM:
             med = float(err[valid].median()) if bool(valid.any()) else 0.0
             behind = (out.depth > depth) & (err > mc.densify_depth_factor * med)
             mask = valid & ((out.silhouette < mc.densify_silhouette) | behind)
+            if mc.exposure_compensation:  # the frame's exposure against the map rendered at its pose; the new
+                # Gaussians (and a keyframe's stored colour, _map_keyframe) take the map's exposure
+                self._exposure = fit_exposure(out.rgb, out.silhouette, rgb, depth)
+                rgb = to_map(rgb, self._exposure)
             if want_sem and out.semantic is not None:
                 # where the map renders a small object's pixels with another label, add Gaussians there
                 pred = self.map.labels_from_features(out.semantic / out.silhouette.clamp_min(1e-6)[..., None])
@@ -483,6 +502,8 @@ class SLAM:
         self._loop_note = self._close_loop(idx, depth)
         c2w = self.poses[-1]
         added = self._densify(idx, rgb, depth, sem, c2w, keyframe=True)
+        if self._exposure is not None:
+            rgb = to_map(rgb, self._exposure)
         kf = Keyframe(idx, torch.as_tensor(c2w, device=self.device), rgb, depth, sem)
         if self.keyframes:
             lc = self.cfg.loop
@@ -590,7 +611,8 @@ class SLAM:
             "edge_rel": np.stack([e.rel for e in self.edges]) if self.edges else np.zeros((0, 4, 4)),
             "edge_sigma": np.array([[e.sigma_rot, e.sigma_trans] for e in self.edges]).reshape(-1, 2),
             "edge_loop": np.array([e.kind == "loop" for e in self.edges], bool),
-            "since_prune": np.array(self._since_prune)}
+            "since_prune": np.array(self._since_prune),
+            "exposures": torch.stack(self.exposures).cpu().numpy() if self.exposures else np.zeros((0, 2, 3))}
         np.savez_compressed(os.path.join(ckpt_dir, "state.npz"), **state)
         meta = {"config": self.cfg.to_dict(), "classes": {str(k): v for k, v in self.classes.items()},
                 "frames": len(self.poses), "initial_c2w": None if self.initial_c2w is None else
@@ -647,6 +669,9 @@ class SLAM:
                                           None if (sem < 0).all() else
                                           torch.as_tensor(sem.astype(np.int64), device=dev)))
         eng._since_prune = int(st["since_prune"])
+        ex = st["exposures"] if "exposures" in st and len(st["exposures"]) == len(eng.poses) else \
+            np.tile(np.array(exposure_identity().tolist(), np.float32), (len(eng.poses), 1, 1))  # older checkpoints
+        eng.exposures = [torch.as_tensor(e, dtype=torch.float32, device=dev) for e in ex]
         if "edge_ij" in st:
             eng.edges = [Edge(int(ij[0]), int(ij[1]), rel, float(sg[0]), float(sg[1]), "loop" if lp else "sequential")
                          for ij, rel, sg, lp in zip(st["edge_ij"], st["edge_rel"], st["edge_sigma"], st["edge_loop"],
