@@ -152,6 +152,8 @@ class MappingConfig:
     w_ssim: float = 0.2  # share of (1 - SSIM) in the colour term
     exposure_compensation: bool = True  # each tracked frame's exposure relative to the map (per-channel gain and
     # bias, exposure.fit) is taken out of its colour before it is mapped, and put back into renders for evaluation
+    exposure_with_odometry: bool = False  # also on frames given odometry (a robot's stream): off, because on the
+    # exploring robot's sparse views the fit is unreliable (a fixed-exposure simulated camera: gains up to 1.13)
     prune_opacity: float = 0.005
     prune_max_scale: float = 0.3  # metres; bigger Gaussians are removed
     prune_every: int = 5  # keyframes between pruning passes

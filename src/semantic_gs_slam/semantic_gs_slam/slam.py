@@ -405,7 +405,8 @@ class SLAM:
             med = float(err[valid].median()) if bool(valid.any()) else 0.0
             behind = (out.depth > depth) & (err > mc.densify_depth_factor * med)
             mask = valid & ((out.silhouette < mc.densify_silhouette) | behind)
-            if mc.exposure_compensation:  # the frame's exposure against the map rendered at its pose; the new
+            if mc.exposure_compensation and (self.odom_poses[-1] is None or mc.exposure_with_odometry):
+                # the frame's exposure against the map rendered at its pose; the new
                 # Gaussians (and a keyframe's stored colour, _map_keyframe) take the map's exposure
                 self._exposure = fit_exposure(out.rgb, out.silhouette, rgb, depth)
                 rgb = to_map(rgb, self._exposure)

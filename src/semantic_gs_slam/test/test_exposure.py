@@ -55,7 +55,8 @@ def test_fit_returns_the_identity_when_it_cannot_judge_and_clamps_wild_gains():
     assert float(wild[0].min()) == pytest.approx(0.5)
 
 
-def _run(auto_exposure: bool, compensate: bool) -> tuple[SLAM, list]:
+def _run(auto_exposure: bool, compensate: bool, odometry: bool = False, with_odometry: bool = False
+         ) -> tuple[SLAM, list]:
     """The synthetic home (orbit), the camera's auto-exposure brightening frames 6.. by 30 % in red."""
     from semantic_gs_slam.synthetic import HomeRenderer, default_intrinsics, trajectory
 
@@ -64,7 +65,8 @@ def _run(auto_exposure: bool, compensate: bool) -> tuple[SLAM, list]:
     poses = trajectory(10, span_deg=20.0)
     cfg = SlamConfig(intrinsics=k, threads=1, tracking=TrackingConfig(use_gt_pose=True),
                      mapping=MappingConfig(first_frame_iters=30, iters=6, keyframe_every=2,
-                                           exposure_compensation=compensate))
+                                           exposure_compensation=compensate,
+                                           exposure_with_odometry=with_odometry))
     eng = SLAM(cfg)
     frames = []
     for i, p in enumerate(poses):
@@ -73,7 +75,7 @@ def _run(auto_exposure: bool, compensate: bool) -> tuple[SLAM, list]:
         if auto_exposure and i >= 6:
             rgb = np.clip(rgb * np.array([1.3, 1.0, 1.0], np.float32), 0, 1)
         frames.append((rgb, depth, p))
-        eng.add_frame(rgb, depth, None, float(i), p)
+        eng.add_frame(rgb, depth, None, float(i), p, odom_c2w=p if odometry else None)
     return eng, frames
 
 
@@ -119,3 +121,10 @@ def test_a_camera_without_auto_exposure_is_left_alone_and_the_exposures_survive_
     off = SlamConfig.from_dict({**eng.cfg.to_dict(), "mapping": {**eng.cfg.to_dict()["mapping"],
                                                                  "exposure_compensation": False}})
     assert SLAM(off).exposure_of(0) is None
+
+
+def test_frames_with_odometry_are_left_alone_unless_asked():
+    robot, _ = _run(auto_exposure=True, compensate=True, odometry=True)  # a robot's stream: off by default
+    assert torch.equal(torch.stack(robot.exposures)[:, 0], torch.ones(10, 3))
+    asked, _ = _run(auto_exposure=True, compensate=True, odometry=True, with_odometry=True)
+    assert float(torch.stack(asked.exposures)[9, 0, 0]) == pytest.approx(1.3, abs=0.08)
