@@ -15,6 +15,7 @@ import os
 import re
 import shutil
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -96,10 +97,17 @@ class Person:
         with self._lock:
             return -1 if self.memory is None else self.memory.revision
 
-    def call(self, client, request, timeout: float = 10.0):
+    def call(self, client, request, timeout: float = 10.0, resend_every: float = 0.0):
+        """Call and wait for the answer. ``resend_every`` > 0: the server was just restarted, so the graph may
+        still list the old one (``wait_for_service`` true at once) and a request sent before the new server
+        matched the client is lost; send again every ``resend_every`` s until ``timeout``."""
         assert client.wait_for_service(timeout_sec=timeout)
+        deadline = time.monotonic() + timeout
         future = client.call_async(request)
-        assert wait_for(future.done, timeout)
+        while resend_every > 0 and not wait_for(future.done, resend_every) and time.monotonic() < deadline:
+            client.remove_pending_request(future)
+            future = client.call_async(request)
+        assert wait_for(future.done, max(0.0, deadline - time.monotonic()) if resend_every > 0 else timeout)
         return future.result()
 
 
@@ -208,7 +216,7 @@ def test_a_day_with_the_living_memory(launch_nodes, ros_node, tmp_path):
     assert os.path.exists(str(tmp_path / "home.memory.json"))
     query.stop()
     query = launch_nodes(nodes=query_spec, set=query_set)
-    resp = person.call(person.query_client, MemoryQuery.Request(name="cup"))
+    resp = person.call(person.query_client, MemoryQuery.Request(name="cup"), timeout=20.0, resend_every=2.0)
     assert resp.found and len(resp.instances) == 2
     where = {m.id: (m.place, pos(m)) for m in resp.instances}
     assert any(p == "user" and math.dist(xyz, person.truth("cup_1")) < 0.05 for p, xyz in where.values()), where
