@@ -188,16 +188,17 @@ def depth_edges(depth: np.ndarray, jump: float = 0.03, margin: int = 4) -> np.nd
 
 
 def alignment(frames: list[tuple[np.ndarray, np.ndarray]], fx: float, fy: float, cx: float, cy: float,
-              calib: ColourCalib) -> float:
+              calib: ColourCalib, edges: list[np.ndarray] | None = None) -> float:
     """Mean normalised correlation between the registered colour's edges and the depth's discontinuities.
 
     Args:
         frames: (grey colour image [H', W'] float32, depth [H, W] metres) pairs at one size.
         fx, fy, cx, cy: the depth camera at that size. calib: the colour camera at that size.
+        edges: :func:`depth_edges` of each frame's depth, when the caller scores many calibrations (None: computed).
     """
     tot = 0.0
-    for grey, depth in frames:
-        de = depth_edges(depth)
+    for n, (grey, depth) in enumerate(frames):
+        de = depth_edges(depth) if edges is None else edges[n]
         ce = _grad_mag(register(grey[..., None], depth, fx, fy, cx, cy, calib)[..., 0])
         den = math.sqrt(float((ce * ce).sum()) * float((de * de).sum()))
         tot += float((ce * de).sum()) / den if den > 0 else 0.0
@@ -232,7 +233,8 @@ def estimate(frames: list[tuple[np.ndarray, np.ndarray]], fx: float, fy: float, 
     """
     if not frames:
         raise DatasetError("colour registration needs at least one frame")
-    if not any(depth_edges(d).any() for _, d in frames):
+    edges = [depth_edges(d) for _, d in frames]  # once: the search scores a few hundred calibrations
+    if not any(e.any() for e in edges):
         raise DatasetError("no depth discontinuities in these frames: nothing to align the colour with")
     ratio = fy / fx
 
@@ -240,7 +242,7 @@ def estimate(frames: list[tuple[np.ndarray, np.ndarray]], fx: float, fy: float, 
         return ColourCalib(float(q[0]), float(q[0]) * ratio, float(q[1]), float(q[2]), float(q[3]), float(q[4]))
 
     def score(q: np.ndarray) -> float:
-        return alignment(frames, fx, fy, cx, cy, calib_of(q))
+        return alignment(frames, fx, fy, cx, cy, calib_of(q), edges)
 
     def search(p: np.ndarray, best: float, rounds: int) -> tuple[np.ndarray, float]:
         steps = np.array([8.0 * px, 4.0 * px, 4.0 * px, 0.02, 0.02])

@@ -35,7 +35,7 @@ def evaluate(eng, ds: Dataset, frame_idx: list[int], every: int = 1) -> dict:
         out = eng.render_view(eng.poses[n])
         rgb = torch.as_tensor(f.rgb, device=eng.device)
         img = out.rgb.clamp(0, 1)
-        exp = eng.exposure_of(n) if hasattr(eng, "exposure_of") else None
+        exp = eng.exposure_of(n)
         if exp is not None:  # the map keeps the first frame's exposure: render in this frame's (exposure.py)
             img = to_frame(img, exp)
         ps.append(psnr(img, rgb))
