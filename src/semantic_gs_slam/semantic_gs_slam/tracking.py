@@ -9,6 +9,7 @@ photometric refinement then runs Adam on the pose against colour and depth L1.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import torch
@@ -18,6 +19,8 @@ from semantic_gs_slam.config import Intrinsics, RendererConfig, TrackingConfig
 from semantic_gs_slam.errors import TrackingError
 from semantic_gs_slam.geometry import backproject, quat_to_rotmat, se3_exp
 from semantic_gs_slam.render import Gaussians, RenderBackend, RenderOutput, select_backend
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -126,12 +129,245 @@ def _so3_log(r: Tensor) -> Tensor:
     return v * s
 
 
-def _bilinear(img: Tensor, u: Tensor, v: Tensor) -> Tensor:
-    """Sample [H, W, C] at float pixel coordinates u, v [M] (caller keeps them inside [0, W-1) x [0, H-1))."""
-    u0, v0 = torch.floor(u).long(), torch.floor(v).long()
-    fu, fv = (u - u0)[:, None], (v - v0)[:, None]
-    return ((1 - fu) * (1 - fv) * img[v0, u0] + fu * (1 - fv) * img[v0, u0 + 1]
-            + (1 - fu) * fv * img[v0 + 1, u0] + fu * fv * img[v0 + 1, u0 + 1])
+@dataclass
+class _IcpModel:
+    """The model side of one ICP problem, flattened to pixels [H*W, ...] (fixed shapes: one per image size)."""
+
+    vm: Tensor  # [H*W, 3] world vertices (float64)
+    nm: Tensor  # [H*W, 3] world unit normals
+    nvalid: Tensor  # [H*W] bool: vertex and normal usable
+    col: Tensor | None  # [H*W, 4] intensity, d/du, d/dv, usable (1/0); None: geometry only
+    w2c_g: Tensor  # [4, 4] the camera the model was rendered from
+    prior_w: Tensor  # [6, 6] information matrix of the prior toward the guess
+
+
+@dataclass
+class _IcpPoints:
+    """The live points of one pyramid level, every ``stride``-th pixel, missing depth included (weight 0)."""
+
+    lp: Tensor  # [M, 3] camera-frame points (float64; z = 0 where depth is missing)
+    lvalid: Tensor  # [M] bool: depth present
+    il: Tensor | None  # [M] live intensity, or None
+
+
+def _solve_spd6(a: Tensor, b: Tensor) -> Tensor:
+    """Solve ``a x = b`` for a symmetric positive definite [6, 6] ``a`` by Gauss-Jordan elimination without
+    pivoting: fixed-shape tensor arithmetic only (no LAPACK call, no error check, no host synchronisation), so it
+    can be captured in a CUDA graph. Tested against ``torch.linalg.solve``."""
+    m = torch.cat([a, b[:, None]], 1)  # [6, 7]
+    for i in range(6):
+        row = m[i] / m[i, i]
+        m = m - m[:, i:i + 1] * row[None]
+        m = torch.cat([m[:i], row[None], m[i + 1:]], 0)
+    return m[:, 6]
+
+
+def _icp_step(est: Tensor, pts: _IcpPoints, model: _IcpModel, k: Intrinsics, cfg: TrackingConfig,
+              photometric: bool, solve=torch.linalg.solve) -> tuple[Tensor, Tensor]:
+    """One Gauss-Newton step of :func:`icp` from ``est`` [4, 4] (float64).
+
+    Every point takes part with a weight (0 for missing depth, off-image, no model vertex, too far): fixed
+    shapes, no boolean indexing, so no host synchronisation and one graph per image size.
+
+    Returns:
+        the new estimate [4, 4] and ``[correspondences, residual RMS (m), largest step component, agreement]`` [4]
+        (float64, on the device).
+    """
+    dt = est.dtype
+    w2c_g = model.w2c_g
+    x = pts.lp @ est[:3, :3].T + est[:3, 3]  # [M, 3] world
+    xc = x @ w2c_g[:3, :3].T + w2c_g[:3, 3]
+    z = xc[:, 2].clamp_min(1e-6)
+    uf = k.fx * xc[:, 0] / z + k.cx
+    vf = k.fy * xc[:, 1] / z + k.cy
+    u, v = torch.round(uf), torch.round(vf)
+    inside = pts.lvalid & (xc[:, 2] > 1e-3) & (u >= 0) & (u < k.width) & (v >= 0) & (v < k.height)
+    pix = (v.clamp(0, k.height - 1) * k.width + u.clamp(0, k.width - 1)).long()  # [M]
+    ok = inside & model.nvalid[pix]
+    q, n = model.vm[pix], model.nm[pix]
+    diff = x - q
+    close = ok & (diff.norm(dim=-1) < cfg.icp_max_dist)
+    mask = close.to(dt)
+    r = (diff * n).sum(-1) * mask
+    sg = cfg.icp_sigma_geo
+    w = torch.where(r.abs() < sg, torch.ones_like(r), sg / r.abs().clamp_min(1e-30)) * mask * (cfg.geometric_weight
+                                                                                               / (sg * sg))
+    jac = torch.cat([torch.cross(x, n, dim=-1), n], -1)  # [M, 6]
+    jw = jac * w[:, None]
+    a = jw.T @ jac
+    b = -(jw.T @ r)
+    if photometric and model.col is not None and pts.il is not None:
+        sc = cfg.icp_sigma_col
+        inb = inside & (uf >= 0) & (uf < k.width - 1) & (vf >= 0) & (vf < k.height - 1)
+        u0 = torch.floor(uf).clamp(0, k.width - 2)
+        v0 = torch.floor(vf).clamp(0, k.height - 2)
+        fu, fv = (uf - u0)[:, None], (vf - v0)[:, None]
+        p00 = (v0 * k.width + u0).long()
+        col = model.col
+        smp = ((1 - fu) * (1 - fv) * col[p00] + fu * (1 - fv) * col[p00 + 1]
+               + (1 - fu) * fv * col[p00 + k.width] + fu * fv * col[p00 + k.width + 1])  # [M, 4]
+        mc = (inb & (smp[:, 3] > 0.999)).to(dt)
+        rc = (smp[:, 0] - pts.il) * mc
+        # d(pixel)/d(camera point), camera point = R_gw (world point); world point moves by w x X + t
+        zero = torch.zeros_like(z)
+        du = torch.stack([k.fx / z, zero, -k.fx * xc[:, 0] / (z * z)], -1)
+        dv = torch.stack([zero, k.fy / z, -k.fy * xc[:, 1] / (z * z)], -1)
+        gvec = (smp[:, 1:2] * du + smp[:, 2:3] * dv) @ w2c_g[:3, :3]  # [M, 3] d I / d world point
+        jc = torch.cat([torch.cross(x, gvec, dim=-1), gvec], -1)
+        wc = torch.where(rc.abs() < sc, torch.ones_like(rc), sc / rc.abs().clamp_min(1e-30)) * mc * (
+            cfg.photometric_weight / (sc * sc))
+        jcw = jc * wc[:, None]
+        a = a + jcw.T @ jc
+        b = b - jcw.T @ rc
+    # weak prior toward the guess: keeps directions the data leave free from drifting
+    d = est @ w2c_g
+    prior = torch.cat([_so3_log(d[:3, :3]), d[:3, 3]])
+    a = a + model.prior_w
+    b = b - model.prior_w @ prior
+    a = a + torch.eye(6, dtype=dt, device=a.device) * (1e-9 * a.diagonal().mean())
+    xi = solve(a, b)
+    n_in = mask.sum()
+    stats = torch.stack([n_in, torch.sqrt((r * r).sum() / n_in.clamp_min(1.0)), xi.abs().max(),
+                         ((r.abs() < 3 * sg) & close).to(dt).sum() / ok.to(dt).sum().clamp_min(1.0)])
+    return se3_exp(xi) @ est, stats
+
+
+STEPS_PER_GRAPH = 4  # ICP steps per captured graph: one host copy per 4 steps instead of per step
+
+
+def _icp_steps(est: Tensor, left: Tensor, pts: _IcpPoints, model: _IcpModel, k: Intrinsics, cfg: TrackingConfig,
+               photometric: bool, steps: int, solve=_solve_spd6) -> tuple[Tensor, Tensor, Tensor]:
+    """``steps`` :func:`_icp_step` s in a row with the eager loop's stopping rules kept on the device.
+
+    Args:
+        est: [4, 4] estimate. left: [] steps this level may still take (0: the level is over).
+
+    Returns:
+        the estimate after the accepted steps, the steps left (0 once a step is smaller than 1e-6 or has too few
+        correspondences), and ``[steps left, correspondences of a refused step (-1: none), correspondences,
+        residual RMS, largest step, agreement]`` [6] of the last accepted step.
+    """
+    last = est.new_full((4,), float("nan"))
+    refused = est.new_full((), -1.0)
+    for _ in range(steps):
+        new, st = _icp_step(est, pts, model, k, cfg, photometric, solve)
+        active = left > 0
+        fail = active & (st[0] < cfg.min_correspondences)
+        accept = active & ~fail
+        est = torch.where(accept, new, est)
+        last = torch.where(accept, st, last)
+        refused = torch.where(fail, st[0], refused)
+        left = torch.where(fail | (accept & (st[2] < 1e-6)), torch.zeros_like(left), left - active.to(left.dtype))
+    return est, left, torch.cat([torch.stack([left, refused]), last])
+
+
+class _IcpGraph:
+    """:data:`STEPS_PER_GRAPH` ICP steps (:func:`_icp_steps`) captured as one CUDA graph for one problem shape
+    (image size, pyramid level, settings).
+
+    A step of ICP is some 80 small kernels on a few thousand points: on a GPU its time is launch overhead and
+    the host round trip of the convergence test, not arithmetic (14 ms of a 1200x680 frame, measured on an H200
+    with one graph per step). Captured once, four steps are one graph launch and one host copy. Inputs are
+    copied into the graph's static tensors (:meth:`load`, once per level). The graph solves the 6x6 systems with
+    :func:`_solve_spd6` (LAPACK's solver checks its result on the host). With ``capture=False`` the same chunks
+    run eagerly (how the CPU tests check the chunking); ``tracking.cuda_graphs`` off runs the eager
+    :func:`_icp_step` loop, the reference (a GPU test compares the two).
+    """
+
+    def __init__(self, pts: _IcpPoints, model: _IcpModel, k: Intrinsics, cfg: TrackingConfig, photometric: bool,
+                 capture: bool = True):
+        self.pts = _IcpPoints(*(None if t is None else t.clone() for t in (pts.lp, pts.lvalid, pts.il)))
+        self.model = _IcpModel(*(None if t is None else t.clone() for t in (model.vm, model.nm, model.nvalid,
+                                                                            model.col, model.w2c_g, model.prior_w)))
+        self.k, self.cfg, self.photometric = k, cfg, photometric
+        self.est = torch.linalg.inv(model.w2c_g)
+        self.left = self.est.new_zeros(())
+        self.graph = None
+        if not capture:
+            return
+        dev = self.est.device
+        side = torch.cuda.Stream(device=dev)
+        side.wait_stream(torch.cuda.current_stream(dev))
+        with torch.cuda.stream(side):  # warm-up outside the capture (allocator, lazy initialisation)
+            for _ in range(2):
+                self._chunk()
+        torch.cuda.current_stream(dev).wait_stream(side)
+        self.graph = torch.cuda.CUDAGraph()
+        with torch.cuda.graph(self.graph, capture_error_mode="thread_local"):
+            est, left, self.stats = self._chunk()
+            self.est.copy_(est)
+            self.left.copy_(left)
+
+    def _chunk(self) -> tuple[Tensor, Tensor, Tensor]:
+        return _icp_steps(self.est, self.left, self.pts, self.model, self.k, self.cfg, self.photometric,
+                          STEPS_PER_GRAPH)
+
+    def load(self, pts: _IcpPoints, model: _IcpModel) -> _IcpGraph:
+        """Copy this problem's inputs into the static tensors."""
+        for dst, src in ((self.pts.lp, pts.lp), (self.pts.lvalid, pts.lvalid), (self.pts.il, pts.il),
+                         (self.model.vm, model.vm), (self.model.nm, model.nm), (self.model.nvalid, model.nvalid),
+                         (self.model.col, model.col), (self.model.w2c_g, model.w2c_g),
+                         (self.model.prior_w, model.prior_w)):
+            if dst is not None:
+                dst.copy_(src)
+        return self
+
+    def level(self, est: Tensor, iters: int) -> tuple[Tensor, int, float, float]:
+        """Run one pyramid level (at most ``iters`` steps) from ``est``.
+
+        Returns:
+            the estimate, correspondences, residual RMS and agreement of its last step (NaN when none ran).
+
+        Raises:
+            TrackingError: a step found fewer than ``min_correspondences`` correspondences.
+        """
+        self.est.copy_(est)
+        self.left.fill_(iters)
+        n_in, rms, agree = 0, float("nan"), float("nan")
+        for _ in range(-(-iters // STEPS_PER_GRAPH)):  # the steps left reach 0 by then; the bound is a backstop
+            if self.graph is not None:
+                self.graph.replay()
+                stats = self.stats
+            else:
+                est_c, left_c, stats = self._chunk()
+                self.est.copy_(est_c)
+                self.left.copy_(left_c)
+            left, refused, n, rms_c, _, agree_c = stats.tolist()  # one host copy per chunk
+            if refused >= 0:
+                raise TrackingError(f"ICP found only {int(refused)} correspondences (< {self.cfg.min_correspondences})")
+            if n == n:  # a step was accepted in this chunk (NaN: none)
+                n_in, rms, agree = int(n), rms_c, agree_c
+            if left <= 0:
+                break
+        return self.est.clone(), n_in, rms, agree
+
+
+_GRAPHS: dict[tuple, _IcpGraph | None] = {}  # problem key -> graph (None: capture failed, stay eager)
+_MAX_GRAPHS = 16
+
+
+def _use_graphs(cfg: TrackingConfig, device: torch.device) -> bool:
+    return cfg.cuda_graphs and device.type == "cuda"
+
+
+def _graph_for(pts: _IcpPoints, model: _IcpModel, k: Intrinsics, cfg: TrackingConfig,
+               photometric: bool) -> _IcpGraph | None:
+    """The cached graph for this problem's shapes and settings, loaded with its inputs; None when capturing
+    failed (logged once; the eager step runs)."""
+    key = (pts.lp.device, tuple(pts.lp.shape), pts.il is not None, model.col is not None, tuple(model.vm.shape),
+           k, cfg.icp_max_dist, cfg.icp_sigma_geo, cfg.icp_sigma_col, cfg.geometric_weight, cfg.photometric_weight,
+           cfg.min_correspondences, photometric)
+    if key not in _GRAPHS:
+        if len(_GRAPHS) >= _MAX_GRAPHS:
+            _GRAPHS.pop(next(iter(_GRAPHS)))
+        try:
+            _GRAPHS[key] = _IcpGraph(pts, model, k, cfg, photometric)
+        except Exception as exc:  # noqa: BLE001 - any capture failure falls back to the eager reference
+            log.warning("ICP: capturing a CUDA graph failed (%s: %s); running the step eagerly", type(exc).__name__,
+                        exc)
+            _GRAPHS[key] = None
+    graph = _GRAPHS[key]
+    return None if graph is None else graph.load(pts, model)
 
 
 def icp(model_depth: Tensor, model_valid: Tensor, guess_c2w: Tensor, live_depth: Tensor, k: Intrinsics,
@@ -142,7 +378,8 @@ def icp(model_depth: Tensor, model_valid: Tensor, guess_c2w: Tensor, live_depth:
 
     The joint Gauss-Newton minimises ``sum w_g (n . (T x - q))^2 / s_g^2 + sum w_c (I_m(pi(T x)) - I_l)^2 / s_c^2``
     with Huber weights; the photometric term pins down the directions that planes leave free (a camera
-    sliding along a wall).
+    sliding along a wall). Each step (:func:`_icp_step`) has fixed shapes; one host copy per step (the
+    convergence test and the correspondence count).
 
     Args:
         model_depth: [H, W] metres (rendered at the guess pose).
@@ -162,16 +399,16 @@ def icp(model_depth: Tensor, model_valid: Tensor, guess_c2w: Tensor, live_depth:
         TrackingError: fewer than ``cfg.min_correspondences`` associations.
     """
     dt = torch.float64
+    dev = live_depth.device
     g = guess_c2w.to(dt)
     if cfg.normal_smoothing > 1:
         model_depth, model_valid = smooth_depth(model_depth, model_valid, cfg.normal_smoothing)
     vm_c = backproject(model_depth.to(dt), k.fx, k.fy, k.cx, k.cy)
     vm = vm_c @ g[:3, :3].T + g[:3, 3]  # world vertex map [H, W, 3]
     nm, nvalid = normal_map(vm, model_valid)
-    w2c_g = torch.linalg.inv(g)
-    est = g.clone() if start_c2w is None else start_c2w.to(dt).clone()
     live_all = backproject(live_depth.to(dt), k.fx, k.fy, k.cx, k.cy)
     use_col = model_rgb is not None and live_rgb is not None and cfg.photometric_weight > 0
+    col = il_all = None
     if use_col:
         im = model_rgb.to(dt).mean(-1)  # [H, W] intensity
         il_all = live_rgb.to(dt).mean(-1)
@@ -184,72 +421,30 @@ def icp(model_depth: Tensor, model_valid: Tensor, guess_c2w: Tensor, live_depth:
         okm[1:-1] &= model_valid[2:] & model_valid[:-2]
         okm[:, [0, -1]] = False
         okm[[0, -1]] = False
-        col_img = torch.stack([im, gx, gy, okm.to(dt)], -1)  # [H, W, 4]
-    res_rms, n_in, agree = float("nan"), 0, float("nan")
-    sg, sc = cfg.icp_sigma_geo, cfg.icp_sigma_col
-    wg = cfg.geometric_weight
-    dev = live_depth.device
+        col = torch.stack([im, gx, gy, okm.to(dt)], -1).reshape(-1, 4)  # [H*W, 4]
     p_w = torch.diag(torch.tensor([1 / cfg.prior_sigma_rot**2] * 3 + [1 / cfg.prior_sigma_trans**2] * 3, dtype=dt,
                                   device=dev))
-    eye6 = torch.eye(6, dtype=dt, device=dev)
+    model = _IcpModel(vm.reshape(-1, 3), nm.reshape(-1, 3), nvalid.reshape(-1), col, torch.linalg.inv(g), p_w)
+    est = g.clone() if start_c2w is None else start_c2w.to(dt).clone()
+    res_rms, n_in, agree = float("nan"), 0, float("nan")
     base = max(1, round(k.width / 160))  # about 160 live points per row at the finest level
     for level in reversed(range(cfg.icp_levels)):
         stride = base * 2**level
         lp = live_all[::stride, ::stride].reshape(-1, 3)
-        keep = lp[:, 2] > 0
-        lp = lp[keep]
-        il = il_all[::stride, ::stride].reshape(-1)[keep] if use_col else None
+        pts = _IcpPoints(lp, lp[:, 2] > 0, il_all[::stride, ::stride].reshape(-1) if use_col else None)
+        photometric = use_col and level == 0  # the photometric term only at the finest level (small basin)
+        graph = _graph_for(pts, model, k, cfg, photometric) if _use_graphs(cfg, dev) else None
+        if graph is not None:
+            if cfg.icp_iters > 0:
+                est, n_in, res_rms, agree = graph.level(est, cfg.icp_iters)
+            continue
         for _ in range(cfg.icp_iters):
-            x = lp @ est[:3, :3].T + est[:3, 3]  # world
-            xc = x @ w2c_g[:3, :3].T + w2c_g[:3, 3]
-            z = xc[:, 2].clamp_min(1e-6)
-            uf = k.fx * xc[:, 0] / z + k.cx
-            vf = k.fy * xc[:, 1] / z + k.cy
-            u, v = torch.round(uf).long(), torch.round(vf).long()
-            inside = (xc[:, 2] > 1e-3) & (u >= 0) & (u < k.width) & (v >= 0) & (v < k.height)
-            ii = torch.nonzero(inside).squeeze(1)
-            ok = nvalid[v[ii], u[ii]]
-            ii = ii[ok]
-            q, n = vm[v[ii], u[ii]], nm[v[ii], u[ii]]
-            xs = x[ii]
-            diff = xs - q
-            close = diff.norm(dim=-1) < cfg.icp_max_dist
-            ii, xs, n, diff = ii[close], xs[close], n[close], diff[close]
-            r = (diff * n).sum(-1)
-            n_in = int(r.numel())
+            new, stats = _icp_step(est, pts, model, k, cfg, photometric)
+            n, rms, step, ag = stats.tolist()  # one host copy per step
+            n_in = int(n)
             if n_in < cfg.min_correspondences:
                 raise TrackingError(f"ICP found only {n_in} correspondences (< {cfg.min_correspondences})")
-            w = torch.where(r.abs() < sg, torch.ones_like(r), sg / r.abs()) * wg / (sg * sg)
-            jac = torch.cat([torch.cross(xs, n, dim=-1), n], -1)  # [M, 6]
-            a = (jac * w[:, None]).T @ jac
-            b = -(jac * w[:, None]).T @ r
-            if use_col and level == 0:  # photometric term only at the finest level (small basin)
-                inb = inside & (uf >= 0) & (uf < k.width - 1) & (vf >= 0) & (vf < k.height - 1)
-                jj = torch.nonzero(inb).squeeze(1)
-                smp = _bilinear(col_img, uf[jj], vf[jj])
-                good = smp[:, 3] > 0.999
-                jj, smp = jj[good], smp[good]
-                rc = smp[:, 0] - il[jj]
-                xw, xcj, zj = x[jj], xc[jj], z[jj]
-                # d(pixel)/d(camera point), camera point = R_gw (world point); world point moves by w x X + t
-                du = torch.stack([k.fx / zj, torch.zeros_like(zj), -k.fx * xcj[:, 0] / (zj * zj)], -1)
-                dv = torch.stack([torch.zeros_like(zj), k.fy / zj, -k.fy * xcj[:, 1] / (zj * zj)], -1)
-                gvec = (smp[:, 1:2] * du + smp[:, 2:3] * dv) @ w2c_g[:3, :3]  # [M, 3] d I / d world point
-                jc = torch.cat([torch.cross(xw, gvec, dim=-1), gvec], -1)
-                wc = torch.where(rc.abs() < sc, torch.ones_like(rc), sc / rc.abs()) * cfg.photometric_weight / (sc * sc)
-                a += (jc * wc[:, None]).T @ jc
-                b += -(jc * wc[:, None]).T @ rc
-            # weak prior toward the guess: keeps directions the data leave free from drifting
-            d = est @ w2c_g
-            prior = torch.cat([_so3_log(d[:3, :3]), d[:3, 3]])
-            a += p_w
-            b += -(p_w @ prior)
-            a += 1e-9 * eye6 * a.diagonal().mean()
-            xi = torch.linalg.solve(a, b)
-            est = se3_exp(xi) @ est
-            on_model = ok.to(dt).sum().clamp_min(1.0)
-            res_rms, step, agree = torch.stack([torch.sqrt((r * r).mean()), xi.abs().max(),
-                                                (r.abs() < 3 * sg).to(dt).sum() / on_model]).tolist()  # one host copy
+            est, res_rms, agree = new, rms, ag
             if step < 1e-6:
                 break
     return TrackResult(est, res_rms, n_in, agree)

@@ -53,3 +53,32 @@ def test_size_argument_errors_are_clear():
     assert slam_gpu.parse_size("1200x680") == (1200, 680)
     with pytest.raises(Exception, match="WIDTHxHEIGHT"):
         slam_gpu.parse_size("1200")
+
+
+def test_frame_profiler_prints_stages_and_operators_on_cpu(tmp_path, capsys):
+    """``bench/profile_frame.py`` at a tiny size: every stage of a frame gets a figure for keyframes and other
+    frames, the profiler window prints its operator table, and config overrides reach the engine."""
+    sys.path.insert(0, BENCH)
+    try:
+        import profile_frame
+    finally:
+        sys.path.remove(BENCH)
+    rc = profile_frame.main(["--device", "cpu", "--size", "64x36", "--frames", "6", "--threads", "1", "--workers", "1",
+                             "--data", str(tmp_path), "--profile-from", "2", "--profile-frames", "2", "--top", "5",
+                             "--set", "mapping.iters=2", "--set", "mapping.keyframe_every=2"])
+    out = capsys.readouterr().out
+    assert rc == 0
+    assert "torch.profiler over 2 frames" in out and "aten::" in out
+    rows = {line.split("|")[1].strip(): line for line in out.splitlines() if line.startswith("| ")}
+    for stage in ("upload", "track", "icp", "densify", "keyframe.optimise", "frame (total)"):
+        assert stage in rows, (stage, out)
+    kf_ms, other_ms = (float(v) for v in rows["keyframe.optimise"].split("|")[2:4])
+    assert kf_ms > 0 and other_ms == 0  # mapping runs on keyframes only
+    assert "keyframes (2)" in out  # frames 2 and 4 of 1..5 with keyframe_every=2
+    from semantic_gs_slam.config import Intrinsics
+
+    cfg = profile_frame.SlamConfig(intrinsics=Intrinsics(64, 36, 50.0, 50.0, 32.0, 18.0))
+    assert profile_frame.apply_overrides(cfg, ["tracking.cuda_graphs=false"]).tracking.cuda_graphs is False
+    for bad in ("mapping.no_such_field=1", "nosection.iters=1"):
+        with pytest.raises(ValueError, match="no setting"):
+            profile_frame.apply_overrides(cfg, [bad])

@@ -20,7 +20,7 @@ def scene():
     poses = trajectory(60, 60.0)
     ren = HomeRenderer(0)
     frames = [ren.render(poses[i], k) for i in (0, 1)]
-    eng = SLAM(SlamConfig(intrinsics=k, mapping=MappingConfig(first_frame_iters=30)))
+    eng = SLAM(SlamConfig(intrinsics=k, mapping=MappingConfig(first_frame_iters=30), device="cpu"))
     rgb, depth, sem = frames[0]
     eng.add_frame(rgb.astype(np.float32), depth.astype(np.float32), sem, gt_c2w=poses[0])
     return eng, k, poses, frames
@@ -115,3 +115,130 @@ def test_plane_depth_is_unbiased_where_centre_depth_is_not():
     # unknown normals (zero rows) fall back to the centre depth
     f0 = plane_depth_features(means, torch.zeros_like(normals), k)
     torch.testing.assert_close(f0, torch.stack([means[:, 2], torch.zeros(n), torch.zeros(n)], -1))
+
+
+def test_graph_solver_matches_lapack():
+    """The capture-safe 6x6 solver (Gauss-Jordan, no pivoting) equals torch.linalg.solve on SPD systems as
+    ill-conditioned as ICP's (prior 400 against data weights up to 1e8)."""
+    from semantic_gs_slam.tracking import _solve_spd6
+
+    gen = torch.Generator().manual_seed(0)
+    for scale in (1.0, 1e4, 1e8):
+        j = torch.randn(500, 6, generator=gen, dtype=torch.float64) * torch.tensor([1, 1, 1, 0.1, 0.1, 0.01],
+                                                                                     dtype=torch.float64)
+        a = scale * j.T @ j + torch.diag(torch.tensor([400.0] * 6, dtype=torch.float64))
+        b = torch.randn(6, generator=gen, dtype=torch.float64)
+        ref = torch.linalg.solve(a, b)
+        torch.testing.assert_close(_solve_spd6(a, b), ref, rtol=1e-9, atol=1e-14)
+
+
+def test_icp_step_is_the_same_with_either_solver(scene):
+    """The step the CUDA graph captures (with the graph's solver) gives the eager step's pose and statistics."""
+    from semantic_gs_slam.tracking import _icp_step, _IcpModel, _IcpPoints, _solve_spd6
+    from semantic_gs_slam.geometry import backproject
+
+    eng, k, poses, frames = scene
+    md, valid, out = model(eng, poses[0])
+    g = torch.as_tensor(poses[0])
+    vm = backproject(md.double(), k.fx, k.fy, k.cx, k.cy) @ g[:3, :3].T + g[:3, 3]
+    from semantic_gs_slam.tracking import normal_map
+
+    nm, nvalid = normal_map(vm, valid)
+    im = out.rgb.double().mean(-1)
+    col = torch.stack([im, torch.zeros_like(im), torch.zeros_like(im), valid.double()], -1).reshape(-1, 4)
+    mdl = _IcpModel(vm.reshape(-1, 3), nm.reshape(-1, 3), nvalid.reshape(-1), col, torch.linalg.inv(g),
+                    torch.eye(6, dtype=torch.float64) * 400)
+    lp = backproject(torch.as_tensor(frames[1][1]).double(), k.fx, k.fy, k.cx, k.cy)[::2, ::2].reshape(-1, 3)
+    pts = _IcpPoints(lp, lp[:, 2] > 0, torch.as_tensor(frames[1][0]).double().mean(-1)[::2, ::2].reshape(-1))
+    start = se3_exp(torch.tensor([0.01, 0, 0, 0.01, 0, 0], dtype=torch.float64)) @ g
+    for photometric in (False, True):
+        e1, s1 = _icp_step(start, pts, mdl, k, TrackingConfig(), photometric)
+        e2, s2 = _icp_step(start, pts, mdl, k, TrackingConfig(), photometric, _solve_spd6)
+        torch.testing.assert_close(e1, e2, rtol=0, atol=1e-12)
+        torch.testing.assert_close(s1, s2, rtol=1e-9, atol=0)
+        assert s1[0] > 1000 and 0 < s1[1] < 0.05  # correspondences, residual RMS (m)
+
+
+@pytest.mark.parametrize("case", ["runs out of steps", "converges", "loses the model"])
+def test_icp_in_chunks_of_steps_equals_the_step_loop(scene, monkeypatch, case):
+    """The CUDA graph's chunks of steps (run eagerly here: the capture itself needs a GPU) keep the step loop's
+    rules on the device: the same pose, residual and correspondences when the iterations run out, when a step
+    gets below 1e-6 mid-chunk, and the same TrackingError when the correspondences run out."""
+    from semantic_gs_slam import tracking
+
+    eng, k, poses, frames = scene
+    md, valid, out = model(eng, poses[0])
+    start = se3_exp(torch.tensor([0.01, 0.01, -0.01, -0.015, 0.02, 0.0], dtype=torch.float64)) @ torch.as_tensor(
+        poses[0])
+    cfg = {"runs out of steps": TrackingConfig(icp_iters=7),  # not a multiple of STEPS_PER_GRAPH
+           "converges": TrackingConfig(icp_iters=40),
+           "loses the model": TrackingConfig(min_correspondences=2000)}[case]
+    live = torch.as_tensor(frames[0][1]).float()
+    if case == "loses the model":
+        live = live.clone()
+        live[:, : k.width * 3 // 4] = 0  # only a quarter of the frame: too few points
+    chunks = []
+
+    def run():
+        try:
+            return icp(md, valid, torch.as_tensor(poses[0]), live, k, cfg, out.rgb,
+                       torch.as_tensor(frames[0][0]).float(), start_c2w=start)
+        except TrackingError as exc:
+            return str(exc)
+
+    ref = run()
+
+    def chunked(pts, mdl, k_, cfg_, photometric):
+        g = tracking._IcpGraph(pts, mdl, k_, cfg_, photometric, capture=False).load(pts, mdl)
+        chunks.append(g)
+        return g
+
+    monkeypatch.setattr(tracking, "_use_graphs", lambda cfg_, dev: True)
+    monkeypatch.setattr(tracking, "_graph_for", chunked)
+    got = run()
+    assert len(chunks) == (1 if case == "loses the model" else cfg.icp_levels)
+    if case == "loses the model":
+        assert isinstance(ref, str) and "correspondences" in ref and got == ref
+        return
+    torch.testing.assert_close(got.c2w, ref.c2w, rtol=0, atol=1e-9)
+    assert got.inliers == ref.inliers and abs(got.residual - ref.residual) < 1e-9
+    assert abs(got.agreement - ref.agreement) < 1e-12
+    if case == "converges":  # the test means something only if a level stopped early
+        steps = []
+        monkeypatch.undo()
+        orig = tracking._icp_step
+
+        def counting(*a, **kw):
+            steps.append(1)
+            return orig(*a, **kw)
+
+        monkeypatch.setattr(tracking, "_icp_step", counting)
+        run()
+        assert len(steps) < 2 * cfg.icp_iters
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
+def test_icp_cuda_graph_matches_the_eager_step(scene):
+    """On CUDA, ICP with each step replayed from a captured graph gives the eager reference's pose, also on a
+    second problem of the same shape (the graph is reused with new inputs)."""
+    from semantic_gs_slam import tracking
+
+    eng, k, poses, frames = scene
+    md, valid, out = model(eng, poses[0])
+    cuda = torch.device("cuda")
+    results = {}
+    for graphs in (False, True):
+        tracking._GRAPHS.clear()
+        for i, xi in enumerate(([0, 0, 0, 0.02, -0.01, 0.01], [0.01, 0.01, -0.01, -0.015, 0.02, 0.0])):
+            start = se3_exp(torch.tensor(xi, dtype=torch.float64)) @ torch.as_tensor(poses[0])
+            r = icp(md.to(cuda), valid.to(cuda), torch.as_tensor(poses[0], device=cuda),
+                    torch.as_tensor(frames[0][1]).float().to(cuda), k, TrackingConfig(cuda_graphs=graphs),
+                    out.rgb.to(cuda), torch.as_tensor(frames[0][0]).float().to(cuda), start_c2w=start.to(cuda))
+            results[graphs, i] = r
+        if graphs:
+            assert any(v is not None and v.graph is not None for v in tracking._GRAPHS.values()), "no graph captured"
+    for i in (0, 1):
+        a, b = results[False, i], results[True, i]
+        torch.testing.assert_close(a.c2w, b.c2w, rtol=0, atol=1e-9)
+        assert a.inliers == b.inliers and abs(a.residual - b.residual) < 1e-9
+        assert pose_error(b.c2w.cpu().numpy(), poses[0])[0] < 0.004

@@ -1,0 +1,219 @@
+#!/usr/bin/env python3
+"""Where a SLAM frame's milliseconds go, on any torch device (issue 13 item 4, and the GPU speed work).
+
+Usage (from the repository root)::
+
+    python bench/profile_frame.py --device cpu --size 300x170 --frames 24           # CPU, 2 threads
+    python bench/profile_frame.py --device cuda --backend gsplat --size 1200x680     # on a GPU
+
+Runs the engine over the synthetic home (generated first, not timed) and prints:
+
+1. a stage table: inclusive milliseconds per frame of each stage of ``SLAM.add_frame`` (frame upload,
+   tracking = model render + ICP, label votes, densification, keyframe = loop check + densification +
+   mapping optimisation + pruning), split into keyframes and other frames. On CUDA each stage is
+   bracketed by ``torch.cuda.synchronize`` (``--no-sync`` turns that off), so a stage's time includes its
+   queued GPU work; the brackets cost a little, so compare with the FPS line (no brackets).
+2. ``torch.profiler`` over frames ``--profile-from``..+``--profile-frames``: the operators with the most
+   self CPU time and (on CUDA) the most device time, and per frame the kernel launches and the host
+   synchronisations (``cudaStreamSynchronize``, ``cudaMemcpy*`` device->host, ``cudaDeviceSynchronize``).
+
+Frame 0 (the first keyframe's long mapping and, on CUDA, warm-up) is left out of every figure.
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import contextlib
+import os
+import statistics
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+
+import numpy as np
+import torch
+
+from semantic_gs_slam.config import RendererConfig, SlamConfig
+from semantic_gs_slam.datasets import load_dataset
+from semantic_gs_slam.devices import resolve_device
+from semantic_gs_slam.synthetic import generate
+
+
+class StageTimer:
+    """Inclusive wall time per named stage and frame; nested stages each get their own figure."""
+
+    def __init__(self, device: torch.device, sync: bool) -> None:
+        self.device = device
+        self.sync = sync and device.type == "cuda"
+        self.frame: dict[str, float] = collections.defaultdict(float)
+        self.frames: list[tuple[bool, dict[str, float]]] = []
+
+    def _barrier(self) -> None:
+        if self.sync:
+            torch.cuda.synchronize(self.device)
+
+    def wrap(self, name: str, fn: Callable) -> Callable:
+        """``fn`` timed under ``name`` (and labelled for the profiler)."""
+
+        def timed(*args, **kwargs):
+            self._barrier()
+            t = time.perf_counter()
+            try:
+                with torch.profiler.record_function(name):
+                    return fn(*args, **kwargs)
+            finally:
+                self._barrier()
+                self.frame[name] += time.perf_counter() - t
+
+        return timed
+
+    def end_frame(self, keyframe: bool) -> None:
+        self.frames.append((keyframe, dict(self.frame)))
+        self.frame.clear()
+
+    def table(self) -> str:
+        """Mean ms per frame of each stage for keyframes, other frames and all frames (frame 0 left out)."""
+        rows = self.frames[1:]
+        names: list[str] = []
+        for _, d in rows:
+            names += [n for n in d if n not in names]
+        groups = {"keyframes": [d for kf, d in rows if kf], "other frames": [d for kf, d in rows if not kf],
+                  "all": [d for _, d in rows]}
+        head = "| stage | " + " | ".join(f"{g} ({len(v)}) ms" for g, v in groups.items()) + " |"
+        lines = [head, "|---|" + "---|" * len(groups)]
+        for n in names:
+            cells = [f"{1000 * sum(d.get(n, 0.0) for d in v) / max(len(v), 1):.1f}" for v in groups.values()]
+            lines.append(f"| {n} | " + " | ".join(cells) + " |")
+        return "\n".join(lines)
+
+
+def instrument(eng, timer: StageTimer) -> None:
+    """Wrap the engine's stages (instance attributes and the functions ``slam.py`` calls) with ``timer``."""
+    import semantic_gs_slam.slam as slam_mod
+
+    for attr, name in [("add_frame", "frame (total)"), ("_tensors", "upload"), ("_track", "track"),
+                       ("_densify", "densify"), ("_map_keyframe", "keyframe"), ("_close_loop", "keyframe.loop"),
+                       ("optimise", "keyframe.optimise"), ("_window", "keyframe.window")]:
+        setattr(eng, attr, timer.wrap(name, getattr(eng, attr)))
+    eng.map.vote = timer.wrap("vote", eng.map.vote)
+    eng.map.prune = timer.wrap("keyframe.prune", eng.map.prune)
+    eng.map.add_from_frame = timer.wrap("densify.add", eng.map.add_from_frame)
+    eng.render_view = timer.wrap("render_view (track, densify)", eng.render_view)
+    eng._render = timer.wrap("render (every render)", eng._render)
+    for fn in ("icp", "fit_exposure", "mapping_loss", "find_loops"):
+        if hasattr(slam_mod, fn):
+            setattr(slam_mod, fn, timer.wrap(fn, getattr(slam_mod, fn)))
+
+
+def profiler_report(prof, frames: int, device: torch.device, top: int) -> str:
+    """Top operators and per-frame launch / sync counts from a finished ``torch.profiler.profile``."""
+    ka = prof.key_averages()
+    out = [f"torch.profiler over {frames} frames"]
+    out.append(ka.table(sort_by="self_cpu_time_total", row_limit=top, max_name_column_width=60))
+    if device.type == "cuda":
+        out.append(ka.table(sort_by="self_cuda_time_total" if hasattr(ka[0], "self_cuda_time_total")
+                            else "self_device_time_total", row_limit=top, max_name_column_width=60))
+        counts = collections.Counter()
+        for e in ka:
+            if e.key in ("cudaLaunchKernel", "cudaLaunchKernelExC", "cuLaunchKernel", "cuLaunchKernelEx"):
+                counts["kernel launches"] += e.count
+            elif e.key in ("cudaStreamSynchronize", "cudaDeviceSynchronize", "cudaEventSynchronize"):
+                counts["synchronisations"] += e.count
+            elif e.key.startswith("cudaMemcpy"):
+                counts["memcpy calls"] += e.count
+        out.append("per frame: " + ", ".join(f"{k} {v / frames:.0f}" for k, v in sorted(counts.items())))
+    return "\n".join(out)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point; returns the exit code."""
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--device", default="auto")
+    ap.add_argument("--backend", default="auto", choices=["auto", "torch", "gsplat"])
+    ap.add_argument("--size", default="300x170", help="WIDTHxHEIGHT of the generated sequence")
+    ap.add_argument("--frames", type=int, default=24)
+    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="processes generating the data")
+    ap.add_argument("--data", default="", help="folder for the generated sequence (kept; default: temp)")
+    ap.add_argument("--no-sync", action="store_true", help="no device synchronisation around stages")
+    ap.add_argument("--profile-from", type=int, default=8, help="first frame under torch.profiler")
+    ap.add_argument("--profile-frames", type=int, default=8, help="frames under torch.profiler (0: none)")
+    ap.add_argument("--top", type=int, default=25, help="operators listed per table")
+    ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                    help="override a SlamConfig field, e.g. tracking.icp_iters=8 (repeatable)")
+    a = ap.parse_args(argv)
+    torch.set_num_threads(a.threads)
+    w, h = (int(v) for v in a.size.lower().split("x"))
+    root = a.data or tempfile.mkdtemp(prefix="slam_profile_")
+    data = os.path.join(root, f"home_{w}x{h}_{a.frames}")
+    if not os.path.isfile(os.path.join(data, "traj.txt")):
+        generate(data, a.frames, w, h, workers=a.workers, span_deg=120.0 * a.frames / 60.0)
+    ds = load_dataset(data)
+    dev = resolve_device(a.device)
+    cfg = SlamConfig(intrinsics=ds.intrinsics, device=a.device, renderer=RendererConfig(backend=a.backend),
+                     threads=a.threads)
+    try:
+        cfg = apply_overrides(cfg, a.set)
+    except ValueError as exc:
+        ap.error(str(exc))
+    frames = [ds[i] for i in range(len(ds))]
+
+    from semantic_gs_slam.slam import SLAM
+
+    eng = SLAM(cfg, ds.classes)
+    timer = StageTimer(dev, not a.no_sync)
+    instrument(eng, timer)
+    prof_range = range(a.profile_from, a.profile_from + a.profile_frames) if a.profile_frames > 0 else range(0)
+    prof = None
+    walls = []
+    for i, f in enumerate(frames):
+        if i == prof_range.start and len(prof_range):
+            acts = [torch.profiler.ProfilerActivity.CPU] + ([torch.profiler.ProfilerActivity.CUDA]
+                                                            if dev.type == "cuda" else [])
+            prof = torch.profiler.profile(activities=acts)
+            prof.__enter__()
+        t = time.perf_counter()
+        eng.add_frame(f.rgb, f.depth, f.semantics, f.timestamp, f.gt_c2w)
+        if dev.type == "cuda":
+            torch.cuda.synchronize(dev)
+        walls.append(time.perf_counter() - t)
+        timer.end_frame(eng.logs[-1].keyframe)
+        if prof is not None and i == prof_range[-1]:
+            prof.__exit__(None, None, None)
+            print(profiler_report(prof, len(prof_range), dev, a.top), flush=True)
+            prof = None
+    with contextlib.suppress(Exception):
+        name = torch.cuda.get_device_name(dev) if dev.type == "cuda" else f"CPU, {torch.get_num_threads()} threads"
+    print(f"\n{name}, backend {eng.backend.__name__ if hasattr(eng.backend, '__name__') else eng.backend}, "
+          f"{w}x{h}, {len(frames)} frames, {len(eng.map)} Gaussians at the end, stages "
+          f"{'synchronised' if timer.sync else 'not synchronised'}")
+    rest = walls[1:]
+    prof_set = set(prof_range)
+    clean = [t for i, t in enumerate(walls) if i > 0 and i not in prof_set]
+    print(f"frame 0: {walls[0] * 1000:.0f} ms; frames 1..n: median {1000 * statistics.median(rest):.1f} ms, "
+          f"mean {1000 * statistics.mean(rest):.1f} ms ({1 / statistics.mean(rest):.2f} FPS)"
+          + (f"; outside the profiler window {1 / statistics.mean(clean):.2f} FPS" if clean else ""))
+    print(timer.table())
+    return 0
+
+
+def apply_overrides(cfg: SlamConfig, sets: list[str]) -> SlamConfig:
+    """``SECTION.KEY=VALUE`` overrides (the value parsed as the field's current type)."""
+    from dataclasses import replace
+
+    for s in sets:
+        key, _, val = s.partition("=")
+        section, _, field = key.partition(".")
+        sub = getattr(cfg, section, None)
+        if sub is None or not hasattr(sub, "__dataclass_fields__") or field not in sub.__dataclass_fields__:
+            raise ValueError(f"--set {s!r}: no setting {key!r} (SECTION.KEY, e.g. tracking.icp_iters=8)")
+        cur = getattr(sub, field)
+        typed = (val.lower() in ("1", "true", "yes")) if isinstance(cur, bool) else type(cur)(val)
+        cfg = replace(cfg, **{section: replace(sub, **{field: typed})})
+    return cfg
+
+
+if __name__ == "__main__":
+    sys.exit(main())
