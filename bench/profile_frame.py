@@ -5,8 +5,10 @@ Usage (from the repository root)::
 
     python bench/profile_frame.py --device cpu --size 300x170 --frames 24           # CPU, 2 threads
     python bench/profile_frame.py --device cuda --backend gsplat --size 1200x680     # on a GPU
+    python bench/profile_frame.py --dataset <7-Scenes folder> --size 320x240 --stride 2 --frames 60
 
-Runs the engine over the synthetic home (generated first, not timed) and prints:
+Runs the engine over the synthetic home (generated first, not timed) or a recorded sequence (``--dataset``,
+decoded first, not timed) and prints:
 
 1. a stage table: inclusive milliseconds per frame of each stage of ``SLAM.add_frame`` (frame upload,
    tracking = model render + ICP, label votes, densification, keyframe = loop check + densification +
@@ -32,7 +34,6 @@ import tempfile
 import time
 from collections.abc import Callable
 
-import numpy as np
 import torch
 
 from semantic_gs_slam.config import RendererConfig, SlamConfig
@@ -137,6 +138,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="processes generating the data")
     ap.add_argument("--data", default="", help="folder for the generated sequence (kept; default: temp)")
+    ap.add_argument("--dataset", default="", help="profile a recorded sequence instead (any layout load_dataset "
+                    "reads, e.g. 7-Scenes), resized to --size; frames --start, --start + --stride, ...")
+    ap.add_argument("--start", type=int, default=0)
+    ap.add_argument("--stride", type=int, default=1)
     ap.add_argument("--no-sync", action="store_true", help="no device synchronisation around stages")
     ap.add_argument("--profile-from", type=int, default=8, help="first frame under torch.profiler")
     ap.add_argument("--profile-frames", type=int, default=8, help="frames under torch.profiler (0: none)")
@@ -146,11 +151,16 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
     w, h = (int(v) for v in a.size.lower().split("x"))
-    root = a.data or tempfile.mkdtemp(prefix="slam_profile_")
-    data = os.path.join(root, f"home_{w}x{h}_{a.frames}")
-    if not os.path.isfile(os.path.join(data, "traj.txt")):
-        generate(data, a.frames, w, h, workers=a.workers, span_deg=120.0 * a.frames / 60.0)
-    ds = load_dataset(data)
+    if a.dataset:
+        ds = load_dataset(a.dataset, size=(w, h))
+        idx = list(range(a.start, len(ds), a.stride))[:a.frames]
+    else:
+        root = a.data or tempfile.mkdtemp(prefix="slam_profile_")
+        data = os.path.join(root, f"home_{w}x{h}_{a.frames}")
+        if not os.path.isfile(os.path.join(data, "traj.txt")):
+            generate(data, a.frames, w, h, workers=a.workers, span_deg=120.0 * a.frames / 60.0)
+        ds = load_dataset(data)
+        idx = list(range(len(ds)))
     dev = resolve_device(a.device)
     cfg = SlamConfig(intrinsics=ds.intrinsics, device=a.device, renderer=RendererConfig(backend=a.backend),
                      threads=a.threads)
@@ -158,7 +168,7 @@ def main(argv: list[str] | None = None) -> int:
         cfg = apply_overrides(cfg, a.set)
     except ValueError as exc:
         ap.error(str(exc))
-    frames = [ds[i] for i in range(len(ds))]
+    frames = [ds[i] for i in idx]
 
     from semantic_gs_slam.slam import SLAM
 

@@ -65,6 +65,9 @@ class TrackingConfig:
 
     icp_iters: int = 12  # Gauss-Newton iterations per pyramid level
     icp_levels: int = 2  # image pyramid levels (stride 2**level), coarse to fine
+    icp_min_step: float = 1e-6  # a level ends once a step's largest component (rad or m) is below this
+    icp_row_points: int = 160  # about this many live points per image row at the finest level (pixel stride
+    # round(width / this)); the coarser levels halve it
     icp_max_dist: float = 0.10  # metres; associations farther apart are rejected
     icp_sigma_geo: float = 0.005  # metres; scale (and Huber threshold) of point-to-plane residuals
     icp_sigma_col: float = 0.05  # intensity units; scale (and Huber threshold) of photometric residuals
@@ -105,8 +108,10 @@ class TrackingConfig:
     use_gt_pose: bool = False  # debugging / mapping-only runs: take the ground-truth pose given to add_frame
 
     def check(self) -> None:
-        if self.icp_iters < 0 or self.icp_levels < 1 or self.photometric_iters < 0:
-            raise ConfigError("tracking iteration counts must be >= 0 and icp_levels >= 1")
+        if self.icp_iters < 0 or self.icp_levels < 1 or self.photometric_iters < 0 or self.icp_row_points < 1 \
+                or not self.icp_min_step >= 0:
+            raise ConfigError("tracking iteration counts and icp_min_step must be >= 0, icp_levels and icp_row_points "
+                              ">= 1")
         for name in ("prior_sigma_trans", "prior_sigma_rot", "odometry_sigma_trans", "odometry_sigma_rot"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"tracking.{name} must be > 0, got {getattr(self, name)}")

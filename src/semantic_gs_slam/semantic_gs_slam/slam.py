@@ -192,8 +192,8 @@ class SLAM:
             raise FrameError(f"frame arrays must be numeric: {exc}") from exc
         rgb_t = rgb_t.to(torch.float32) / 255.0 if rgb_t.dtype == torch.uint8 else rgb_t.to(torch.float32)
         valid = (depth_t >= self.cfg.depth_min) & (depth_t <= self.cfg.depth_max)
-        bad_rgb, bad_depth, negative, n_valid = torch.stack([
-            (~torch.isfinite(rgb_t)).sum(), (~torch.isfinite(depth_t)).sum(), (depth_t < 0).sum(), valid.sum()]).tolist()
+        bad_rgb, bad_depth, negative, n_valid = torch.stack([(~torch.isfinite(rgb_t)).sum(), (~torch.isfinite(
+            depth_t)).sum(), (depth_t < 0).sum(), valid.sum()]).tolist()  # one host copy
         if bad_rgb:
             raise FrameError("rgb contains NaN or inf")
         if bad_depth:

@@ -243,9 +243,9 @@ def _icp_steps(est: Tensor, left: Tensor, pts: _IcpPoints, model: _IcpModel, k: 
         est: [4, 4] estimate. left: [] steps this level may still take (0: the level is over).
 
     Returns:
-        the estimate after the accepted steps, the steps left (0 once a step is smaller than 1e-6 or has too few
-        correspondences), and ``[steps left, correspondences of a refused step (-1: none), correspondences,
-        residual RMS, largest step, agreement]`` [6] of the last accepted step.
+        the estimate after the accepted steps, the steps left (0 once a step is smaller than ``cfg.icp_min_step``
+        or has too few correspondences), and ``[steps left, correspondences of a refused step (-1: none),
+        correspondences, residual RMS, largest step, agreement]`` [6] of the last accepted step.
     """
     last = est.new_full((4,), float("nan"))
     refused = est.new_full((), -1.0)
@@ -257,7 +257,8 @@ def _icp_steps(est: Tensor, left: Tensor, pts: _IcpPoints, model: _IcpModel, k: 
         est = torch.where(accept, new, est)
         last = torch.where(accept, st, last)
         refused = torch.where(fail, st[0], refused)
-        left = torch.where(fail | (accept & (st[2] < 1e-6)), torch.zeros_like(left), left - active.to(left.dtype))
+        stop = fail | (accept & (st[2] < cfg.icp_min_step))
+        left = torch.where(stop, torch.zeros_like(left), left - active.to(left.dtype))
     return est, left, torch.cat([torch.stack([left, refused]), last])
 
 
@@ -356,7 +357,7 @@ def _graph_for(pts: _IcpPoints, model: _IcpModel, k: Intrinsics, cfg: TrackingCo
     failed (logged once; the eager step runs)."""
     key = (pts.lp.device, tuple(pts.lp.shape), pts.il is not None, model.col is not None, tuple(model.vm.shape),
            k, cfg.icp_max_dist, cfg.icp_sigma_geo, cfg.icp_sigma_col, cfg.geometric_weight, cfg.photometric_weight,
-           cfg.min_correspondences, photometric)
+           cfg.min_correspondences, cfg.icp_min_step, photometric)
     if key not in _GRAPHS:
         if len(_GRAPHS) >= _MAX_GRAPHS:
             _GRAPHS.pop(next(iter(_GRAPHS)))
@@ -427,7 +428,7 @@ def icp(model_depth: Tensor, model_valid: Tensor, guess_c2w: Tensor, live_depth:
     model = _IcpModel(vm.reshape(-1, 3), nm.reshape(-1, 3), nvalid.reshape(-1), col, torch.linalg.inv(g), p_w)
     est = g.clone() if start_c2w is None else start_c2w.to(dt).clone()
     res_rms, n_in, agree = float("nan"), 0, float("nan")
-    base = max(1, round(k.width / 160))  # about 160 live points per row at the finest level
+    base = max(1, round(k.width / cfg.icp_row_points))  # live points per row at the finest level
     for level in reversed(range(cfg.icp_levels)):
         stride = base * 2**level
         lp = live_all[::stride, ::stride].reshape(-1, 3)
@@ -445,7 +446,7 @@ def icp(model_depth: Tensor, model_valid: Tensor, guess_c2w: Tensor, live_depth:
             if n_in < cfg.min_correspondences:
                 raise TrackingError(f"ICP found only {n_in} correspondences (< {cfg.min_correspondences})")
             est, res_rms, agree = new, rms, ag
-            if step < 1e-6:
+            if step < cfg.icp_min_step:
                 break
     return TrackResult(est, res_rms, n_in, agree)
 

@@ -134,8 +134,8 @@ def test_graph_solver_matches_lapack():
 
 def test_icp_step_is_the_same_with_either_solver(scene):
     """The step the CUDA graph captures (with the graph's solver) gives the eager step's pose and statistics."""
-    from semantic_gs_slam.tracking import _icp_step, _IcpModel, _IcpPoints, _solve_spd6
     from semantic_gs_slam.geometry import backproject
+    from semantic_gs_slam.tracking import _icp_step, _IcpModel, _IcpPoints, _solve_spd6
 
     eng, k, poses, frames = scene
     md, valid, out = model(eng, poses[0])
@@ -242,3 +242,36 @@ def test_icp_cuda_graph_matches_the_eager_step(scene):
         torch.testing.assert_close(a.c2w, b.c2w, rtol=0, atol=1e-9)
         assert a.inliers == b.inliers and abs(a.residual - b.residual) < 1e-9
         assert pose_error(b.c2w.cpu().numpy(), poses[0])[0] < 0.004
+
+
+def test_icp_step_count_follows_its_settings(scene, monkeypatch):
+    """``icp_min_step`` ends a level early, ``icp_row_points`` sets how many live points a step uses, and both
+    are checked."""
+    from semantic_gs_slam import tracking
+    from semantic_gs_slam.errors import ConfigError
+
+    eng, k, poses, frames = scene
+    md, valid, out = model(eng, poses[0])
+    seen = []
+    orig = tracking._icp_step
+
+    def counting(est, pts, *a, **kw):
+        seen.append(pts.lp.shape[0])
+        return orig(est, pts, *a, **kw)
+
+    monkeypatch.setattr(tracking, "_icp_step", counting)
+    runs = {}
+    for name, cfg in {"strict": TrackingConfig(icp_min_step=0.0), "loose": TrackingConfig(icp_min_step=1e-3),
+                      "sparse": TrackingConfig(icp_min_step=0.0, icp_row_points=80)}.items():
+        seen.clear()
+        r = icp(md, valid, torch.as_tensor(poses[0]), torch.as_tensor(frames[1][1]).float(), k, cfg, out.rgb,
+                torch.as_tensor(frames[1][0]).float())
+        runs[name] = (len(seen), max(seen), r)
+    assert runs["strict"][0] == 2 * TrackingConfig().icp_iters  # 0: never converged, every step runs
+    assert runs["loose"][0] < runs["strict"][0]
+    assert runs["sparse"][1] * 3 < runs["strict"][1]  # 160 -> 80 points per row (pixel stride 1 -> 2 at 160 px)
+    for name in ("loose", "sparse"):
+        assert pose_error(runs[name][2].c2w.numpy(), poses[1])[0] < 0.01
+    for bad in ({"icp_row_points": 0}, {"icp_min_step": -1.0}, {"icp_min_step": float("nan")}):
+        with pytest.raises(ConfigError):
+            TrackingConfig(**bad).check()
