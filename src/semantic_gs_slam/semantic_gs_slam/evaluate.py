@@ -8,7 +8,7 @@ import torch
 
 from semantic_gs_slam.datasets import Dataset
 from semantic_gs_slam.exposure import to_frame
-from semantic_gs_slam.metrics import ate_rmse, class_iou, confusion, depth_l1, miou, psnr, ssim
+from semantic_gs_slam.metrics import ate_rmse, class_iou, confusion, depth_l1, miou, psnr, psnr_depth_masked, ssim
 
 
 def evaluate(eng, ds: Dataset, frame_idx: list[int], every: int = 1) -> dict:
@@ -21,13 +21,15 @@ def evaluate(eng, ds: Dataset, frame_idx: list[int], every: int = 1) -> dict:
         every: render-evaluate every k-th frame.
 
     Returns:
-        dict with ate_rmse_cm, psnr, ssim, depth_l1_cm, miou, class_iou (name -> IoU), gaussians, frames.
+        dict with ate_rmse_cm, psnr (all pixels), psnr_masked (SplaTAM's protocol:
+        :func:`~semantic_gs_slam.metrics.psnr_depth_masked`), ssim, depth_l1_cm, miou, class_iou (name -> IoU),
+        gaussians, frames.
     """
     res = {"frames": len(eng.poses), "gaussians": len(eng.map)}
     gts = [ds[i].gt_c2w for i in frame_idx]
     if all(g is not None for g in gts):
         res["ate_rmse_cm"] = 100 * ate_rmse(eng.poses, gts)
-    ps, ss, dl = [], [], []
+    ps, pm, ss, dl = [], [], [], []
     conf = np.zeros((256, 256), np.int64)
     have_sem = False
     for n in range(0, len(frame_idx), every):
@@ -38,15 +40,18 @@ def evaluate(eng, ds: Dataset, frame_idx: list[int], every: int = 1) -> dict:
         exp = eng.exposure_of(n)
         if exp is not None:  # the map keeps the first frame's exposure: render in this frame's (exposure.py)
             img = to_frame(img, exp)
+        depth = torch.as_tensor(f.depth, device=eng.device)
         ps.append(psnr(img, rgb))
+        pm.append(psnr_depth_masked(img, rgb, depth))
         ss.append(float(ssim(img, rgb)))
-        dl.append(depth_l1(out.depth, torch.as_tensor(f.depth, device=eng.device)))
+        dl.append(depth_l1(out.depth, depth))
         if f.semantics is not None and out.semantic is not None:
             have_sem = True
             sem = out.semantic / out.silhouette.clamp_min(1e-6)[..., None]  # class scores, not scores x coverage
             pred = eng.map.labels_from_features(sem).cpu().numpy()
             conf += confusion(pred.clip(0, 255), f.semantics.clip(0, 255), 256)
-    res.update(psnr=float(np.mean(ps)), ssim=float(np.mean(ss)), depth_l1_cm=100 * float(np.nanmean(dl)))
+    res.update(psnr=float(np.mean(ps)), psnr_masked=float(np.mean(pm)), ssim=float(np.mean(ss)),
+               depth_l1_cm=100 * float(np.nanmean(dl)))
     if have_sem:
         res["miou"] = miou(conf)
         res["class_iou"] = {eng.classes.get(c, str(c)): v for c, v in class_iou(conf).items()}
@@ -56,7 +61,9 @@ def evaluate(eng, ds: Dataset, frame_idx: list[int], every: int = 1) -> dict:
 def format_table(res: dict) -> str:
     """Two-column text table of :func:`evaluate` results."""
     rows = [("frames", "frames", "{:d}"), ("ate_rmse_cm", "ATE RMSE (cm, aligned)", "{:.2f}"),
-            ("psnr", "PSNR (dB)", "{:.2f}"), ("ssim", "SSIM", "{:.3f}"), ("depth_l1_cm", "depth L1 (cm)", "{:.2f}"),
+            ("psnr", "PSNR (dB)", "{:.2f}"),
+            ("psnr_masked", "PSNR (dB), SplaTAM's protocol (pixels without depth zeroed)", "{:.2f}"),
+            ("ssim", "SSIM", "{:.3f}"), ("depth_l1_cm", "depth L1 (cm)", "{:.2f}"),
             ("miou", "semantic mIoU", "{:.3f}"), ("fps", "FPS", "{:.2f}"), ("gaussians", "Gaussians", "{:d}")]
     lines = ["| metric | value |", "|---|---|"]
     for key, name, fmt in rows:
