@@ -10,6 +10,7 @@ photometric refinement then runs Adam on the pose against colour and depth L1.
 from __future__ import annotations
 
 import logging
+import threading
 from dataclasses import dataclass
 
 import torch
@@ -355,7 +356,9 @@ def _graph_for(pts: _IcpPoints, model: _IcpModel, k: Intrinsics, cfg: TrackingCo
                photometric: bool) -> _IcpGraph | None:
     """The cached graph for this problem's shapes and settings, loaded with its inputs; None when capturing
     failed (logged once; the eager step runs)."""
-    key = (pts.lp.device, tuple(pts.lp.shape), pts.il is not None, model.col is not None, tuple(model.vm.shape),
+    # per thread: a graph's static inputs are loaded, then replayed, so two engines in two threads must not share one
+    key = (threading.get_ident(), pts.lp.device, tuple(pts.lp.shape), pts.il is not None, model.col is not None,
+           tuple(model.vm.shape),
            k, cfg.icp_max_dist, cfg.icp_sigma_geo, cfg.icp_sigma_col, cfg.geometric_weight, cfg.photometric_weight,
            cfg.min_correspondences, cfg.icp_min_step, photometric)
     if key not in _GRAPHS:
