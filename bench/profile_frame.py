@@ -90,9 +90,16 @@ class StageTimer:
         return "\n".join(lines)
 
 
-def instrument(eng, timer: StageTimer) -> None:
-    """Wrap the engine's stages (instance attributes and the functions ``slam.py`` calls) with ``timer``."""
+def instrument(eng, timer: StageTimer) -> Callable[[], None]:
+    """Wrap the engine's stages (instance attributes and the functions ``slam.py`` calls) with ``timer``.
+
+    Returns:
+        a function that puts ``slam.py``'s functions back (the instance's wrappers go with the instance).
+    """
     import semantic_gs_slam.slam as slam_mod
+
+    saved = {fn: getattr(slam_mod, fn) for fn in ("icp", "fit_exposure", "mapping_loss", "find_loops")
+             if hasattr(slam_mod, fn)}
 
     for attr, name in [("add_frame", "frame (total)"), ("_tensors", "upload"), ("_track", "track"),
                        ("_densify", "densify"), ("_map_keyframe", "keyframe"), ("_close_loop", "keyframe.loop"),
@@ -103,9 +110,14 @@ def instrument(eng, timer: StageTimer) -> None:
     eng.map.add_from_frame = timer.wrap("densify.add", eng.map.add_from_frame)
     eng.render_view = timer.wrap("render_view (track, densify)", eng.render_view)
     eng._render = timer.wrap("render (every render)", eng._render)
-    for fn in ("icp", "fit_exposure", "mapping_loss", "find_loops"):
-        if hasattr(slam_mod, fn):
-            setattr(slam_mod, fn, timer.wrap(fn, getattr(slam_mod, fn)))
+    for fn, orig in saved.items():
+        setattr(slam_mod, fn, timer.wrap(fn, orig))
+
+    def restore() -> None:
+        for fn, orig in saved.items():
+            setattr(slam_mod, fn, orig)
+
+    return restore
 
 
 def profiler_report(prof, frames: int, device: torch.device, top: int) -> str:
@@ -172,30 +184,40 @@ def main(argv: list[str] | None = None) -> int:
 
     from semantic_gs_slam.slam import SLAM
 
+    if len(frames) < 2:
+        ap.error(f"need at least 2 frames (frame 0 is left out of every figure), got {len(frames)}")
+    # the profiler window, clipped to the frames there are
+    prof_range = range(max(a.profile_from, 1), min(a.profile_from + a.profile_frames, len(frames)))
     eng = SLAM(cfg, ds.classes)
     timer = StageTimer(dev, not a.no_sync)
-    instrument(eng, timer)
-    prof_range = range(a.profile_from, a.profile_from + a.profile_frames) if a.profile_frames > 0 else range(0)
+    restore = instrument(eng, timer)
     prof = None
     walls = []
-    for i, f in enumerate(frames):
-        if i == prof_range.start and len(prof_range):
-            acts = [torch.profiler.ProfilerActivity.CPU] + ([torch.profiler.ProfilerActivity.CUDA]
-                                                            if dev.type == "cuda" else [])
-            prof = torch.profiler.profile(activities=acts)
-            prof.__enter__()
-        t = time.perf_counter()
-        eng.add_frame(f.rgb, f.depth, f.semantics, f.timestamp, f.gt_c2w)
-        if dev.type == "cuda":
-            torch.cuda.synchronize(dev)
-        walls.append(time.perf_counter() - t)
-        timer.end_frame(eng.logs[-1].keyframe)
-        if prof is not None and i == prof_range[-1]:
+    try:
+        for i, f in enumerate(frames):
+            if len(prof_range) and i == prof_range.start:
+                acts = [torch.profiler.ProfilerActivity.CPU] + ([torch.profiler.ProfilerActivity.CUDA]
+                                                                if dev.type == "cuda" else [])
+                prof = torch.profiler.profile(activities=acts)
+                prof.__enter__()
+            t = time.perf_counter()
+            eng.add_frame(f.rgb, f.depth, f.semantics, f.timestamp, f.gt_c2w)
+            if dev.type == "cuda":
+                torch.cuda.synchronize(dev)
+            walls.append(time.perf_counter() - t)
+            timer.end_frame(eng.logs[-1].keyframe)
+            if prof is not None and i == prof_range[-1]:
+                prof.__exit__(None, None, None)
+                print(profiler_report(prof, len(prof_range), dev, a.top), flush=True)
+                prof = None
+    finally:
+        if prof is not None:
             prof.__exit__(None, None, None)
-            print(profiler_report(prof, len(prof_range), dev, a.top), flush=True)
-            prof = None
-    with contextlib.suppress(Exception):
-        name = torch.cuda.get_device_name(dev) if dev.type == "cuda" else f"CPU, {torch.get_num_threads()} threads"
+        restore()
+    name = f"CPU, {torch.get_num_threads()} threads"
+    if dev.type == "cuda":
+        with contextlib.suppress(Exception):
+            name = torch.cuda.get_device_name(dev)
     print(f"\n{name}, backend {eng.backend.__name__ if hasattr(eng.backend, '__name__') else eng.backend}, "
           f"{w}x{h}, {len(frames)} frames, {len(eng.map)} Gaussians at the end, stages "
           f"{'synchronised' if timer.sync else 'not synchronised'}")

@@ -22,7 +22,7 @@ from torch import Tensor
 from semantic_gs_slam.config import Intrinsics, LoopConfig, TrackingConfig
 from semantic_gs_slam.errors import TrackingError
 from semantic_gs_slam.geometry import backproject, pose_error
-from semantic_gs_slam.tracking import icp
+from semantic_gs_slam.tracking import IcpGraphs, icp
 
 
 @dataclass
@@ -99,7 +99,8 @@ def agreement(pts_c: Tensor, c2w: Tensor, ref_depth: Tensor, ref_c2w: Tensor, k:
 
 
 def find_loops(depth: Tensor, c2w: np.ndarray, frame: int, keyframes: list, k: Intrinsics, lc: LoopConfig,
-               tc: TrackingConfig, kf_poses: list[np.ndarray] | None = None) -> list[LoopMatch]:
+               tc: TrackingConfig, kf_poses: list[np.ndarray] | None = None,
+               graphs: IcpGraphs | None = None) -> list[LoopMatch]:
     """Register the current keyframe against its most overlapping old keyframes.
 
     Args:
@@ -108,6 +109,8 @@ def find_loops(depth: Tensor, c2w: np.ndarray, frame: int, keyframes: list, k: I
         frame: the current frame index.
         keyframes: the engine's keyframes (``index``, ``c2w`` [4, 4] tensor, ``depth`` [H, W]).
         k: intrinsics. lc: loop settings. tc: tracking settings (the ICP's other knobs).
+        kf_poses: the keyframes' poses as host copies (default: from ``keyframes``).
+        graphs: the engine's captured ICP steps (CUDA), or None.
 
     Returns:
         Up to ``lc.candidates`` matches, best overlap first (judge each with :meth:`LoopMatch.verdict`),
@@ -141,20 +144,20 @@ def find_loops(depth: Tensor, c2w: np.ndarray, frame: int, keyframes: list, k: I
             break
     out = []
     for ov, i in picked:
-        m = _register(pts, cur, depth, i, keyframes[i], ov, k, lc, tc)
+        m = _register(pts, cur, depth, i, keyframes[i], ov, k, lc, tc, graphs)
         if m is not None:
             out.append(m)
     return out
 
 
 def _register(pts: Tensor, cur: Tensor, depth: Tensor, pos: int, ref, ov: float, k: Intrinsics, lc: LoopConfig,
-              tc: TrackingConfig) -> LoopMatch | None:
+              tc: TrackingConfig, graphs: IcpGraphs | None = None) -> LoopMatch | None:
     ref_c2w = ref.c2w.double()
     before = agreement(pts, cur, ref.depth, ref_c2w, k, lc.verify_dist)
     cfg = replace(tc, icp_iters=lc.icp_iters, icp_levels=lc.icp_levels, icp_max_dist=lc.icp_max_dist,
                   photometric_weight=0.0, prior_sigma_trans=1e3, prior_sigma_rot=1e3)
     try:
-        res = icp(ref.depth, ref.depth > 0, ref_c2w, depth, k, cfg, start_c2w=cur)
+        res = icp(ref.depth, ref.depth > 0, ref_c2w, depth, k, cfg, start_c2w=cur, graphs=graphs)
     except TrackingError:
         return None
     reg = res.c2w.to(torch.float64)

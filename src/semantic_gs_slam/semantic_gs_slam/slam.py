@@ -39,7 +39,7 @@ from semantic_gs_slam.metrics import ssim
 from semantic_gs_slam.posegraph import Edge
 from semantic_gs_slam.posegraph import optimise as optimise_graph
 from semantic_gs_slam.render import Gaussians, RenderOutput, select_backend
-from semantic_gs_slam.tracking import icp, photometric_refine, plane_depth_features, plane_depth_image
+from semantic_gs_slam.tracking import IcpGraphs, icp, photometric_refine, plane_depth_features, plane_depth_image
 
 log = logging.getLogger("semantic_gs_slam")
 
@@ -163,6 +163,7 @@ class SLAM:
         self._loop_note = ""
         self._agreement = float("nan")
         self._exposure: Tensor | None = None  # this frame's, once densification has fitted it
+        self._icp_graphs = IcpGraphs()  # captured ICP steps on CUDA (tracking.IcpGraphs); unused elsewhere
 
     # ------------------------------------------------------------------ input
     def _tensors(self, rgb: np.ndarray, depth: np.ndarray, sem: np.ndarray | None
@@ -182,15 +183,19 @@ class SLAM:
             if sem.shape != (k.height, k.width):
                 raise FrameError(f"semantics must be [{k.height}, {k.width}] ids, got {list(sem.shape)}")
         dev = self.device
-        try:  # dtypes torch converts everywhere travel as they are; others are converted on the host first
-            rgb_t = torch.as_tensor(rgb if rgb.dtype == np.uint8 else rgb.astype(np.float32, copy=False), device=dev)
-            depth_t = torch.as_tensor(depth.astype(np.float32, copy=False), device=dev)
-            sem_t = None if sem is None else torch.as_tensor(
-                sem if sem.dtype in (np.int64, np.int32, np.int16, np.uint8) else sem.astype(np.int64),
-                device=dev).to(torch.int64)
-        except (TypeError, ValueError, RuntimeError) as exc:
+        try:  # dtypes torch converts everywhere travel as they are, others are converted on the host first;
+            # contiguous, because torch takes no negative strides (a BGR array flipped to RGB, a flipped image)
+            rgb_np = np.ascontiguousarray(rgb if rgb.dtype == np.uint8 else rgb.astype(np.float32, copy=False))
+            depth_np = np.ascontiguousarray(depth.astype(np.float32, copy=False))
+            sem_np = None if sem is None else np.ascontiguousarray(
+                sem if sem.dtype in (np.int64, np.int32, np.int16, np.uint8) else sem.astype(np.int64))
+        except (TypeError, ValueError) as exc:
             raise FrameError(f"frame arrays must be numeric: {exc}") from exc
-        rgb_t = rgb_t.to(torch.float32) / 255.0 if rgb_t.dtype == torch.uint8 else rgb_t.to(torch.float32)
+        own = dev.type == "cpu"  # on the CPU torch would share the caller's memory: keyframes keep these tensors
+        rgb_t = torch.as_tensor(rgb_np, device=dev)
+        depth_t = torch.as_tensor(depth_np, device=dev)
+        sem_t = None if sem_np is None else torch.as_tensor(sem_np, device=dev).to(torch.int64, copy=own)
+        rgb_t = rgb_t.to(torch.float32) / 255.0 if rgb_t.dtype == torch.uint8 else rgb_t.to(torch.float32, copy=own)
         valid = (depth_t >= self.cfg.depth_min) & (depth_t <= self.cfg.depth_max)
         bad_rgb, bad_depth, negative, n_valid = torch.stack([(~torch.isfinite(rgb_t)).sum(), (~torch.isfinite(
             depth_t)).sum(), (depth_t < 0).sum(), valid.sum()]).tolist()  # one host copy
@@ -325,7 +330,7 @@ class SLAM:
         icp_cfg = tc if odom_guess is None else replace(tc, prior_sigma_trans=tc.odometry_sigma_trans,
                                                          prior_sigma_rot=tc.odometry_sigma_rot)
         try:
-            res = icp(model_depth, valid, g, depth, self.k, icp_cfg, out.rgb, rgb)
+            res = icp(model_depth, valid, g, depth, self.k, icp_cfg, out.rgb, rgb, graphs=self._icp_graphs)
             self._agreement = res.agreement
             # with odometry the tight prior holds the pose; low agreement there is mostly new geometry (an
             # exploring robot's 45-degree turns: 14-25 %), and falling back to odometry would only add its drift
@@ -468,7 +473,7 @@ class SLAM:
                 (self.odom_poses[-1] is not None and not lc.with_odometry):
             return ""
         matches = find_loops(depth, self.poses[-1], idx, self.keyframes, self.k, lc, self.cfg.tracking,
-                             [self.poses[kf.index] for kf in self.keyframes])
+                             [self.poses[kf.index] for kf in self.keyframes], self._icp_graphs)
         notes, correct, usable = [], [], []
         for m in matches:
             verdict = m.verdict(lc)

@@ -10,7 +10,6 @@ photometric refinement then runs Adam on the pose against colour and depth L1.
 from __future__ import annotations
 
 import logging
-import threading
 from dataclasses import dataclass
 
 import torch
@@ -183,32 +182,35 @@ def _icp_step(est: Tensor, pts: _IcpPoints, model: _IcpModel, k: Intrinsics, cfg
     vf = k.fy * xc[:, 1] / z + k.cy
     u, v = torch.round(uf), torch.round(vf)
     inside = pts.lvalid & (xc[:, 2] > 1e-3) & (u >= 0) & (u < k.width) & (v >= 0) & (v < k.height)
-    pix = (v.clamp(0, k.height - 1) * k.width + u.clamp(0, k.width - 1)).long()  # [M]
+    # masks select with where, not by multiplying (NaN x 0 is NaN); a NaN coordinate is never inside, so its index is 0
+    pix = torch.where(inside, v * k.width + u, torch.zeros_like(u)).long()  # [M]
     ok = inside & model.nvalid[pix]
     q, n = model.vm[pix], model.nm[pix]
     diff = x - q
     close = ok & (diff.norm(dim=-1) < cfg.icp_max_dist)
     mask = close.to(dt)
-    r = (diff * n).sum(-1) * mask
+    r = torch.where(close, (diff * n).sum(-1), torch.zeros_like(mask))
     sg = cfg.icp_sigma_geo
     w = torch.where(r.abs() < sg, torch.ones_like(r), sg / r.abs().clamp_min(1e-30)) * mask * (cfg.geometric_weight
                                                                                                / (sg * sg))
     jac = torch.cat([torch.cross(x, n, dim=-1), n], -1)  # [M, 6]
-    jw = jac * w[:, None]
+    jw = torch.where(close[:, None], jac * w[:, None], torch.zeros_like(jac))
+    jac = torch.where(close[:, None], jac, torch.zeros_like(jac))
     a = jw.T @ jac
     b = -(jw.T @ r)
     if photometric and model.col is not None and pts.il is not None:
         sc = cfg.icp_sigma_col
         inb = inside & (uf >= 0) & (uf < k.width - 1) & (vf >= 0) & (vf < k.height - 1)
-        u0 = torch.floor(uf).clamp(0, k.width - 2)
-        v0 = torch.floor(vf).clamp(0, k.height - 2)
+        u0 = torch.where(inb, torch.floor(uf), torch.zeros_like(uf))
+        v0 = torch.where(inb, torch.floor(vf), torch.zeros_like(vf))
         fu, fv = (uf - u0)[:, None], (vf - v0)[:, None]
         p00 = (v0 * k.width + u0).long()
         col = model.col
         smp = ((1 - fu) * (1 - fv) * col[p00] + fu * (1 - fv) * col[p00 + 1]
                + (1 - fu) * fv * col[p00 + k.width] + fu * fv * col[p00 + k.width + 1])  # [M, 4]
-        mc = (inb & (smp[:, 3] > 0.999)).to(dt)
-        rc = (smp[:, 0] - pts.il) * mc
+        use = inb & (smp[:, 3] > 0.999)
+        mc = use.to(dt)
+        rc = torch.where(use, smp[:, 0] - pts.il, torch.zeros_like(mc))
         # d(pixel)/d(camera point), camera point = R_gw (world point); world point moves by w x X + t
         zero = torch.zeros_like(z)
         du = torch.stack([k.fx / z, zero, -k.fx * xc[:, 0] / (z * z)], -1)
@@ -217,7 +219,8 @@ def _icp_step(est: Tensor, pts: _IcpPoints, model: _IcpModel, k: Intrinsics, cfg
         jc = torch.cat([torch.cross(x, gvec, dim=-1), gvec], -1)
         wc = torch.where(rc.abs() < sc, torch.ones_like(rc), sc / rc.abs().clamp_min(1e-30)) * mc * (
             cfg.photometric_weight / (sc * sc))
-        jcw = jc * wc[:, None]
+        jcw = torch.where(use[:, None], jc * wc[:, None], torch.zeros_like(jc))
+        jc = torch.where(use[:, None], jc, torch.zeros_like(jc))
         a = a + jcw.T @ jc
         b = b - jcw.T @ rc
     # weak prior toward the guess: keeps directions the data leave free from drifting
@@ -270,17 +273,17 @@ class _IcpGraph:
     A step of ICP is some 80 small kernels on a few thousand points: on a GPU its time is launch overhead and
     the host round trip of the convergence test, not arithmetic (14 ms of a 1200x680 frame, measured on an H200
     with one graph per step). Captured once, four steps are one graph launch and one host copy. Inputs are
-    copied into the graph's static tensors (:meth:`load`, once per level). The graph solves the 6x6 systems with
-    :func:`_solve_spd6` (LAPACK's solver checks its result on the host). With ``capture=False`` the same chunks
-    run eagerly (how the CPU tests check the chunking); ``tracking.cuda_graphs`` off runs the eager
-    :func:`_icp_step` loop, the reference (a GPU test compares the two).
+    copied into static tensors (:meth:`load`, once per level); the model's static tensors are shared by the
+    graphs of every level (:class:`IcpGraphs`). The graph solves the 6x6 systems with :func:`_solve_spd6`
+    (LAPACK's solver checks its result on the host). With ``capture=False`` the same chunks run eagerly (how the
+    CPU tests check the chunking); ``tracking.cuda_graphs`` off runs the eager :func:`_icp_step` loop, the
+    reference (a GPU test compares the two).
     """
 
     def __init__(self, pts: _IcpPoints, model: _IcpModel, k: Intrinsics, cfg: TrackingConfig, photometric: bool,
                  capture: bool = True):
         self.pts = _IcpPoints(*(None if t is None else t.clone() for t in (pts.lp, pts.lvalid, pts.il)))
-        self.model = _IcpModel(*(None if t is None else t.clone() for t in (model.vm, model.nm, model.nvalid,
-                                                                            model.col, model.w2c_g, model.prior_w)))
+        self.model = model  # static: owned by the cache, shared across levels, reloaded by load()
         self.k, self.cfg, self.photometric = k, cfg, photometric
         self.est = torch.linalg.inv(model.w2c_g)
         self.left = self.est.new_zeros(())
@@ -288,17 +291,18 @@ class _IcpGraph:
         if not capture:
             return
         dev = self.est.device
-        side = torch.cuda.Stream(device=dev)
-        side.wait_stream(torch.cuda.current_stream(dev))
-        with torch.cuda.stream(side):  # warm-up outside the capture (allocator, lazy initialisation)
-            for _ in range(2):
-                self._chunk()
-        torch.cuda.current_stream(dev).wait_stream(side)
-        self.graph = torch.cuda.CUDAGraph()
-        with torch.cuda.graph(self.graph, capture_error_mode="thread_local"):
-            est, left, self.stats = self._chunk()
-            self.est.copy_(est)
-            self.left.copy_(left)
+        with torch.cuda.device(dev):
+            side = torch.cuda.Stream(device=dev)
+            side.wait_stream(torch.cuda.current_stream(dev))
+            with torch.cuda.stream(side):  # warm-up outside the capture (allocator, lazy initialisation)
+                for _ in range(2):
+                    self._chunk()
+            torch.cuda.current_stream(dev).wait_stream(side)
+            self.graph = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(self.graph, stream=torch.cuda.Stream(device=dev), capture_error_mode="thread_local"):
+                est, left, self.stats = self._chunk()
+                self.est.copy_(est)
+                self.left.copy_(left)
 
     def _chunk(self) -> tuple[Tensor, Tensor, Tensor]:
         return _icp_steps(self.est, self.left, self.pts, self.model, self.k, self.cfg, self.photometric,
@@ -328,7 +332,8 @@ class _IcpGraph:
         n_in, rms, agree = 0, float("nan"), float("nan")
         for _ in range(-(-iters // STEPS_PER_GRAPH)):  # the steps left reach 0 by then; the bound is a backstop
             if self.graph is not None:
-                self.graph.replay()
+                with torch.cuda.device(self.est.device):
+                    self.graph.replay()
                 stats = self.stats
             else:
                 est_c, left_c, stats = self._chunk()
@@ -344,39 +349,54 @@ class _IcpGraph:
         return self.est.clone(), n_in, rms, agree
 
 
-_GRAPHS: dict[tuple, _IcpGraph | None] = {}  # problem key -> graph (None: capture failed, stay eager)
-_MAX_GRAPHS = 16
+class IcpGraphs:
+    """An engine's cache of captured ICP graphs (:class:`_IcpGraph`), one per problem shape and settings.
 
+    Owned by one :class:`~semantic_gs_slam.slam.SLAM` and used from the thread that runs it: a graph's static
+    inputs are loaded, then replayed, so two engines never share one. The model's static tensors (about 66 MB at
+    1200x680 in float64) are kept once per image size and shared by the graphs of all pyramid levels. At most
+    ``max_graphs`` graphs are kept (oldest dropped). Only CUDA problems get graphs; elsewhere :meth:`get` returns
+    None and ICP runs its eager step loop.
+    """
 
-def _use_graphs(cfg: TrackingConfig, device: torch.device) -> bool:
-    return cfg.cuda_graphs and device.type == "cuda"
+    def __init__(self, max_graphs: int = 8, capture: bool = True):
+        self.max_graphs = max_graphs
+        self.capture = capture  # False: CPU tests run the chunked path eagerly
+        self._graphs: dict[tuple, _IcpGraph | None] = {}  # None: capture failed, that problem stays eager
+        self._models: dict[tuple, _IcpModel] = {}
 
+    def __len__(self) -> int:
+        return sum(g is not None for g in self._graphs.values())
 
-def _graph_for(pts: _IcpPoints, model: _IcpModel, k: Intrinsics, cfg: TrackingConfig,
-               photometric: bool) -> _IcpGraph | None:
-    """The cached graph for this problem's shapes and settings, loaded with its inputs; None when capturing
-    failed (logged once; the eager step runs)."""
-    # per thread: a graph's static inputs are loaded, then replayed, so two engines in two threads must not share one
-    key = (threading.get_ident(), pts.lp.device, tuple(pts.lp.shape), pts.il is not None, model.col is not None,
-           tuple(model.vm.shape),
-           k, cfg.icp_max_dist, cfg.icp_sigma_geo, cfg.icp_sigma_col, cfg.geometric_weight, cfg.photometric_weight,
-           cfg.min_correspondences, cfg.icp_min_step, photometric)
-    if key not in _GRAPHS:
-        if len(_GRAPHS) >= _MAX_GRAPHS:
-            _GRAPHS.pop(next(iter(_GRAPHS)))
-        try:
-            _GRAPHS[key] = _IcpGraph(pts, model, k, cfg, photometric)
-        except Exception as exc:  # noqa: BLE001 - any capture failure falls back to the eager reference
-            log.warning("ICP: capturing a CUDA graph failed (%s: %s); running the step eagerly", type(exc).__name__,
-                        exc)
-            _GRAPHS[key] = None
-    graph = _GRAPHS[key]
-    return None if graph is None else graph.load(pts, model)
+    def get(self, pts: _IcpPoints, model: _IcpModel, k: Intrinsics, cfg: TrackingConfig,
+            photometric: bool) -> _IcpGraph | None:
+        """The graph for this problem, loaded with its inputs; None off CUDA, or when capturing failed (logged
+        once; the eager step runs)."""
+        if self.capture and pts.lp.device.type != "cuda":
+            return None
+        mkey = (pts.lp.device, tuple(model.vm.shape), model.col is not None)
+        if mkey not in self._models:
+            self._models[mkey] = _IcpModel(*(None if t is None else t.clone() for t in (
+                model.vm, model.nm, model.nvalid, model.col, model.w2c_g, model.prior_w)))
+        key = (mkey, tuple(pts.lp.shape), pts.il is not None, k, cfg.icp_max_dist, cfg.icp_sigma_geo,
+               cfg.icp_sigma_col, cfg.geometric_weight, cfg.photometric_weight, cfg.min_correspondences,
+               cfg.icp_min_step, photometric)
+        if key not in self._graphs:
+            if len(self._graphs) >= self.max_graphs:
+                self._graphs.pop(next(iter(self._graphs)))
+            try:
+                self._graphs[key] = _IcpGraph(pts, self._models[mkey], k, cfg, photometric, self.capture)
+            except Exception as exc:  # noqa: BLE001 - any capture failure falls back to the eager reference
+                log.warning("ICP: capturing a CUDA graph failed (%s: %s); running the step eagerly",
+                            type(exc).__name__, exc)
+                self._graphs[key] = None
+        graph = self._graphs[key]
+        return None if graph is None else graph.load(pts, model)
 
 
 def icp(model_depth: Tensor, model_valid: Tensor, guess_c2w: Tensor, live_depth: Tensor, k: Intrinsics,
         cfg: TrackingConfig, model_rgb: Tensor | None = None, live_rgb: Tensor | None = None,
-        start_c2w: Tensor | None = None) -> TrackResult:
+        start_c2w: Tensor | None = None, graphs: IcpGraphs | None = None) -> TrackResult:
     """Point-to-plane ICP (plus an optional photometric term) of a live frame against a model frame
     rendered at ``guess_c2w``.
 
@@ -395,6 +415,8 @@ def icp(model_depth: Tensor, model_valid: Tensor, guess_c2w: Tensor, live_depth:
         model_rgb: [H, W, 3] colour rendered at the guess pose, or None (geometry only).
         live_rgb: [H, W, 3] live colour, or None.
         start_c2w: [4, 4] initial estimate (default: ``guess_c2w``).
+        graphs: the engine's captured steps (:class:`IcpGraphs`), used on CUDA when ``cfg.cuda_graphs``; None:
+            the eager step loop.
 
     Returns:
         :class:`TrackResult`.
@@ -437,7 +459,7 @@ def icp(model_depth: Tensor, model_valid: Tensor, guess_c2w: Tensor, live_depth:
         lp = live_all[::stride, ::stride].reshape(-1, 3)
         pts = _IcpPoints(lp, lp[:, 2] > 0, il_all[::stride, ::stride].reshape(-1) if use_col else None)
         photometric = use_col and level == 0  # the photometric term only at the finest level (small basin)
-        graph = _graph_for(pts, model, k, cfg, photometric) if _use_graphs(cfg, dev) else None
+        graph = graphs.get(pts, model, k, cfg, photometric) if graphs is not None and cfg.cuda_graphs else None
         if graph is not None:
             if cfg.icp_iters > 0:
                 est, n_in, res_rms, agree = graph.level(est, cfg.icp_iters)

@@ -8,6 +8,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+import torch
 
 from semantic_gs_slam.config import Intrinsics, MappingConfig, SlamConfig, TrackingConfig
 from semantic_gs_slam.datasets import load_dataset
@@ -101,7 +102,36 @@ def test_bad_frames_raise_clear_errors():
         eng.add_frame(rgb, depth * 1000)  # millimetres by mistake
     with pytest.raises(FrameError, match="semantics"):
         eng.add_frame(rgb, depth, np.zeros((3, 3), np.int64))
+    inf_rgb = rgb.copy()
+    inf_rgb[0, 0, 1] = np.inf
+    with pytest.raises(FrameError, match="rgb contains NaN or inf"):
+        eng.add_frame(inf_rgb, depth)
+    with pytest.raises(FrameError, match="negative"):
+        eng.add_frame(rgb, -depth)
+    with pytest.raises(FrameError, match="numeric"):
+        eng.add_frame(np.full((12, 16, 3), "red", object), depth)
     assert len(eng.poses) == 0  # nothing was half-added
+
+
+def test_frames_as_cameras_give_them():
+    """Arrays a driver or OpenCV hands over work as they are: BGR flipped to RGB (a negative stride), a flipped
+    depth image, float64 depth, uint16 labels; the engine keeps its own copies (the caller may reuse its buffers)."""
+    k = Intrinsics(16, 12, 8.0, 8.0, 7.5, 5.5)
+    eng = SLAM(SlamConfig(intrinsics=k, device="cpu"))
+    bgr = np.random.default_rng(0).integers(0, 255, (12, 16, 3), dtype=np.uint8)
+    depth = np.full((12, 16), 2.0, np.float64)
+    labels = np.zeros((12, 16), np.uint16)
+    labels[:4] = 7
+    rgb_t, depth_t, sem_t = eng._tensors(bgr[..., ::-1], depth[::-1], labels[::-1])
+    assert torch.allclose(rgb_t[..., 0] * 255, torch.as_tensor(bgr[..., 2], dtype=torch.float32))
+    assert depth_t.dtype == torch.float32 and float(depth_t.min()) == 2.0
+    assert sem_t.dtype == torch.int64 and int(sem_t[-1, 0]) == 7 and 7 in eng.classes
+    rgb_f = np.full((12, 16, 3), 0.5, np.float32)
+    ids = labels.astype(np.int64)
+    rgb_t, _, sem_t = eng._tensors(rgb_f, depth, ids)
+    rgb_f[:] = 0.0
+    ids[:] = 3
+    assert float(rgb_t.min()) == 0.5 and int(sem_t.max()) == 7  # not views of the caller's arrays
 
 
 def test_config_errors():

@@ -132,116 +132,160 @@ def test_graph_solver_matches_lapack():
         torch.testing.assert_close(_solve_spd6(a, b), ref, rtol=1e-9, atol=1e-14)
 
 
-def test_icp_step_is_the_same_with_either_solver(scene):
-    """The step the CUDA graph captures (with the graph's solver) gives the eager step's pose and statistics."""
+def _problem(eng, k, pose, live):
+    """An ICP problem as :func:`icp` builds it: the model rendered at ``pose``, the live frame ``live``'s points
+    at pixel stride 2, intensity gradients of the rendered colour."""
     from semantic_gs_slam.geometry import backproject
-    from semantic_gs_slam.tracking import _icp_step, _IcpModel, _IcpPoints, _solve_spd6
+    from semantic_gs_slam.tracking import _IcpModel, _IcpPoints, normal_map
 
-    eng, k, poses, frames = scene
-    md, valid, out = model(eng, poses[0])
-    g = torch.as_tensor(poses[0])
+    md, valid, out = model(eng, pose)
+    g = torch.as_tensor(pose)
     vm = backproject(md.double(), k.fx, k.fy, k.cx, k.cy) @ g[:3, :3].T + g[:3, 3]
-    from semantic_gs_slam.tracking import normal_map
-
     nm, nvalid = normal_map(vm, valid)
     im = out.rgb.double().mean(-1)
-    col = torch.stack([im, torch.zeros_like(im), torch.zeros_like(im), valid.double()], -1).reshape(-1, 4)
+    gx, gy = torch.zeros_like(im), torch.zeros_like(im)
+    gx[:, 1:-1] = 0.5 * (im[:, 2:] - im[:, :-2])
+    gy[1:-1] = 0.5 * (im[2:] - im[:-2])
+    col = torch.stack([im, gx, gy, valid.double()], -1).reshape(-1, 4)
     mdl = _IcpModel(vm.reshape(-1, 3), nm.reshape(-1, 3), nvalid.reshape(-1), col, torch.linalg.inv(g),
                     torch.eye(6, dtype=torch.float64) * 400)
-    lp = backproject(torch.as_tensor(frames[1][1]).double(), k.fx, k.fy, k.cx, k.cy)[::2, ::2].reshape(-1, 3)
-    pts = _IcpPoints(lp, lp[:, 2] > 0, torch.as_tensor(frames[1][0]).double().mean(-1)[::2, ::2].reshape(-1))
-    start = se3_exp(torch.tensor([0.01, 0, 0, 0.01, 0, 0], dtype=torch.float64)) @ g
+    lp = backproject(torch.as_tensor(live[1]).double(), k.fx, k.fy, k.cx, k.cy)[::2, ::2].reshape(-1, 3)
+    pts = _IcpPoints(lp, lp[:, 2] > 0, torch.as_tensor(live[0]).double().mean(-1)[::2, ::2].reshape(-1))
+    return pts, mdl
+
+
+def test_icp_step_is_the_same_with_either_solver(scene):
+    """The step the CUDA graph captures (with the graph's solver) gives the eager step's pose and statistics,
+    with and without the photometric term (which changes the step: the gradients are real)."""
+    from semantic_gs_slam.tracking import _icp_step, _solve_spd6
+
+    eng, k, poses, frames = scene
+    pts, mdl = _problem(eng, k, poses[0], frames[1])
+    start = se3_exp(torch.tensor([0.01, 0, 0, 0.01, 0, 0], dtype=torch.float64)) @ torch.as_tensor(poses[0])
+    steps = {}
     for photometric in (False, True):
         e1, s1 = _icp_step(start, pts, mdl, k, TrackingConfig(), photometric)
         e2, s2 = _icp_step(start, pts, mdl, k, TrackingConfig(), photometric, _solve_spd6)
         torch.testing.assert_close(e1, e2, rtol=0, atol=1e-12)
         torch.testing.assert_close(s1, s2, rtol=1e-9, atol=0)
         assert s1[0] > 1000 and 0 < s1[1] < 0.05  # correspondences, residual RMS (m)
+        steps[photometric] = e1
+    assert (steps[True] - steps[False]).abs().max() > 1e-7  # the colour term took part
+
+
+def test_chunk_of_steps_keeps_the_loop_rules_on_the_device(monkeypatch):
+    """:func:`_icp_steps` with scripted steps: it accepts steps while steps are left, stops after a step below
+    ``icp_min_step`` (that step still accepted), refuses a step with too few correspondences (not applied, its count
+    reported), counts the steps left, and reports the last accepted step's statistics."""
+    from semantic_gs_slam import tracking
+
+    script = []
+
+    def scripted(est, *a, **kw):
+        n, step = script.pop(0)
+        return est + 1.0, torch.tensor([n, 0.01 * n, step, 0.5], dtype=torch.float64)
+
+    monkeypatch.setattr(tracking, "_icp_step", scripted)
+    cfg = TrackingConfig(min_correspondences=100, icp_min_step=1e-6)
+    est0 = torch.zeros(4, 4, dtype=torch.float64)
+
+    def run(steps, left):
+        script[:] = steps
+        est, lft, st = tracking._icp_steps(est0, torch.tensor(float(left), dtype=torch.float64), None, None, None,
+                                           cfg, False, len(steps))
+        return float(est[0, 0]), float(lft), st.tolist()
+
+    assert run([(500, 1e-3)] * 4, 10) == (4.0, 6.0, [6.0, -1.0, 500.0, 5.0, 1e-3, 0.5])  # all accepted
+    assert run([(500, 1e-3)] * 4, 2)[:2] == (2.0, 0.0)  # only the steps left are taken
+    est, left, st = run([(300, 1e-3), (400, 1e-7), (500, 1e-3), (600, 1e-3)], 10)
+    assert (est, left) == (2.0, 0.0) and st[1:3] == [-1.0, 400.0]  # converged at the 2nd step, which counts
+    est, left, st = run([(300, 1e-3), (50, 1e-3), (500, 1e-3), (600, 1e-3)], 10)
+    assert (est, left) == (1.0, 0.0) and st[1:3] == [50.0, 300.0]  # refused at the 2nd, the 1st is the last
+    est, left, st = run([(500, 1e-3)] * 4, 0)
+    assert est == 0.0 and st[2] != st[2]  # nothing left: nothing accepted (NaN statistics)
 
 
 @pytest.mark.parametrize("case", ["runs out of steps", "converges", "loses the model"])
 def test_icp_in_chunks_of_steps_equals_the_step_loop(scene, monkeypatch, case):
-    """The CUDA graph's chunks of steps (run eagerly here: the capture itself needs a GPU) keep the step loop's
-    rules on the device: the same pose, residual and correspondences when the iterations run out, when a step
-    gets below 1e-6 mid-chunk, and the same TrackingError when the correspondences run out."""
+    """The CUDA graph's chunks of steps (run eagerly here: the capture itself needs a GPU) give the step loop's
+    pose, residual and correspondences when the iterations run out, when a step gets below ``icp_min_step``
+    mid-chunk, and the same TrackingError when the correspondences run out."""
     from semantic_gs_slam import tracking
 
     eng, k, poses, frames = scene
     md, valid, out = model(eng, poses[0])
     start = se3_exp(torch.tensor([0.01, 0.01, -0.01, -0.015, 0.02, 0.0], dtype=torch.float64)) @ torch.as_tensor(
         poses[0])
-    cfg = {"runs out of steps": TrackingConfig(icp_iters=7),  # not a multiple of STEPS_PER_GRAPH
-           "converges": TrackingConfig(icp_iters=40),
+    cfg = {"runs out of steps": TrackingConfig(icp_iters=7, icp_min_step=0.0),  # 7: not a multiple of 4
+           "converges": TrackingConfig(icp_iters=40, icp_min_step=1e-4),
            "loses the model": TrackingConfig(min_correspondences=2000)}[case]
     live = torch.as_tensor(frames[0][1]).float()
     if case == "loses the model":
         live = live.clone()
         live[:, : k.width * 3 // 4] = 0  # only a quarter of the frame: too few points
-    chunks = []
+    steps = []
+    orig = tracking._icp_step
 
-    def run():
+    def counting(*a, **kw):
+        steps.append(1)
+        return orig(*a, **kw)
+
+    monkeypatch.setattr(tracking, "_icp_step", counting)
+
+    def run(graphs):
+        steps.clear()
         try:
             return icp(md, valid, torch.as_tensor(poses[0]), live, k, cfg, out.rgb,
-                       torch.as_tensor(frames[0][0]).float(), start_c2w=start)
+                       torch.as_tensor(frames[0][0]).float(), start_c2w=start, graphs=graphs)
         except TrackingError as exc:
             return str(exc)
 
-    ref = run()
-
-    def chunked(pts, mdl, k_, cfg_, photometric):
-        g = tracking._IcpGraph(pts, mdl, k_, cfg_, photometric, capture=False).load(pts, mdl)
-        chunks.append(g)
-        return g
-
-    monkeypatch.setattr(tracking, "_use_graphs", lambda cfg_, dev: True)
-    monkeypatch.setattr(tracking, "_graph_for", chunked)
-    got = run()
-    assert len(chunks) == (1 if case == "loses the model" else cfg.icp_levels)
+    ref = run(None)
+    ref_steps = len(steps)
+    cache = tracking.IcpGraphs(capture=False)
+    got = run(cache)
+    assert len(cache) == (1 if case == "loses the model" else cfg.icp_levels)  # the chunked path ran
     if case == "loses the model":
         assert isinstance(ref, str) and "correspondences" in ref and got == ref
         return
-    torch.testing.assert_close(got.c2w, ref.c2w, rtol=0, atol=1e-9)
-    assert got.inliers == ref.inliers and abs(got.residual - ref.residual) < 1e-9
+    torch.testing.assert_close(got.c2w, ref.c2w, rtol=0, atol=1e-12)
+    assert got.inliers == ref.inliers and abs(got.residual - ref.residual) < 1e-12
     assert abs(got.agreement - ref.agreement) < 1e-12
-    if case == "converges":  # the test means something only if a level stopped early
-        steps = []
-        monkeypatch.undo()
-        orig = tracking._icp_step
-
-        def counting(*a, **kw):
-            steps.append(1)
-            return orig(*a, **kw)
-
-        monkeypatch.setattr(tracking, "_icp_step", counting)
-        run()
-        assert len(steps) < 2 * cfg.icp_iters
+    if case == "runs out of steps":
+        assert ref_steps == 2 * 7
+    else:  # the test means something only if a level stopped early
+        assert ref_steps < 2 * cfg.icp_iters
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
 def test_icp_cuda_graph_matches_the_eager_step(scene):
-    """On CUDA, ICP with each step replayed from a captured graph gives the eager reference's pose, also on a
-    second problem of the same shape (the graph is reused with new inputs)."""
+    """On CUDA, ICP with each chunk of steps replayed from a captured graph gives the eager reference's pose, also
+    on a second problem of the same shape (another model and live frame: the graph is reused with new inputs)."""
     from semantic_gs_slam import tracking
 
     eng, k, poses, frames = scene
-    md, valid, out = model(eng, poses[0])
     cuda = torch.device("cuda")
+    problems = []
+    for model_pose, live, xi in ((poses[0], frames[0], [0, 0, 0, 0.02, -0.01, 0.01]),
+                                 (poses[1], frames[1], [0.01, 0.01, -0.01, -0.015, 0.02, 0.0])):
+        md, valid, out = model(eng, model_pose)
+        start = se3_exp(torch.tensor(xi, dtype=torch.float64)) @ torch.as_tensor(model_pose)
+        problems.append((md, valid, out, model_pose, live, start))
     results = {}
-    for graphs in (False, True):
-        tracking._GRAPHS.clear()
-        for i, xi in enumerate(([0, 0, 0, 0.02, -0.01, 0.01], [0.01, 0.01, -0.01, -0.015, 0.02, 0.0])):
-            start = se3_exp(torch.tensor(xi, dtype=torch.float64)) @ torch.as_tensor(poses[0])
-            r = icp(md.to(cuda), valid.to(cuda), torch.as_tensor(poses[0], device=cuda),
-                    torch.as_tensor(frames[0][1]).float().to(cuda), k, TrackingConfig(cuda_graphs=graphs),
-                    out.rgb.to(cuda), torch.as_tensor(frames[0][0]).float().to(cuda), start_c2w=start.to(cuda))
-            results[graphs, i] = r
-        if graphs:
-            assert any(v is not None and v.graph is not None for v in tracking._GRAPHS.values()), "no graph captured"
+    for graphs in (None, tracking.IcpGraphs()):
+        for i, (md, valid, out, model_pose, live, start) in enumerate(problems):
+            results[graphs is not None, i] = icp(
+                md.to(cuda), valid.to(cuda), torch.as_tensor(model_pose, device=cuda),
+                torch.as_tensor(live[1]).float().to(cuda), k, TrackingConfig(), out.rgb.to(cuda),
+                torch.as_tensor(live[0]).float().to(cuda), start_c2w=start.to(cuda), graphs=graphs)
+        if graphs is not None:
+            assert len(graphs) > 0, "no graph was captured"
     for i in (0, 1):
         a, b = results[False, i], results[True, i]
         torch.testing.assert_close(a.c2w, b.c2w, rtol=0, atol=1e-9)
         assert a.inliers == b.inliers and abs(a.residual - b.residual) < 1e-9
-        assert pose_error(b.c2w.cpu().numpy(), poses[0])[0] < 0.004
+        assert pose_error(b.c2w.cpu().numpy(), problems[i][3])[0] < 0.004
+    assert (results[True, 0].c2w - results[True, 1].c2w).abs().max() > 1e-3  # two different answers
 
 
 def test_icp_step_count_follows_its_settings(scene, monkeypatch):
