@@ -133,6 +133,8 @@ class MappingConfig:
     window: int = 4  # keyframes optimised together (current + the most overlapping earlier ones)
     window_random: int = 2  # of the window's earlier keyframes, this many are drawn at random among the overlapping
     pixel_stride: int = 2  # new Gaussians seeded at every k-th pixel of the empty/occluding region
+    keyframe_pixel_stride: int = 0  # the same on keyframes (0: pixel_stride). 1 on 7-Scenes (250 frames): ATE 3.98 ->
+    # 3.60 cm, PSNR +0.3 dB, 2.5x the Gaussians and 31 % fewer frames per second on 2 cores: a setting for a GPU
     densify_silhouette: float = 0.5  # pixels below this silhouette get new Gaussians
     densify_depth_factor: float = 50.0  # ... or where the model is behind depth by > factor * median error
     radius_factor: float = 0.6  # new Gaussian std dev = radius_factor * pixel_stride * depth / f
@@ -174,6 +176,8 @@ class MappingConfig:
             raise ConfigError("mapping.keyframe_every, window and pixel_stride must be >= 1")
         if self.iters < 0 or self.first_frame_iters < 0:
             raise ConfigError("mapping iteration counts must be >= 0")
+        if self.keyframe_pixel_stride < 0:
+            raise ConfigError("mapping.keyframe_pixel_stride must be >= 0 (0 = pixel_stride)")
 
 
 @dataclass

@@ -432,7 +432,8 @@ class SLAM:
                 mask = mask | (fine & (pred != sem))
         return self.map.add_from_frame(rgb, depth, sem, torch.as_tensor(c2w, dtype=torch.float32, device=self.device),
                                        self.k, mask,
-                                       mc.pixel_stride, idx, mc.radius_factor, mc.init_logit_opacity, fine)
+                                       mc.keyframe_pixel_stride if keyframe and mc.keyframe_pixel_stride > 0
+                                       else mc.pixel_stride, idx, mc.radius_factor, mc.init_logit_opacity, fine)
 
     def _window(self, current: Keyframe) -> list[Keyframe]:
         n = self.cfg.mapping.window - 1

@@ -336,3 +336,23 @@ def test_a_new_view_is_a_keyframe_whatever_its_index(tiny_home):
     with pytest.raises(ConfigError, match="keyframe_motion"):
         cfg.mapping.keyframe_motion_m = -1.0
         cfg.check()
+
+
+def test_keyframes_can_seed_denser_than_other_frames():
+    """``mapping.keyframe_pixel_stride`` 1 seeds a keyframe (frame 0 is one) at every pixel: about 4x the
+    Gaussians of the default every-2nd-pixel seeding; other frames keep ``pixel_stride``; negative is refused."""
+    from semantic_gs_slam.synthetic import HomeRenderer, default_intrinsics, trajectory
+
+    k = default_intrinsics(80, 45)
+    pose = trajectory(10, 20.0)[0]
+    rgb, depth, sem = HomeRenderer(0).render(pose, k)
+    counts = {}
+    for stride in (0, 1):
+        cfg = SlamConfig(intrinsics=k, device="cpu", threads=1,
+                         mapping=MappingConfig(first_frame_iters=0, keyframe_pixel_stride=stride))
+        eng = SLAM(cfg)
+        eng.add_frame(rgb, depth, None, 0.0, pose)
+        counts[stride] = len(eng.map)
+    assert 3.0 * counts[0] < counts[1] < 4.5 * counts[0], counts
+    with pytest.raises(ConfigError, match="keyframe_pixel_stride"):
+        SLAM(SlamConfig(intrinsics=k, mapping=MappingConfig(keyframe_pixel_stride=-1)))
