@@ -84,7 +84,8 @@ set +e  # a failing test must not skip the table: its exit code is returned at t
 "$PY" -m pytest -q -p no:cacheprovider -o addopts="" --import-mode=importlib \
   --rootdir=src/semantic_gs_slam/test --confcutdir=src/semantic_gs_slam/test \
   src/semantic_gs_slam/test/test_gsplat_gpu.py src/semantic_gs_slam/test/test_gsplat_conventions.py \
-  src/semantic_gs_slam/test/test_renderer.py src/semantic_gs_slam/test/test_device.py 2>&1 | tee "$OUT_DIR/tests.txt"
+  src/semantic_gs_slam/test/test_renderer.py src/semantic_gs_slam/test/test_device.py \
+  src/semantic_gs_slam/test/test_tracking.py 2>&1 | tee "$OUT_DIR/tests.txt"
 tests_rc=${PIPESTATUS[0]}
 set -e
 
