@@ -149,6 +149,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frames", type=int, default=24)
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--workers", type=int, default=os.cpu_count() or 1, help="processes generating the data")
+    ap.add_argument("--supersample", type=int, default=1,
+                    help="synthetic colour rays per pixel side (odd; 1 like bench/slam_gpu.py: 3 takes ~10x longer)")
     ap.add_argument("--data", default="", help="folder for the generated sequence (kept; default: temp)")
     ap.add_argument("--dataset", default="", help="profile a recorded sequence instead (any layout load_dataset "
                     "reads, e.g. 7-Scenes), resized to --size; frames --start, --start + --stride, ...")
@@ -170,7 +172,11 @@ def main(argv: list[str] | None = None) -> int:
         root = a.data or tempfile.mkdtemp(prefix="slam_profile_")
         data = os.path.join(root, f"home_{w}x{h}_{a.frames}")
         if not os.path.isfile(os.path.join(data, "traj.txt")):
-            generate(data, a.frames, w, h, workers=a.workers, span_deg=120.0 * a.frames / 60.0)
+            t = time.perf_counter()
+            generate(data, a.frames, w, h, supersample=a.supersample, workers=a.workers,
+                     span_deg=120.0 * a.frames / 60.0)
+            print(f"generated {a.frames} frames {w}x{h} in {time.perf_counter() - t:.1f} s (not timed)",
+                  file=sys.stderr, flush=True)
         ds = load_dataset(data)
         idx = list(range(len(ds)))
     dev = resolve_device(a.device)
