@@ -79,8 +79,8 @@ class TrackingConfig:
     # blending overlapping full-size footprints biases depth toward the camera on oblique surfaces
     normal_smoothing: int = 5  # box filter (pixels) on the model depth before vertices/normals (1: off)
     min_silhouette: float = 0.5  # model pixels used only where the map is this opaque (depth normalised by it)
-    cuda_graphs: bool = True  # on CUDA, each ICP step is one captured CUDA graph (tracking.py: _IcpGraph) instead
-    # of ~80 kernel launches; off: the eager step (the reference), also what every CPU run uses
+    cuda_graphs: bool = True  # on CUDA, every 4 ICP steps are one captured CUDA graph (tracking.py: _IcpGraph)
+    # instead of ~320 kernel launches and 4 host copies; off: the eager step loop (the reference, as on the CPU)
     min_correspondences: int = 100  # fewer raises TrackingError (the frame keeps the previous pose, is not mapped)
     lost_agreement: float = 0.25  # tracking is lost (reported; handled like too few correspondences) when fewer of
     # the frame's points that land on the map lie within 3 icp_sigma_geo of its surface at the tracked pose

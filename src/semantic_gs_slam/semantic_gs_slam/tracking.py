@@ -10,6 +10,7 @@ photometric refinement then runs Adam on the pose against colour and depth L1.
 from __future__ import annotations
 
 import logging
+import weakref
 from dataclasses import dataclass
 
 import torch
@@ -273,11 +274,11 @@ class _IcpGraph:
     A step of ICP is some 80 small kernels on a few thousand points: on a GPU its time is launch overhead and
     the host round trip of the convergence test, not arithmetic (14 ms of a 1200x680 frame, measured on an H200
     with one graph per step). Captured once, four steps are one graph launch and one host copy. Inputs are
-    copied into static tensors (:meth:`load`, once per level); the model's static tensors are shared by the
-    graphs of every level (:class:`IcpGraphs`). The graph solves the 6x6 systems with :func:`_solve_spd6`
-    (LAPACK's solver checks its result on the host). With ``capture=False`` the same chunks run eagerly (how the
-    CPU tests check the chunking); ``tracking.cuda_graphs`` off runs the eager :func:`_icp_step` loop, the
-    reference (a GPU test compares the two).
+    copied into static tensors (:meth:`load`, the live points once per level); the model's static tensors are
+    shared by the graphs of every level and loaded once per problem (:class:`IcpGraphs`). The graph solves the
+    6x6 systems with :func:`_solve_spd6` (LAPACK's solver checks its result on the host). With ``capture=False``
+    the same chunks run eagerly (how the CPU tests check the chunking); ``tracking.cuda_graphs`` off runs the
+    eager :func:`_icp_step` loop, the reference (a GPU test compares the two).
     """
 
     def __init__(self, pts: _IcpPoints, model: _IcpModel, k: Intrinsics, cfg: TrackingConfig, photometric: bool,
@@ -308,12 +309,9 @@ class _IcpGraph:
         return _icp_steps(self.est, self.left, self.pts, self.model, self.k, self.cfg, self.photometric,
                           STEPS_PER_GRAPH)
 
-    def load(self, pts: _IcpPoints, model: _IcpModel) -> _IcpGraph:
-        """Copy this problem's inputs into the static tensors."""
-        for dst, src in ((self.pts.lp, pts.lp), (self.pts.lvalid, pts.lvalid), (self.pts.il, pts.il),
-                         (self.model.vm, model.vm), (self.model.nm, model.nm), (self.model.nvalid, model.nvalid),
-                         (self.model.col, model.col), (self.model.w2c_g, model.w2c_g),
-                         (self.model.prior_w, model.prior_w)):
+    def load(self, pts: _IcpPoints) -> _IcpGraph:
+        """Copy this level's live points into the static tensors (the model is loaded by :class:`IcpGraphs`)."""
+        for dst, src in ((self.pts.lp, pts.lp), (self.pts.lvalid, pts.lvalid), (self.pts.il, pts.il)):
             if dst is not None:
                 dst.copy_(src)
         return self
@@ -363,7 +361,8 @@ class IcpGraphs:
         self.max_graphs = max_graphs
         self.capture = capture  # False: CPU tests run the chunked path eagerly
         self._graphs: dict[tuple, _IcpGraph | None] = {}  # None: capture failed, that problem stays eager
-        self._models: dict[tuple, _IcpModel] = {}
+        self._models: dict[tuple, _IcpModel] = {}  # static model tensors per image size
+        self._loaded: dict[tuple, weakref.ref] = {}  # which problem's model they hold (loaded once, not per level)
 
     def __len__(self) -> int:
         return sum(g is not None for g in self._graphs.values())
@@ -378,6 +377,14 @@ class IcpGraphs:
         if mkey not in self._models:
             self._models[mkey] = _IcpModel(*(None if t is None else t.clone() for t in (
                 model.vm, model.nm, model.nvalid, model.col, model.w2c_g, model.prior_w)))
+            self._loaded[mkey] = weakref.ref(model)
+        elif (self._loaded[mkey])() is not model:
+            static = self._models[mkey]
+            for dst, src in ((static.vm, model.vm), (static.nm, model.nm), (static.nvalid, model.nvalid),
+                             (static.col, model.col), (static.w2c_g, model.w2c_g), (static.prior_w, model.prior_w)):
+                if dst is not None:
+                    dst.copy_(src)
+            self._loaded[mkey] = weakref.ref(model)
         key = (mkey, tuple(pts.lp.shape), pts.il is not None, k, cfg.icp_max_dist, cfg.icp_sigma_geo,
                cfg.icp_sigma_col, cfg.geometric_weight, cfg.photometric_weight, cfg.min_correspondences,
                cfg.icp_min_step, photometric)
@@ -391,7 +398,7 @@ class IcpGraphs:
                             type(exc).__name__, exc)
                 self._graphs[key] = None
         graph = self._graphs[key]
-        return None if graph is None else graph.load(pts, model)
+        return None if graph is None else graph.load(pts)
 
 
 def icp(model_depth: Tensor, model_valid: Tensor, guess_c2w: Tensor, live_depth: Tensor, k: Intrinsics,
@@ -403,7 +410,8 @@ def icp(model_depth: Tensor, model_valid: Tensor, guess_c2w: Tensor, live_depth:
     The joint Gauss-Newton minimises ``sum w_g (n . (T x - q))^2 / s_g^2 + sum w_c (I_m(pi(T x)) - I_l)^2 / s_c^2``
     with Huber weights; the photometric term pins down the directions that planes leave free (a camera
     sliding along a wall). Each step (:func:`_icp_step`) has fixed shapes; one host copy per step (the
-    convergence test and the correspondence count).
+    convergence test and the correspondence count), or per chunk of :data:`STEPS_PER_GRAPH` steps when they
+    are replayed from a CUDA graph (``graphs``).
 
     Args:
         model_depth: [H, W] metres (rendered at the guess pose).

@@ -255,6 +255,13 @@ def test_icp_in_chunks_of_steps_equals_the_step_loop(scene, monkeypatch, case):
         assert ref_steps == 2 * 7
     else:  # the test means something only if a level stopped early
         assert ref_steps < 2 * cfg.icp_iters
+    # a second problem of the same shape through the same cache: its model replaces the first one's
+    md, valid, out = model(eng, poses[1])
+    live = torch.as_tensor(frames[1][1]).float()
+    second = [icp(md, valid, torch.as_tensor(poses[1]), live, k, cfg, out.rgb, torch.as_tensor(frames[1][0]).float(),
+                  graphs=g) for g in (None, cache)]
+    torch.testing.assert_close(second[1].c2w, second[0].c2w, rtol=0, atol=1e-12)
+    assert (second[1].c2w - got.c2w).abs().max() > 1e-4  # a different answer from the first problem's
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA GPU")
