@@ -14,7 +14,7 @@ frames themselves, by aligning colour edges with depth discontinuities; ``python
 semantic_gs_slam.colour_registration DATASET`` runs it and writes the calibration file the dataset
 loaders read (``colour-calibration.json`` beside the frames, or any path a user gives).
 
-Plain NumPy (no torch, no ROS).
+NumPy, and torch only for the shared hole filling (no ROS).
 """
 
 from __future__ import annotations
@@ -27,11 +27,13 @@ import sys
 from dataclasses import asdict, dataclass
 
 import numpy as np
+import torch
 
 from semantic_gs_slam.errors import DatasetError
+from semantic_gs_slam.geometry import fill_depth_holes
 
 CALIB_FILE = "colour-calibration.json"  # beside a dataset's frames; read by the loaders when present
-FAR = 1e3  # metres assumed where depth is missing: the cameras' baseline then shifts nothing
+FAR = 1e3  # metres assumed where depth is missing and cannot be filled (no depth in the whole image)
 
 
 @dataclass(frozen=True)
@@ -104,12 +106,14 @@ def colour_coords(depth: np.ndarray, fx: float, fy: float, cx: float, cy: float,
     """Where the colour camera sees each depth pixel: (u, v) [H, W] float32 in colour pixels.
 
     Args:
-        depth: [H, W] metres (0: missing; those pixels use a far depth, so only the intrinsics move them).
+        depth: [H, W] metres (0: missing; those pixels take the depth of their valid surroundings,
+            :func:`~semantic_gs_slam.geometry.fill_depth_holes`, or a far depth in an image without depth).
         fx, fy, cx, cy: the depth camera's intrinsics at this size.
         calib: the colour camera at this size (see :func:`scaled`).
     """
     h, w = depth.shape
-    z = np.where(depth > 0, depth, FAR).astype(np.float64)
+    filled = fill_depth_holes(torch.from_numpy(np.ascontiguousarray(depth, dtype=np.float32))).numpy()
+    z = np.where(filled > 0, filled, FAR).astype(np.float64)
     v, u = np.mgrid[0:h, 0:w].astype(np.float64)
     x = (u - cx) / fx * z + calib.tx
     y = (v - cy) / fy * z + calib.ty

@@ -136,6 +136,9 @@ class MappingConfig:
     keyframe_pixel_stride: int = 0  # the same on keyframes (0: pixel_stride). 1 on 7-Scenes (250 frames): ATE 3.98 ->
     # 3.60 cm, PSNR +0.3 dB, 2.5x the Gaussians and 31 % fewer frames per second on 2 cores: a setting for a GPU
     densify_silhouette: float = 0.5  # pixels below this silhouette get new Gaussians
+    seed_holes: bool = True  # pixels without depth (a real sensor's near limit, shadows, dark or shiny surfaces) that
+    # the map does not cover are seeded too, at depth filled in from their valid surroundings
+    # (geometry.fill_depth_holes); their colour is then mapped like any other pixel's
     densify_depth_factor: float = 50.0  # ... or where the model is behind depth by > factor * median error
     radius_factor: float = 0.6  # new Gaussian std dev = radius_factor * pixel_stride * depth / f
     init_logit_opacity: float = 3.0

@@ -33,7 +33,7 @@ from semantic_gs_slam.gaussian_map import (
     save_params,
     save_semantic_json,
 )
-from semantic_gs_slam.geometry import pose_error
+from semantic_gs_slam.geometry import fill_depth_holes, pose_error
 from semantic_gs_slam.loop import LoopMatch, find_loops
 from semantic_gs_slam.metrics import ssim
 from semantic_gs_slam.posegraph import Edge
@@ -412,15 +412,22 @@ class SLAM:
             rare = torch.nonzero((counts > 0) & (counts < mc.rare_label_fraction * max(int(valid.sum()), 1)))[:, 0]
             rare = rare[rare > 0]
             fine = torch.isin(sem, rare) & valid if rare.numel() else None
+        seed_depth, holes = depth, None
+        if mc.seed_holes:
+            seed_depth = fill_depth_holes(depth)
+            holes = ~valid & (seed_depth > 0)
         if len(self.map) == 0:
-            mask = valid
+            mask = valid if holes is None else valid | holes
         else:
             want_sem = keyframe and fine is not None and mc.semantic_densify
             out = self.render_view(c2w, semantic=want_sem)
             err = (out.depth - depth).abs() * valid
             med = float(err[valid].median()) if bool(valid.any()) else 0.0
             behind = (out.depth > depth) & (err > mc.densify_depth_factor * med)
-            mask = valid & ((out.silhouette < mc.densify_silhouette) | behind)
+            empty = out.silhouette < mc.densify_silhouette
+            mask = valid & (empty | behind)
+            if holes is not None:
+                mask = mask | (holes & empty)
             if mc.exposure_compensation and (self.odom_poses[-1] is None or mc.exposure_with_odometry):
                 # the frame's exposure against the map rendered at its pose; the new
                 # Gaussians (and a keyframe's stored colour, _map_keyframe) take the map's exposure
@@ -431,7 +438,7 @@ class SLAM:
                 pred = self.map.labels_from_features(out.semantic / out.silhouette.clamp_min(1e-6)[..., None])
                 mask = mask | (fine & (pred != sem))
         stride = mc.keyframe_pixel_stride if keyframe and mc.keyframe_pixel_stride > 0 else mc.pixel_stride
-        return self.map.add_from_frame(rgb, depth, sem, torch.as_tensor(c2w, dtype=torch.float32, device=self.device),
+        return self.map.add_from_frame(rgb, seed_depth, sem, torch.as_tensor(c2w, dtype=torch.float32, device=self.device),
                                        self.k, mask, stride, idx, mc.radius_factor, mc.init_logit_opacity, fine)
 
     def _window(self, current: Keyframe) -> list[Keyframe]:

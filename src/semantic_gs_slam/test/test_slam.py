@@ -356,3 +356,45 @@ def test_keyframes_can_seed_denser_than_other_frames():
     assert 3.0 * counts[0] < counts[1] < 4.5 * counts[0], counts
     with pytest.raises(ConfigError, match="keyframe_pixel_stride"):
         SLAM(SlamConfig(intrinsics=k, mapping=MappingConfig(keyframe_pixel_stride=-1)))
+
+
+def test_fill_depth_holes_takes_the_surroundings_depth():
+    """Holes take the depth around them; valid pixels are kept exactly; an image without depth stays empty."""
+    from semantic_gs_slam.geometry import fill_depth_holes
+
+    ramp = torch.linspace(1.0, 3.0, 160)[None].repeat(120, 1)  # a slanted wall
+    holed = ramp.clone()
+    holed[40:70, 50:90] = 0  # a dark patch
+    holed[100:] = 0  # the sensor's near limit along the bottom
+    holed[:, :4] = 0  # a border band
+    out = fill_depth_holes(holed)
+    assert torch.equal(out[holed > 0], holed[holed > 0])
+    assert bool((out > 0).all()) and bool(torch.isfinite(out).all())
+    err = (out - ramp).abs()
+    assert float(err[40:70, 50:90].max()) < 0.05  # interpolated across the patch
+    assert float(err[100:, 20:-20].max()) < 0.05  # continued from the rows above (away from the corners)
+    assert float(err[:100, :4].max()) < 0.1  # and from the columns beside
+    assert not bool(fill_depth_holes(torch.zeros(30, 40)).any())
+
+
+@pytest.mark.parametrize("seed_holes", [False, True])
+def test_pixels_without_depth_are_mapped(seed_holes):
+    """A band without depth (a real sensor's near limit) is seeded at the depth around it and so gets its colour
+    in the map; without ``mapping.seed_holes`` nothing covers it."""
+    from semantic_gs_slam.synthetic import HomeRenderer, default_intrinsics, trajectory
+
+    k = default_intrinsics(80, 45)
+    pose = trajectory(10, 20.0)[0]
+    rgb, depth, _ = HomeRenderer(0).render(pose, k)
+    depth = depth.copy()
+    depth[35:] = 0  # the bottom rows have no depth
+    eng = SLAM(SlamConfig(intrinsics=k, device="cpu", threads=1,
+                          mapping=MappingConfig(first_frame_iters=20, seed_holes=seed_holes)))
+    eng.add_frame(rgb, depth, None, 0.0, pose)
+    out = eng.render_view(pose)
+    band = out.silhouette[37:]  # a margin below the last valid row
+    err = float((out.rgb[37:].clamp(0, 1) - torch.as_tensor(rgb[37:])).abs().mean())
+    if seed_holes:
+        assert float(band.mean()) > 0.9 and err < 0.05, (float(band.mean()), err)
+    else:
+        assert float(band.mean()) < 0.5 and err > 0.1, (float(band.mean()), err)
