@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
 
@@ -130,8 +131,6 @@ def fill_depth_holes(depth: Tensor, levels: int = 8) -> Tensor:
         [H, W] depth: the input where valid, the fill in holes (0 only in an image without any valid
         depth).
     """
-    import torch.nn.functional as F
-
     w = (depth > 0).to(depth.dtype)[None, None]  # [1, 1, H, W]
     pyr = [(depth[None, None] * w, w)]
     for _ in range(levels):

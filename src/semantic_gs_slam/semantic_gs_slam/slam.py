@@ -438,8 +438,9 @@ class SLAM:
                 pred = self.map.labels_from_features(out.semantic / out.silhouette.clamp_min(1e-6)[..., None])
                 mask = mask | (fine & (pred != sem))
         stride = mc.keyframe_pixel_stride if keyframe and mc.keyframe_pixel_stride > 0 else mc.pixel_stride
-        return self.map.add_from_frame(rgb, seed_depth, sem, torch.as_tensor(c2w, dtype=torch.float32, device=self.device),
-                                       self.k, mask, stride, idx, mc.radius_factor, mc.init_logit_opacity, fine)
+        pose = torch.as_tensor(c2w, dtype=torch.float32, device=self.device)
+        return self.map.add_from_frame(rgb, seed_depth, sem, pose, self.k, mask, stride, idx, mc.radius_factor,
+                                       mc.init_logit_opacity, fine)
 
     def _window(self, current: Keyframe) -> list[Keyframe]:
         n = self.cfg.mapping.window - 1
