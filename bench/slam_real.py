@@ -194,6 +194,8 @@ def main() -> int:
         print(f"refined: {args.refine_iters} Adam iterations over all {ours['keyframes']} keyframes after the run, "
               f"{ours['refine_s']:.0f} s (not counted in FPS)")
     rows.insert(2, ("PSNR (dB), SplaTAM's protocol (pixels without depth zeroed)", masked))
+    rows.insert(3, ("PSNR (dB), pixels with depth / without", f"{ours['psnr_with_depth']:.2f} / "
+                    f"{ours['psnr_without_depth']:.2f}"))
     print("\n| metric | ours |" + (" Open3D |" if o3 else "") + "\n|---|---|" + ("---|" if o3 else ""))
     o3_ate = 100 * ate_rmse(o3["poses"], gts) if o3 else float("nan")
     for name, val in rows:

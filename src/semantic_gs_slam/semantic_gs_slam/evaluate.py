@@ -8,7 +8,17 @@ import torch
 
 from semantic_gs_slam.datasets import Dataset
 from semantic_gs_slam.exposure import to_frame
-from semantic_gs_slam.metrics import ate_rmse, class_iou, confusion, depth_l1, miou, psnr, psnr_depth_masked, ssim
+from semantic_gs_slam.metrics import (
+    ate_rmse,
+    class_iou,
+    confusion,
+    depth_l1,
+    miou,
+    psnr,
+    psnr_depth_masked,
+    psnr_split,
+    ssim,
+)
 
 
 def evaluate(eng, ds: Dataset, frame_idx: list[int], every: int = 1) -> dict:
@@ -22,14 +32,16 @@ def evaluate(eng, ds: Dataset, frame_idx: list[int], every: int = 1) -> dict:
 
     Returns:
         dict with ate_rmse_cm, psnr (all pixels), psnr_masked (SplaTAM's protocol:
-        :func:`~semantic_gs_slam.metrics.psnr_depth_masked`), ssim, depth_l1_cm, miou, class_iou (name -> IoU),
+        :func:`~semantic_gs_slam.metrics.psnr_depth_masked`), psnr_with_depth / psnr_without_depth (the frames'
+        mean :func:`~semantic_gs_slam.metrics.psnr_split`; NaN without such pixels), ssim, depth_l1_cm, miou,
+        class_iou (name -> IoU),
         gaussians, frames.
     """
     res = {"frames": len(eng.poses), "gaussians": len(eng.map)}
     gts = [ds[i].gt_c2w for i in frame_idx]
     if all(g is not None for g in gts):
         res["ate_rmse_cm"] = 100 * ate_rmse(eng.poses, gts)
-    ps, pm, ss, dl = [], [], [], []
+    ps, pm, ss, dl, pw, po = [], [], [], [], [], []
     conf = np.zeros((256, 256), np.int64)
     have_sem = False
     for n in range(0, len(frame_idx), every):
@@ -43,6 +55,9 @@ def evaluate(eng, ds: Dataset, frame_idx: list[int], every: int = 1) -> dict:
         depth = torch.as_tensor(f.depth, device=eng.device)
         ps.append(psnr(img, rgb))
         pm.append(psnr_depth_masked(img, rgb, depth))
+        with_d, without_d = psnr_split(img, rgb, depth)
+        pw.append(with_d)
+        po.append(without_d)
         ss.append(float(ssim(img, rgb)))
         dl.append(depth_l1(out.depth, depth))
         if f.semantics is not None and out.semantic is not None:
@@ -51,6 +66,8 @@ def evaluate(eng, ds: Dataset, frame_idx: list[int], every: int = 1) -> dict:
             pred = eng.map.labels_from_features(sem).cpu().numpy()
             conf += confusion(pred.clip(0, 255), f.semantics.clip(0, 255), 256)
     res.update(psnr=float(np.mean(ps)), psnr_masked=float(np.mean(pm)), ssim=float(np.mean(ss)),
+               psnr_with_depth=float(np.nanmean(pw)) if not np.isnan(pw).all() else float("nan"),
+               psnr_without_depth=float(np.nanmean(po)) if not np.isnan(po).all() else float("nan"),
                depth_l1_cm=100 * float(np.nanmean(dl)))
     if have_sem:
         res["miou"] = miou(conf)
@@ -63,11 +80,13 @@ def format_table(res: dict) -> str:
     rows = [("frames", "frames", "{:d}"), ("ate_rmse_cm", "ATE RMSE (cm, aligned)", "{:.2f}"),
             ("psnr", "PSNR (dB)", "{:.2f}"),
             ("psnr_masked", "PSNR (dB), SplaTAM's protocol (pixels without depth zeroed)", "{:.2f}"),
+            ("psnr_with_depth", "PSNR (dB), pixels with depth", "{:.2f}"),
+            ("psnr_without_depth", "PSNR (dB), pixels without depth", "{:.2f}"),
             ("ssim", "SSIM", "{:.3f}"), ("depth_l1_cm", "depth L1 (cm)", "{:.2f}"),
             ("miou", "semantic mIoU", "{:.3f}"), ("fps", "FPS", "{:.2f}"), ("gaussians", "Gaussians", "{:d}")]
     lines = ["| metric | value |", "|---|---|"]
     for key, name, fmt in rows:
-        if key in res:
+        if key in res and not (isinstance(res[key], float) and np.isnan(res[key])):
             lines.append(f"| {name} | {fmt.format(res[key])} |")
     if "class_iou" in res:
         lines.append("per-class IoU: " + ", ".join(f"{k} {v:.2f}" for k, v in res["class_iou"].items()))

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -39,3 +41,20 @@ def test_depth_masked_psnr_is_splatams_definition_by_hand():
     assert psnr_depth_masked(img, gt, depth) == pytest.approx(want, rel=1e-5)
     assert psnr_depth_masked(img, gt, depth) > psnr(img, gt)
     assert psnr_depth_masked(img, gt, torch.ones(2, 2)) < psnr_depth_masked(img, gt, depth)  # the hole counts now
+
+
+def test_psnr_split_by_depth_by_hand():
+    """PSNR over the pixels with depth and over those without, each its own MSE; NaN for an empty part."""
+    import torch
+
+    from semantic_gs_slam.metrics import psnr_split
+
+    gt = torch.zeros(2, 2, 3)
+    img = gt.clone()
+    img[0, 0] = 0.1  # a pixel with depth, squared error 0.01
+    img[1, 1] = 0.5  # the one without, squared error 0.25
+    depth = torch.tensor([[1.0, 1.0], [1.0, 0.0]])
+    with_d, without_d = psnr_split(img, gt, depth)
+    assert with_d == pytest.approx(10 * math.log10(3 / 0.01), rel=1e-5)
+    assert without_d == pytest.approx(10 * math.log10(1 / 0.25), rel=1e-5)
+    assert math.isnan(psnr_split(img, gt, torch.ones(2, 2))[1])
