@@ -21,6 +21,12 @@ from semantic_gs_slam.metrics import (
 )
 
 
+def _nanmean(xs: list[float]) -> float:
+    """Mean of the non-NaN values (NaN when there are none, without numpy's warning)."""
+    vals = [x for x in xs if not np.isnan(x)]
+    return float(np.mean(vals)) if vals else float("nan")
+
+
 def evaluate(eng, ds: Dataset, frame_idx: list[int], every: int = 1) -> dict:
     """Metrics of ``eng`` (a :class:`~semantic_gs_slam.slam.SLAM` after the run) against ``ds``.
 
@@ -66,8 +72,7 @@ def evaluate(eng, ds: Dataset, frame_idx: list[int], every: int = 1) -> dict:
             pred = eng.map.labels_from_features(sem).cpu().numpy()
             conf += confusion(pred.clip(0, 255), f.semantics.clip(0, 255), 256)
     res.update(psnr=float(np.mean(ps)), psnr_masked=float(np.mean(pm)), ssim=float(np.mean(ss)),
-               psnr_with_depth=float(np.nanmean(pw)) if not np.isnan(pw).all() else float("nan"),
-               psnr_without_depth=float(np.nanmean(po)) if not np.isnan(po).all() else float("nan"),
+               psnr_with_depth=_nanmean(pw), psnr_without_depth=_nanmean(po),
                depth_l1_cm=100 * float(np.nanmean(dl)))
     if have_sem:
         res["miou"] = miou(conf)

@@ -65,14 +65,9 @@ def psnr_split(a: Tensor, b: Tensor, depth: Tensor) -> tuple[float, float]:
     """PSNR in dB of images [H, W, C] in [0, 1] over the pixels with depth (``depth`` [H, W] > 0) and over those
     without, each its own MSE; NaN for a part with no pixel. A real depth camera leaves 5-20 % of a frame without
     depth (near limit, shadows, dark surfaces): this says where the image error is."""
-    se = ((a - b) ** 2).mean(-1)  # [H, W]
     has = depth > 0
-    out = []
-    for m in (has, ~has):
-        n = int(m.sum())
-        mse = float(se[m].sum()) / n if n else float("nan")
-        out.append(float("nan") if n == 0 else float("inf") if mse == 0 else 10 * math.log10(1.0 / mse))
-    return out[0], out[1]
+    with_d, without_d = (psnr(a[m], b[m]) if bool(m.any()) else float("nan") for m in (has, ~has))
+    return with_d, without_d
 
 
 def depth_l1(pred: Tensor, gt: Tensor) -> float:
