@@ -2,7 +2,8 @@
 # One command that proves the SLAM engine on a CUDA GPU (issue 13), all in one run (< 10 minutes on
 # an H100): installs gsplat from carried wheels, builds its CUDA code (torch's JIT loader), runs the
 # GPU agreement tests, prints the quality / speed table at 300x170, 600x340 and 1200x680 (frame 0
-# separately, peak GPU memory) and the streaming-at-30-Hz figures. Paste the table into docs/slam.md.
+# separately, peak GPU memory; 1200x680 again with the CPU's settings as the baseline, config.DEVICE_DEFAULTS)
+# and the streaming-at-30-Hz figures. Paste the table into docs/slam.md.
 #
 #   bash bench/gpu.sh --download    # where a package index is reachable: fetch the wheels into .whl/
 #   bash bench/gpu.sh               # on the CUDA machine (no network needed): everything
@@ -93,6 +94,7 @@ set -e
 log "quality / speed table ($SIZES, $FRAMES frames each) and streaming"
 # shellcheck disable=SC2086
 "$PY" bench/slam_gpu.py --device cuda --backend gsplat --frames "$FRAMES" --sizes $SIZES \
-  --threads "$(( nproc < 8 ? nproc : 8 ))" --workers "$nproc" --data "${DATA:-/tmp/slam_gpu_data}" | tee "$OUT_DIR/table.md"
+  --threads "$(( nproc < 8 ? nproc : 8 ))" --workers "$nproc" --data "${DATA:-/tmp/slam_gpu_data}" --baseline \
+  | tee "$OUT_DIR/table.md"
 log "done in $(( $(date +%s) - T0 )) s; tests exit $tests_rc; table in $OUT_DIR/table.md (paste into docs/slam.md)"
 exit "$tests_rc"

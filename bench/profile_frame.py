@@ -38,6 +38,7 @@ import torch
 
 from semantic_gs_slam.config import RendererConfig, SlamConfig
 from semantic_gs_slam.datasets import load_dataset
+from semantic_gs_slam.errors import ConfigError
 from semantic_gs_slam.devices import resolve_device
 from semantic_gs_slam.synthetic import generate
 
@@ -183,8 +184,8 @@ def main(argv: list[str] | None = None) -> int:
     cfg = SlamConfig(intrinsics=ds.intrinsics, device=a.device, renderer=RendererConfig(backend=a.backend),
                      threads=a.threads)
     try:
-        cfg = apply_overrides(cfg, a.set)
-    except ValueError as exc:
+        cfg = cfg.with_overrides(a.set)
+    except ConfigError as exc:
         ap.error(str(exc))
     frames = [ds[i] for i in idx]
 
@@ -235,22 +236,6 @@ def main(argv: list[str] | None = None) -> int:
           + (f"; outside the profiler window {1 / statistics.mean(clean):.2f} FPS" if clean else ""))
     print(timer.table())
     return 0
-
-
-def apply_overrides(cfg: SlamConfig, sets: list[str]) -> SlamConfig:
-    """``SECTION.KEY=VALUE`` overrides (the value parsed as the field's current type)."""
-    from dataclasses import replace
-
-    for s in sets:
-        key, _, val = s.partition("=")
-        section, _, field = key.partition(".")
-        sub = getattr(cfg, section, None)
-        if sub is None or not hasattr(sub, "__dataclass_fields__") or field not in sub.__dataclass_fields__:
-            raise ValueError(f"--set {s!r}: no setting {key!r} (SECTION.KEY, e.g. tracking.icp_iters=8)")
-        cur = getattr(sub, field)
-        typed = (val.lower() in ("1", "true", "yes")) if isinstance(cur, bool) else type(cur)(val)
-        cfg = replace(cfg, **{section: replace(sub, **{field: typed})})
-    return cfg
 
 
 if __name__ == "__main__":

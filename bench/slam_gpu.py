@@ -34,9 +34,10 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from semantic_gs_slam.config import MappingConfig, RendererConfig, SlamConfig
+from semantic_gs_slam.config import DEVICE_DEFAULTS, Intrinsics, MappingConfig, RendererConfig, SlamConfig
 from semantic_gs_slam.datasets import load_dataset
 from semantic_gs_slam.devices import resolve_device
+from semantic_gs_slam.errors import ConfigError
 from semantic_gs_slam.evaluate import evaluate
 from semantic_gs_slam.slam import SLAM
 from semantic_gs_slam.synthetic import generate
@@ -88,12 +89,12 @@ def make_sequence(root: str, width: int, height: int, frames: int, supersample: 
 
 
 def run_size(data: str, device: str, backend: str, threads: int, count_syncs: bool,
-             mapping: MappingConfig | None = None) -> Row:
+             mapping: MappingConfig | None = None, sets: list[str] | None = None) -> Row:
     """Run the engine over one generated sequence and measure it."""
     ds = load_dataset(data)
     dev = resolve_device(device)
     cfg = SlamConfig(intrinsics=ds.intrinsics, device=device, renderer=RendererConfig(backend=backend),
-                     mapping=mapping or MappingConfig(), threads=threads)
+                     mapping=mapping or MappingConfig(), threads=threads).with_overrides(sets or [])
     frames = [ds[i] for i in range(len(ds))]
     if dev.type == "cuda":
         torch.cuda.reset_peak_memory_stats(dev)
@@ -224,13 +225,22 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--count-syncs", action="store_true", help="count host synchronisations per frame (slower)")
     ap.add_argument("--rate", type=float, default=30.0, help="streaming rate (Hz)")
     ap.add_argument("--skip-stream", action="store_true")
+    ap.add_argument("--set", action="append", default=[], metavar="SECTION.FIELD=VALUE",
+                    help="override a SlamConfig field in the table's runs, e.g. mapping.iters=6 (repeatable)")
+    ap.add_argument("--baseline", action="store_true",
+                    help="also run the largest size with the CPU's values of the device-dependent settings "
+                         "(config.DEVICE_DEFAULTS) and print the FPS ratio")
     a = ap.parse_args(argv)
+    try:
+        SlamConfig(intrinsics=Intrinsics(2, 2, 1.0, 1.0, 0.5, 0.5)).with_overrides(a.set)
+    except ConfigError as exc:
+        ap.error(str(exc))
     torch.set_num_threads(a.threads)
     root = a.data or tempfile.mkdtemp(prefix="slam_gpu_")
     rows = []
     for w, h in a.sizes:
         data = make_sequence(root, w, h, a.frames, a.supersample, a.workers)
-        rows.append(run_size(data, a.device, a.backend, a.threads, a.count_syncs))
+        rows.append(run_size(data, a.device, a.backend, a.threads, a.count_syncs, sets=a.set))
         print(format_table(rows[-1:], f"{rows[-1].size} done"), file=sys.stderr, flush=True)
     try:
         import gsplat
@@ -239,8 +249,17 @@ def main(argv: list[str] | None = None) -> int:
     except ImportError:
         gv = "no gsplat"
     title = (f"{device_name(a.device)}, torch {torch.__version__}, {gv}, backend {a.backend}, "
-             f"{dt.datetime.now(dt.timezone.utc):%Y-%m-%d %H:%M} UTC; {TARGETS}")
+             f"{dt.datetime.now(dt.timezone.utc):%Y-%m-%d %H:%M} UTC; {TARGETS}"
+             + (f"; settings {' '.join(a.set)}" if a.set else ""))
     print(format_table(rows, title))
+    if a.baseline:
+        cpu = [f"{sec}.{name}={val}" for sec, vals in DEVICE_DEFAULTS["cpu"].items() for name, val in vals.items()]
+        base = run_size(make_sequence(root, *a.sizes[-1], a.frames, a.supersample, a.workers), a.device, a.backend,
+                        a.threads, a.count_syncs, sets=cpu + a.set)
+        base.size += " (CPU settings)"
+        print(format_table([base], f"baseline, the same run with the CPU's values: {' '.join(cpu)}"))
+        print(f"FPS at {rows[-1].size}: {rows[-1].fps:.2f} with this device's settings, {base.fps:.2f} with the "
+              f"CPU's (ratio {rows[-1].fps / max(base.fps, 1e-9):.2f})")
     if not a.skip_stream:
         w, h = a.sizes[-1]
         print(streaming(make_sequence(root, w, h, a.frames, a.supersample, a.workers), a.device, a.backend,

@@ -27,6 +27,7 @@ import torch
 
 from semantic_gs_slam.config import MappingConfig, RendererConfig, SlamConfig
 from semantic_gs_slam.datasets import load_dataset
+from semantic_gs_slam.errors import ConfigError
 from semantic_gs_slam.evaluate import evaluate, format_table
 from semantic_gs_slam.render import render
 from semantic_gs_slam.slam import SLAM
@@ -81,12 +82,10 @@ def main() -> int:
     cfg = SlamConfig(intrinsics=ds.intrinsics, mapping=MappingConfig(keyframe_every=a.keyframe_every,
                                                                      iters=a.mapping_iters), threads=a.threads,
                      device=a.device, renderer=RendererConfig(backend=a.backend))
-    d = cfg.to_dict()
-    for item in a.set:
-        key, val = item.split("=", 1)
-        sec, field = key.split(".", 1)
-        d[sec][field] = type(d[sec][field])(val) if not isinstance(d[sec][field], bool) else val.lower() == "true"
-    cfg = SlamConfig.from_dict(d)
+    try:
+        cfg = cfg.with_overrides(a.set)
+    except ConfigError as exc:
+        ap.error(str(exc))
     eng = SLAM(cfg, ds.classes)
     n = min(a.frames, len(ds))
     frames = [ds[i] for i in range(n)]  # decode up front: FPS counts the engine only

@@ -140,14 +140,15 @@ class SLAM:
     def __init__(self, config: SlamConfig, classes: dict[int, str] | None = None,
                  initial_c2w: np.ndarray | None = None) -> None:
         config.check()
-        self.cfg = config
+        self.device = resolve_device(config.device)
+        self.cfg = config.resolved(self.device.type)  # device-dependent defaults filled in (config.DEVICE_DEFAULTS)
+        config = self.cfg
         self.k: Intrinsics = config.intrinsics
         self.classes = dict(classes or {})
         self.initial_c2w = None if initial_c2w is None else np.asarray(initial_c2w, np.float64)
         if config.threads > 0:
             torch.set_num_threads(config.threads)
         torch.manual_seed(config.seed)
-        self.device = resolve_device(config.device)
         self.backend = select_backend(config.renderer, self.device)  # the renderer, chosen once
         self.map = GaussianMap(self.device)
         self.poses: list[np.ndarray] = []  # estimated c2w per frame

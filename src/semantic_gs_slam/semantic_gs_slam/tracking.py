@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from semantic_gs_slam.config import Intrinsics, RendererConfig, TrackingConfig
+from semantic_gs_slam.config import Intrinsics, RendererConfig, TrackingConfig, device_default
 from semantic_gs_slam.errors import TrackingError
 from semantic_gs_slam.geometry import backproject, quat_to_rotmat, se3_exp
 from semantic_gs_slam.render import Gaussians, RenderBackend, RenderOutput, select_backend
@@ -461,6 +461,7 @@ def icp(model_depth: Tensor, model_valid: Tensor, guess_c2w: Tensor, live_depth:
     model = _IcpModel(vm.reshape(-1, 3), nm.reshape(-1, 3), nvalid.reshape(-1), col, torch.linalg.inv(g), p_w)
     est = g.clone() if start_c2w is None else start_c2w.to(dt).clone()
     res_rms, n_in, agree = float("nan"), 0, float("nan")
+    iters = cfg.icp_iters if cfg.icp_iters is not None else device_default("tracking", "icp_iters", dev.type)
     base = max(1, round(k.width / cfg.icp_row_points))  # live points per row at the finest level
     for level in reversed(range(cfg.icp_levels)):
         stride = base * 2**level
@@ -469,10 +470,10 @@ def icp(model_depth: Tensor, model_valid: Tensor, guess_c2w: Tensor, live_depth:
         photometric = use_col and level == 0  # the photometric term only at the finest level (small basin)
         graph = graphs.get(pts, model, k, cfg, photometric) if graphs is not None and cfg.cuda_graphs else None
         if graph is not None:
-            if cfg.icp_iters > 0:
-                est, n_in, res_rms, agree = graph.level(est, cfg.icp_iters)
+            if iters > 0:
+                est, n_in, res_rms, agree = graph.level(est, iters)
             continue
-        for _ in range(cfg.icp_iters):
+        for _ in range(iters):
             new, stats = _icp_step(est, pts, model, k, cfg, photometric)
             n, rms, step, ag = stats.tolist()  # one host copy per step
             n_in = int(n)

@@ -79,10 +79,8 @@ def test_frame_profiler_prints_stages_and_operators_on_cpu(tmp_path, capsys):
     kf_ms, other_ms = (float(v) for v in rows["keyframe.optimise"].split("|")[2:4])
     assert kf_ms > 0 and other_ms == 0  # mapping runs on keyframes only
     assert "keyframes (2)" in out  # frames 2 and 4 of 1..5 with keyframe_every=2
-    from semantic_gs_slam.config import Intrinsics
-
-    cfg = profile_frame.SlamConfig(intrinsics=Intrinsics(64, 36, 50.0, 50.0, 32.0, 18.0))
-    assert profile_frame.apply_overrides(cfg, ["tracking.cuda_graphs=false"]).tracking.cuda_graphs is False
-    for bad in ("mapping.no_such_field=1", "nosection.iters=1"):
-        with pytest.raises(ValueError, match="no setting"):
-            profile_frame.apply_overrides(cfg, [bad])
+    for bad in ("mapping.no_such_field=1", "nosection.iters=1", "mapping.iters=many"):  # SlamConfig.with_overrides
+        with pytest.raises(SystemExit) as exc:
+            profile_frame.main(["--device", "cpu", "--size", "64x36", "--frames", "6", "--workers", "1",
+                                "--data", str(tmp_path), "--set", bad])
+        assert exc.value.code == 2

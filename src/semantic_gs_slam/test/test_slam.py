@@ -144,6 +144,45 @@ def test_config_errors():
         SlamConfig.from_dict({"intrinsics": {"width": 1, "height": 1, "fx": 1, "fy": 1, "cx": 0, "cy": 0}, "x": 1})
 
 
+def test_device_dependent_defaults_resolve_per_device_and_keep_what_was_set():
+    """Fields left at None take their device's value when the engine starts (config.DEVICE_DEFAULTS); a value set
+    in the config, the YAML or an override is never replaced."""
+    from semantic_gs_slam.config import DEVICE_DEFAULTS, MappingConfig
+
+    k = Intrinsics(16, 12, 8.0, 8.0, 7.5, 5.5)
+    cfg = SlamConfig(intrinsics=k)
+    assert (cfg.mapping.iters, cfg.mapping.densify_every_frame, cfg.tracking.icp_iters) == (None, None, None)
+    cpu, cuda = cfg.resolved("cpu"), cfg.resolved("cuda")
+    assert (cpu.mapping.iters, cpu.mapping.densify_every_frame, cpu.tracking.icp_iters) == (10, True, 12)
+    assert (cuda.mapping.iters, cuda.mapping.densify_every_frame, cuda.tracking.icp_iters) == (6, False, 8)
+    assert cfg.resolved("mps").to_dict() == cpu.to_dict()  # any other device: the CPU's
+    assert cfg.mapping.iters is None  # resolved() copies
+    mine = SlamConfig(intrinsics=k, mapping=MappingConfig(iters=3, densify_every_frame=True)).resolved("cuda")
+    assert (mine.mapping.iters, mine.mapping.densify_every_frame, mine.tracking.icp_iters) == (3, True, 8)
+    for dev, table in DEVICE_DEFAULTS.items():  # every device names the same fields, all of them nullable
+        assert {s: set(v) for s, v in table.items()} == {s: set(v) for s, v in DEVICE_DEFAULTS["cpu"].items()}, dev
+        for section, values in table.items():
+            assert all(getattr(getattr(cfg, section), name) is None for name in values)
+    eng = SLAM(SlamConfig(intrinsics=k, device="cpu"))
+    assert eng.cfg.to_dict() == cpu.to_dict() | {"device": "cpu"}  # what ran is what is saved
+    assert SlamConfig.from_dict(cfg.to_dict()).mapping.iters is None  # None survives the JSON / YAML round trip
+
+
+def test_config_overrides_parse_each_fields_type():
+    k = Intrinsics(16, 12, 8.0, 8.0, 7.5, 5.5)
+    cfg = SlamConfig(intrinsics=k).with_overrides(
+        ["mapping.iters=7", "mapping.densify_every_frame=false", "tracking.icp_min_step=1e-5", "device=cpu",
+         "tracking.icp_iters=none"])
+    assert (cfg.mapping.iters, cfg.mapping.densify_every_frame, cfg.tracking.icp_min_step, cfg.device) == (
+        7, False, 1e-5, "cpu")
+    assert cfg.tracking.icp_iters is None  # "none": the device's value
+    assert SlamConfig(intrinsics=k).with_overrides(["mapping.seed_holes=0"]).mapping.seed_holes is False
+    for bad, why in [("mapping.iterz=2", "no setting"), ("mapping.iters=x", "not a int"), ("mapping=3", "no setting"),
+                     ("mapping.seed_holes=maybe", "not a bool"), ("mapping.iters", "no setting")]:
+        with pytest.raises(ConfigError, match=why):
+            SlamConfig(intrinsics=k).with_overrides([bad])
+
+
 def test_window_keeps_the_most_overlapping_and_draws_older_ones(tiny_home):
     import torch
 
