@@ -38,8 +38,8 @@ import torch
 
 from semantic_gs_slam.config import RendererConfig, SlamConfig
 from semantic_gs_slam.datasets import load_dataset
-from semantic_gs_slam.errors import ConfigError
 from semantic_gs_slam.devices import resolve_device
+from semantic_gs_slam.errors import ConfigError
 from semantic_gs_slam.synthetic import generate
 
 

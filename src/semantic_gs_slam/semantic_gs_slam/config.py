@@ -108,8 +108,8 @@ class TrackingConfig:
     use_gt_pose: bool = False  # debugging / mapping-only runs: take the ground-truth pose given to add_frame
 
     def check(self) -> None:
-        if (self.icp_iters is not None and self.icp_iters < 0) or self.icp_levels < 1 or self.photometric_iters < 0 or self.icp_row_points < 1 \
-                or not self.icp_min_step >= 0:
+        if (self.icp_iters is not None and self.icp_iters < 0) or self.icp_levels < 1 or self.photometric_iters < 0 \
+                or self.icp_row_points < 1 or not self.icp_min_step >= 0:
             raise ConfigError("tracking iteration counts and icp_min_step must be >= 0, icp_levels and icp_row_points "
                               ">= 1")
         for name in ("prior_sigma_trans", "prior_sigma_rot", "odometry_sigma_trans", "odometry_sigma_rot"):

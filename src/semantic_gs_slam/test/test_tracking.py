@@ -318,7 +318,8 @@ def test_icp_step_count_follows_its_settings(scene, monkeypatch):
         r = icp(md, valid, torch.as_tensor(poses[0]), torch.as_tensor(frames[1][1]).float(), k, cfg, out.rgb,
                 torch.as_tensor(frames[1][0]).float())
         runs[name] = (len(seen), max(seen), r)
-    assert runs["strict"][0] == 2 * device_default("tracking", "icp_iters", "cpu")  # 0: never converged, every step runs
+    # icp_min_step 0: never converged, every step runs
+    assert runs["strict"][0] == 2 * device_default("tracking", "icp_iters", "cpu")
     assert runs["loose"][0] < runs["strict"][0]
     assert runs["sparse"][1] * 3 < runs["strict"][1]  # 160 -> 80 points per row (pixel stride 1 -> 2 at 160 px)
     for name in ("loose", "sparse"):
