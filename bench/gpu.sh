@@ -63,7 +63,7 @@ if [ ${#missing[@]} -gt 0 ]; then
   log "installing ${#GPU_WHEELS[@]} wheels from $WHEELS into $SITE (missing here: ${missing[*]})"
   "$PY" -m pip install -q --no-index --no-deps --upgrade --target "$SITE" "$WHEELS"/*.whl
 fi
-export PYTHONPATH="$SITE:$ROOT/src/semantic_gs_slam:$ROOT/src/semantic_gs_slam_ros${PYTHONPATH:+:$PYTHONPATH}"
+export PYTHONPATH="$SITE:$ROOT/src/semantic_gs_slam:$ROOT/src/semantic_gs_slam_ros:$ROOT/src/object_query${PYTHONPATH:+:$PYTHONPATH}"
 export PATH="$SITE/bin:$PATH"  # the ninja build tool
 
 # --- 3. gsplat's CUDA extension (JIT build, cached under ~/.cache/torch_extensions) --------------

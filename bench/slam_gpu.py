@@ -13,7 +13,8 @@ synchronisations per frame (``--count-syncs``), ATE RMSE, PSNR, mIoU, Gaussians 
 Then (unless ``--skip-stream``) the streaming figures: the largest size fed at ``--rate`` Hz into the
 ROS server's core (:class:`semantic_gs_slam_ros.session.StreamingSession`, the same code
 ``run_gs_slam_server`` runs, without DDS): frames processed vs skipped, backlog (lag), and the time
-from the last frame to the map written (what triggers the object-query reload).
+from the last frame to the map written (what triggers the object-query reload), and the reload itself
+(``object_query``'s ``ObjectDatabase.from_files`` on that map, without the service's DDS round trip).
 
 Timing: frames are decoded up front; each ``add_frame`` returns a host pose, so it ends with the
 device's work done (``torch.cuda.synchronize`` is called anyway around frame 0).
@@ -174,7 +175,13 @@ def streaming(data: str, device: str, backend: str, threads: int, rate: float) -
     eng = EngineAdapter(SLAM(cfg, ds.classes))
     scfg = SessionConfig(work_dir=work, width=k.width, height=k.height, use_semantic=True, checkpoint_every=0)
     map_at: list[float] = []
-    session = StreamingSession(scfg, eng, on_map=lambda _p, _s: map_at.append(time.perf_counter()))
+    written: list[tuple[str, str]] = []
+
+    def on_map(params: str, semantic: str) -> None:
+        map_at.append(time.perf_counter())
+        written.append((params, semantic))
+
+    session = StreamingSession(scfg, eng, on_map=on_map)
     result: list = []
     runner = threading.Thread(target=lambda: result.append(session.run(poll=0.01)), daemon=True)
     runner.start()
@@ -207,8 +214,22 @@ def streaming(data: str, device: str, backend: str, threads: int, rate: float) -
             f"(paused {skipped}, refused {p.refused}, unmatched {sum(p.dropped.values())}); "
             f"largest backlog {max_backlog} frames ({max_backlog / rate:.2f} s of lag); "
             f"last frame -> map written {to_map:.2f} s; "
-            f"{'ok' if res is not None and res.success else 'FAILED: ' + (res.message if res else 'timeout')}. "
-            "(The ROS server then calls object_query_server's reload service: one round trip, not measured here.)")
+            f"{'ok' if res is not None and res.success else 'FAILED: ' + (res.message if res else 'timeout')}.\n"
+            + (object_query_reload(*written[-1]) if written else "object_query reload: no map was written"))
+
+
+def object_query_reload(params: str, semantic: str) -> str:
+    """Time what ``object_query_server``'s reload service runs on the written map (``ObjectDatabase.from_files``:
+    read both files, split the instances); the service's DDS round trip is not included."""
+    try:
+        from object_query.semantic_map import DatabaseConfig, ObjectDatabase
+    except ImportError as exc:
+        return f"object_query reload: skipped ({exc})"
+    t = time.perf_counter()
+    db = ObjectDatabase.from_files(params, semantic, DatabaseConfig())
+    took = time.perf_counter() - t
+    return (f"object_query reload of that map (ObjectDatabase.from_files, what object_query_server's reload service "
+            f"runs; its DDS round trip not included): {took:.2f} s, {len(db.names())} classes")
 
 
 def main(argv: list[str] | None = None) -> int:

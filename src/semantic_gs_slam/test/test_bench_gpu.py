@@ -84,3 +84,20 @@ def test_frame_profiler_prints_stages_and_operators_on_cpu(tmp_path, capsys):
             profile_frame.main(["--device", "cpu", "--size", "64x36", "--frames", "6", "--workers", "1",
                                 "--data", str(tmp_path), "--set", bad])
         assert exc.value.code == 2
+
+
+def test_streaming_report_counts_frames_and_times_the_object_query_reload(tmp_path):
+    """The streaming figures at a tiny size on the CPU: every frame processed, the map written, and the written
+    map loaded by object_query (the reload the server triggers) with the home's classes in it."""
+    sys.path.insert(0, BENCH)
+    try:
+        import slam_gpu
+    finally:
+        sys.path.remove(BENCH)
+    data = slam_gpu.make_sequence(str(tmp_path), 64, 36, 4, supersample=1, workers=1)
+    line = slam_gpu.streaming(data, "cpu", "torch", 1, rate=30.0)
+    print(line)
+    assert "processed 4, skipped 0" in line and "; ok." in line
+    reload = line.splitlines()[-1]
+    assert reload.startswith("object_query reload of that map") and " s, " in reload
+    assert int(reload.split(" s, ")[1].split()[0]) > 0  # classes found in the written map
