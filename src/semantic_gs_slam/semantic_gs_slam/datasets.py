@@ -319,6 +319,38 @@ def _quat_pose(v: list[str]) -> np.ndarray:
     return m
 
 
+def load_colmap_poses(path: str) -> dict[str, np.ndarray]:
+    """Camera poses in COLMAP's text convention, one image per line: ``NAME QW QX QY QZ TX TY TZ [more]``, the
+    quaternion and translation of the world-to-camera transform (what COLMAP's ``images.txt`` and the 7-Scenes /
+    12-Scenes pseudo ground truth of Brachmann et al., ICCV 2021, hold). ``#`` comments and blank lines are skipped.
+
+    Returns:
+        image name -> camera-to-world [4, 4].
+
+    Raises:
+        DatasetError: missing file, or a line that is not a name and seven numbers (its number is named).
+    """
+    if not os.path.isfile(path):
+        raise DatasetError(f"missing pose file: {path}")
+    out: dict[str, np.ndarray] = {}
+    with open(path) as fh:
+        for ln, line in enumerate(fh, 1):
+            parts = line.split()
+            if not parts or parts[0].startswith("#"):
+                continue
+            try:
+                if len(parts) < 8:
+                    raise ValueError(f"{len(parts)} fields, need NAME QW QX QY QZ TX TY TZ")
+                qw, qx, qy, qz, tx, ty, tz = (float(x) for x in parts[1:8])
+                w2c = _quat_pose(parts[5:8] + parts[2:5] + parts[1:2])  # TUM's order: t, then x y z w
+                if not np.isfinite(w2c).all() or abs(np.linalg.norm([qw, qx, qy, qz]) - 1) > 1e-3:
+                    raise ValueError("not a unit quaternion")
+            except ValueError as exc:
+                raise DatasetError(f"{path}:{ln}: bad pose line ({exc})") from exc
+            out[parts[0]] = np.linalg.inv(w2c)
+    return out
+
+
 def associate(a: list[float], b: list[float], max_dt: float) -> list[tuple[int, int]]:
     """Greedy nearest-timestamp association (each element used once), pairs sorted by ``a`` index."""
     bs = np.asarray(b)

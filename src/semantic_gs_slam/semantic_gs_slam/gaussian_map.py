@@ -397,6 +397,30 @@ def load_params(path: str) -> dict[str, np.ndarray]:
         raise MapFormatError(f"{path}: not a readable .npz archive ({exc})") from exc
 
 
+def trajectory_from_params(arrays: dict[str, np.ndarray]) -> list[np.ndarray]:
+    """The estimated camera-to-world pose [4, 4] of every frame in a ``params.npz`` (:func:`load_params`; the
+    SplaTAM keys ``cam_unnorm_rots`` [1, 4, T] and ``cam_trans`` [1, 3, T], world-to-camera).
+
+    Raises:
+        MapFormatError: the keys are missing or their shapes disagree.
+    """
+    try:
+        q, t = np.asarray(arrays["cam_unnorm_rots"], np.float64)[0].T, np.asarray(arrays["cam_trans"], np.float64)[0].T
+    except (KeyError, IndexError) as exc:
+        raise MapFormatError(f"no camera trajectory in the map ({exc})") from exc
+    if q.ndim != 2 or q.shape[1] != 4 or t.shape != (len(q), 3):
+        raise MapFormatError(f"camera trajectory of shapes {q.shape} and {t.shape}, need [T, 4] and [T, 3]")
+    out = []
+    for (w, x, y, z), tr in zip(q / np.linalg.norm(q, axis=1, keepdims=True), t, strict=True):
+        w2c = np.eye(4)
+        w2c[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                       [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                       [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]]
+        w2c[:3, 3] = tr
+        out.append(np.linalg.inv(w2c))
+    return out
+
+
 def save_semantic_json(path: str, classes: dict[int, str]) -> None:
     """``{"segmentation": [{"id": .., "class": ..}, ...]}`` (the seed's schema)."""
     with open(path, "w") as fh:

@@ -149,6 +149,32 @@ def fill_depth_holes(depth: Tensor, levels: int = 8) -> Tensor:
     return torch.where(depth > 0, depth, est[0, 0] * have[0, 0])
 
 
+def umeyama_similarity(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, float]:
+    """Similarity transform that best maps ``src`` [N, 3] onto ``dst`` [N, 3] (least squares, Umeyama 1991):
+    ``(T [4, 4] rotation and translation, scale s)`` with ``dst ~ s * R @ src + t`` (``T[:3, 3]`` is that t)."""
+    ms, md = src.mean(0), dst.mean(0)
+    a, b = src - ms, dst - md
+    u, sv, vt = np.linalg.svd(b.T @ a / len(src))
+    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(u) * np.linalg.det(vt))])
+    r = u @ d @ vt
+    s = float(np.trace(np.diag(sv) @ d) / max((a * a).sum(1).mean(), 1e-300))
+    t = np.eye(4)
+    t[:3, :3], t[:3, 3] = r, md - s * r @ ms
+    return t, s
+
+
+def fixed_offset(a_c2w: list[np.ndarray], b_c2w: list[np.ndarray]) -> np.ndarray:
+    """The constant camera-frame transform X [4, 4] with ``b_i ~ a_i @ X`` for poses of the same frames (e.g. a
+    depth camera's and its colour camera's): the mean of ``inv(a_i) @ b_i``, its rotation projected onto SO(3)."""
+    rel = np.stack([np.linalg.inv(a) @ b for a, b in zip(a_c2w, b_c2w, strict=True)])  # [N, 4, 4]
+    m = rel.mean(0)
+    u, _, vt = np.linalg.svd(m[:3, :3])
+    x = np.eye(4)
+    x[:3, :3] = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+    x[:3, 3] = m[:3, 3]
+    return x
+
+
 def umeyama_rigid(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     """Rigid transform (no scale) [4, 4] that best maps ``src`` [N, 3] onto ``dst`` [N, 3] (least squares)."""
     ms, md = src.mean(0), dst.mean(0)

@@ -10,7 +10,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from semantic_gs_slam.geometry import umeyama_rigid
+from semantic_gs_slam.geometry import umeyama_rigid, umeyama_similarity
 
 _WINDOWS: dict[tuple, Tensor] = {}
 
@@ -104,3 +104,27 @@ def ate_rmse(est_c2w: list[np.ndarray], gt_c2w: list[np.ndarray]) -> float:
     t = umeyama_rigid(e, g)
     ea = e @ t[:3, :3].T + t[:3, 3]
     return float(np.sqrt(((ea - g) ** 2).sum(1).mean()))
+
+
+def ate_sim3(est_c2w: list[np.ndarray], gt_c2w: list[np.ndarray]) -> tuple[float, float]:
+    """Absolute trajectory error (m) after the best similarity alignment (rotation, translation and scale), and that
+    scale: for references whose metric scale is itself an estimate (structure from motion)."""
+    e = np.stack([p[:3, 3] for p in est_c2w])
+    g = np.stack([p[:3, 3] for p in gt_c2w])
+    if len(e) < 3:
+        return float(np.sqrt(((e - g) ** 2).sum(1).mean())), 1.0
+    t, s = umeyama_similarity(e, g)
+    ea = s * e @ t[:3, :3].T + t[:3, 3]
+    return float(np.sqrt(((ea - g) ** 2).sum(1).mean())), s
+
+
+def rpe_rmse(est_c2w: list[np.ndarray], gt_c2w: list[np.ndarray], step: int = 1) -> float:
+    """Relative pose error (m): RMSE over i of the translation of ``inv(E_i^-1 E_{i+step}) @ G_i^-1 G_{i+step}``,
+    how much each ``step``-frame motion differs from the reference's (no alignment needed; drift does not add up).
+    NaN with fewer than ``step + 1`` poses."""
+    if len(est_c2w) != len(gt_c2w):
+        raise ValueError(f"{len(est_c2w)} estimated poses against {len(gt_c2w)} reference poses")
+    errs = [np.linalg.norm((np.linalg.inv(np.linalg.inv(est_c2w[i]) @ est_c2w[i + step])
+                            @ np.linalg.inv(gt_c2w[i]) @ gt_c2w[i + step])[:3, 3])
+            for i in range(len(est_c2w) - step)]
+    return float(np.sqrt(np.mean(np.square(errs)))) if errs else float("nan")

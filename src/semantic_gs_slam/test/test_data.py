@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from semantic_gs_slam.datasets import associate, load_dataset, load_replica, load_sgs, load_tum
+from semantic_gs_slam.datasets import associate, load_colmap_poses, load_dataset, load_replica, load_sgs, load_tum
 from semantic_gs_slam.errors import DatasetError
 from semantic_gs_slam.synthetic import HomeRenderer, default_intrinsics, trajectory
 
@@ -120,3 +120,33 @@ def test_supersampled_colour_keeps_centre_ray_depth_and_labels():
     assert np.abs(np.diff(rgb3, axis=1)).mean() < np.abs(np.diff(rgb1, axis=1)).mean()
     with pytest.raises(ValueError, match="odd"):
         ren.render(c2w, k, supersample=2)
+
+
+def test_colmap_pose_lines_are_world_to_camera(tmp_path):
+    """COLMAP's convention by hand: a camera at (1, 2, 3) turned 90 degrees about z; the file holds its
+    world-to-camera quaternion (w x y z) and translation."""
+    from semantic_gs_slam.geometry import fixed_offset
+
+    c2w = np.eye(4)
+    c2w[:3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]  # +90 deg about z
+    c2w[:3, 3] = [1, 2, 3]
+    w2c = np.linalg.inv(c2w)
+    h = np.sqrt(0.5)  # w2c turns -90 deg about z: q = (cos 45, 0, 0, -sin 45)
+    t = w2c[:3, 3]
+    path = tmp_path / "poses.txt"
+    path.write_text(f"# NAME QW QX QY QZ TX TY TZ FOCAL\n\nseq-01/frame-000000.color.png {h} 0 0 {-h} "
+                    f"{t[0]} {t[1]} {t[2]} 525.0\n")
+    got = load_colmap_poses(str(path))
+    np.testing.assert_allclose(got["seq-01/frame-000000.color.png"], c2w, atol=1e-12)
+    for bad, why in [("a 1 0 0 0 1 2", "7 fields"), ("a 1 0 0 0 1 2 x", "x"), ("a 2 0 0 0 1 2 3", "unit quaternion")]:
+        path.write_text("# header\n" + bad + "\n")
+        with pytest.raises(DatasetError, match=f"poses.txt:2: bad pose line.*{why}"):
+            load_colmap_poses(str(path))
+    with pytest.raises(DatasetError, match="missing pose file"):
+        load_colmap_poses(str(tmp_path / "nope.txt"))
+    # the fixed offset between two cameras of one rig comes back from their poses
+    x = np.eye(4)
+    x[:3, :3] = c2w[:3, :3].T
+    x[:3, 3] = [0.025, 0.0, -0.002]
+    a = [c2w, w2c, np.eye(4)]
+    np.testing.assert_allclose(fixed_offset(a, [p @ x for p in a]), x, atol=1e-12)

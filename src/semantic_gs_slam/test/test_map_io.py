@@ -18,6 +18,7 @@ from semantic_gs_slam.gaussian_map import (
     palette,
     save_params,
     save_semantic_json,
+    trajectory_from_params,
 )
 
 KEYS = {"means3D", "rgb_colors", "unnorm_rotations", "logit_opacities", "log_scales", "semantic_colors",
@@ -54,6 +55,22 @@ def test_params_npz_has_the_splatam_key_set_and_round_trips(tmp_path):
     torch.testing.assert_close(m2.normals, m.normals)
     with pytest.raises(MapFormatError, match="normals"):
         GaussianMap.from_arrays(dict(a, normals=np.zeros((3, 3))))
+
+
+def test_trajectory_comes_back_from_params(tmp_path):
+    from semantic_gs_slam.geometry import pose_error, se3_exp
+
+    c2w = [se3_exp(torch.tensor([0.1 * i, -0.3, 0.2 * i, 0.5, -1.0 * i, 0.25], dtype=torch.float64)).numpy()
+           for i in range(4)]
+    save_params(str(tmp_path / "params.npz"), small_map(), Intrinsics(8, 6, 4.0, 4.0, 3.5, 2.5),
+                [np.linalg.inv(p) for p in c2w], [None] * 4, [0])
+    back = trajectory_from_params(load_params(str(tmp_path / "params.npz")))
+    assert len(back) == 4
+    for a, b in zip(back, c2w, strict=True):
+        cm, deg = pose_error(a, b)
+        assert cm < 1e-6 and deg < 1e-4  # float32 storage
+    with pytest.raises(MapFormatError, match="trajectory"):
+        trajectory_from_params({"cam_trans": np.zeros((1, 3, 4))})
 
 
 def test_object_query_reads_our_map(tmp_path):

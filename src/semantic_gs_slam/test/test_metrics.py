@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from semantic_gs_slam.metrics import class_iou, confusion, miou
+from semantic_gs_slam.metrics import ate_rmse, ate_sim3, class_iou, confusion, miou, rpe_rmse
 
 
 def test_class_iou_and_miou_by_hand():
@@ -58,3 +58,45 @@ def test_psnr_split_by_depth_by_hand():
     assert with_d == pytest.approx(10 * math.log10(3 / 0.01), rel=1e-5)
     assert without_d == pytest.approx(10 * math.log10(1 / 0.25), rel=1e-5)
     assert math.isnan(psnr_split(img, gt, torch.ones(2, 2))[1])
+
+
+def _path(n: int = 12) -> list[np.ndarray]:
+    import torch
+
+    from semantic_gs_slam.geometry import se3_exp
+
+    return [se3_exp(torch.tensor([0.05 * i, 0.02 * i, -0.03 * i, 0.1 * i, 0.02 * i * i, -0.05 * i],
+                                 dtype=torch.float64)).numpy() for i in range(n)]
+
+
+def test_ate_with_scale_removes_a_similarity_and_reports_its_scale():
+    import torch
+
+    from semantic_gs_slam.geometry import se3_exp
+
+    gt = _path()
+    sim = se3_exp(torch.tensor([0.3, -0.2, 0.9, 1.0, 2.0, -0.5], dtype=torch.float64)).numpy()
+    est = []
+    for p in gt:  # the same trajectory in another frame and at 1.25x the size
+        q = sim @ p
+        q[:3, 3] = 1.25 * q[:3, 3]
+        est.append(q)
+    err, scale = ate_sim3(est, gt)
+    assert err < 1e-9 and scale == pytest.approx(0.8)
+    assert ate_rmse(est, gt) > 0.05  # a rigid alignment cannot remove the scale
+    shifted = [p.copy() for p in gt]
+    shifted[5][:3, 3] += [0.0, 0.0, 0.12]  # one position off by 12 cm: the RMSE over 12 frames is near 12 / sqrt(12)
+    assert ate_sim3(shifted, gt)[0] == pytest.approx(0.12 / math.sqrt(12), rel=0.15)
+
+
+def test_relative_pose_error_by_hand():
+    gt = _path()
+    assert rpe_rmse(gt, gt, 1) < 1e-12
+    est = [p.copy() for p in gt]
+    for p in est[6:]:  # a 3 cm jump between frames 5 and 6, then the same motion: one 1-step error of 3 cm
+        p[:3, 3] += [0.03, 0.0, 0.0]
+    assert rpe_rmse(est, gt, 1) == pytest.approx(math.sqrt(0.03**2 / 11), rel=1e-6)
+    assert rpe_rmse(est, gt, 5) == pytest.approx(math.sqrt(5 * 0.03**2 / 7), rel=1e-6)  # 5 of 7 windows span it
+    assert math.isnan(rpe_rmse(gt[:1], gt[:1], 1))
+    with pytest.raises(ValueError, match="reference"):
+        rpe_rmse(gt, gt[:3])
