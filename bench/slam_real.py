@@ -31,7 +31,7 @@ from semantic_gs_slam.datasets import frame_indices, load_dataset, parse_size
 from semantic_gs_slam.evaluate import evaluate
 from semantic_gs_slam.geometry import pose_error, umeyama_rigid
 from semantic_gs_slam.labels import LABEL_MODES, LabelConfig, LabelStage
-from semantic_gs_slam.metrics import ate_rmse
+from semantic_gs_slam.metrics import ate_rmse, rpe_rmse
 from semantic_gs_slam.run import label_frame
 from semantic_gs_slam.slam import SLAM
 
@@ -196,12 +196,15 @@ def main() -> int:
     rows.insert(2, ("PSNR (dB), SplaTAM's protocol (pixels without depth zeroed)", masked))
     rows.insert(3, ("PSNR (dB), pixels with depth / without", f"{ours['psnr_with_depth']:.2f} / "
                     f"{ours['psnr_without_depth']:.2f}"))
+    rows.insert(1, ("RPE RMSE (cm, one frame step: how smooth)", f"{ours['rpe_cm']:.2f}"))
     print("\n| metric | ours |" + (" Open3D |" if o3 else "") + "\n|---|---|" + ("---|" if o3 else ""))
     o3_ate = 100 * ate_rmse(o3["poses"], gts) if o3 else float("nan")
     for name, val in rows:
         extra = ""
         if o3 and name.startswith("ATE"):
             extra = f" {o3_ate:.2f} |"
+        elif o3 and name.startswith("RPE"):
+            extra = f" {100 * rpe_rmse(o3['poses'], gts, 1):.2f} |"
         elif o3 and name == "FPS":
             extra = f" {o3['fps']:.2f} |"
         elif o3 and name.startswith("tracking failures"):

@@ -215,11 +215,18 @@ class LoopConfig:
     # half these sigmas 4.05, double 4.39)
     loop_sigma_rot: float = 0.005  # radians
     check_every: int = 1  # look for a loop at every k-th keyframe
+    own_correction_sigmas: float = 2.0  # after a correction the new keyframe keeps its own place from the pose graph
+    # only when that differs from where the previous keyframe's correction puts it by more than this many loop sigmas
+    # (translation or rotation); else it moves with the previous keyframe, the difference being registration noise.
+    # 0 = always its own. On 7-Scenes every correction (1-3 cm) made the new keyframe jump and the next frames jump
+    # back to the map (one-frame RPE 0.8 -> 1.65 cm); at 2: PSNR +0.2-0.3 dB, ATE the same (docs/slam.md)
     candidates: int = 1  # old keyframes registered per check (the most overlapping, min_frame_gap // 2 apart)
 
     def check(self) -> None:
         if min(self.min_frame_gap, self.check_every, self.icp_levels, self.icp_iters, self.candidates) < 1:
             raise ConfigError("loop.min_frame_gap, check_every, icp_levels, icp_iters and candidates must be >= 1")
+        if not self.own_correction_sigmas >= 0:
+            raise ConfigError(f"loop.own_correction_sigmas must be >= 0, got {self.own_correction_sigmas}")
         if not 0 < self.min_overlap <= 1 or not 0 < self.min_agreement <= 1:
             raise ConfigError("loop.min_overlap and loop.min_agreement must be in (0, 1]")
         for name in ("sigma_trans", "sigma_rot", "loop_sigma_trans", "loop_sigma_rot", "verify_dist", "icp_max_dist",

@@ -17,6 +17,7 @@ from semantic_gs_slam.metrics import (
     psnr,
     psnr_depth_masked,
     psnr_split,
+    rpe_rmse,
     ssim,
 )
 
@@ -37,7 +38,8 @@ def evaluate(eng, ds: Dataset, frame_idx: list[int], every: int = 1) -> dict:
         every: render-evaluate every k-th frame.
 
     Returns:
-        dict with ate_rmse_cm, psnr (all pixels), psnr_masked (SplaTAM's protocol:
+        dict with ate_rmse_cm, rpe_cm (:func:`~semantic_gs_slam.metrics.rpe_rmse` over one frame step), psnr (all
+        pixels), psnr_masked (SplaTAM's protocol:
         :func:`~semantic_gs_slam.metrics.psnr_depth_masked`), psnr_with_depth / psnr_without_depth (the frames'
         mean :func:`~semantic_gs_slam.metrics.psnr_split`; NaN without such pixels), ssim, depth_l1_cm, miou,
         class_iou (name -> IoU),
@@ -47,6 +49,7 @@ def evaluate(eng, ds: Dataset, frame_idx: list[int], every: int = 1) -> dict:
     gts = [ds[i].gt_c2w for i in frame_idx]
     if all(g is not None for g in gts):
         res["ate_rmse_cm"] = 100 * ate_rmse(eng.poses, gts)
+        res["rpe_cm"] = 100 * rpe_rmse(eng.poses, gts, 1)
     ps, pm, ss, dl, pw, po = [], [], [], [], [], []
     conf = np.zeros((256, 256), np.int64)
     have_sem = False
@@ -83,6 +86,7 @@ def evaluate(eng, ds: Dataset, frame_idx: list[int], every: int = 1) -> dict:
 def format_table(res: dict) -> str:
     """Two-column text table of :func:`evaluate` results."""
     rows = [("frames", "frames", "{:d}"), ("ate_rmse_cm", "ATE RMSE (cm, aligned)", "{:.2f}"),
+            ("rpe_cm", "RPE RMSE (cm, one frame step)", "{:.2f}"),
             ("psnr", "PSNR (dB)", "{:.2f}"),
             ("psnr_masked", "PSNR (dB), SplaTAM's protocol (pixels without depth zeroed)", "{:.2f}"),
             ("psnr_with_depth", "PSNR (dB), pixels with depth", "{:.2f}"),

@@ -508,6 +508,12 @@ class SLAM:
         new, cost0, cost1 = optimise_graph(old, self.edges + [seq] + loops, fixed=0, iters=5)
         self.edges.extend(loops)  # the loop edges stay; the sequential one is added with the keyframe
         corr = [n @ np.linalg.inv(o) for n, o in zip(new, old, strict=True)]
+        if lc.own_correction_sigmas > 0 and cur > 0:  # a difference within the loop edges' noise is noise
+            extra_m, extra_deg = pose_error(corr[cur - 1] @ old[cur], new[cur])
+            if extra_m < lc.own_correction_sigmas * lc.loop_sigma_trans and \
+                    np.radians(extra_deg) < lc.own_correction_sigmas * lc.loop_sigma_rot:
+                corr[cur] = corr[cur - 1]
+                new[cur] = corr[cur] @ old[cur]
         starts = [kf.index for kf in self.keyframes] + [idx]
         for f in range(len(self.poses)):
             slot = int(np.searchsorted(starts, f, side="right")) - 1
