@@ -253,7 +253,7 @@ def main(argv: list[str] | None = None) -> int:
                          "(config.DEVICE_DEFAULTS) and print the FPS ratio")
     a = ap.parse_args(argv)
     try:
-        SlamConfig(intrinsics=Intrinsics(2, 2, 1.0, 1.0, 0.5, 0.5)).with_overrides(a.set)
+        SlamConfig(intrinsics=Intrinsics(2, 2, 1.0, 1.0, 0.5, 0.5)).with_overrides(a.set).check()
     except ConfigError as exc:
         ap.error(str(exc))
     torch.set_num_threads(a.threads)

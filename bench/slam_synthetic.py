@@ -58,7 +58,8 @@ def main() -> int:
     ap.add_argument("--frames", type=int, default=60)
     ap.add_argument("--span-deg", type=float, default=120.0)
     ap.add_argument("--keyframe-every", type=int, default=MappingConfig.keyframe_every)
-    ap.add_argument("--mapping-iters", type=int, default=MappingConfig.iters)
+    ap.add_argument("--mapping-iters", type=int, default=MappingConfig.iters,
+                    help="Adam iterations per keyframe (default: the device's, config.DEVICE_DEFAULTS)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--data", help="existing dataset folder (default: generate into a temp folder)")
     ap.add_argument("--out", help="where to save the map (default: temp folder)")
@@ -123,7 +124,7 @@ def main() -> int:
     kf_map = [lg.map_s for lg in eng.logs[1:] if lg.keyframe]
     other = [lg.map_s for lg in eng.logs[1:] if not lg.keyframe]
     print(f"sequence {a.width}x{a.height}, {n} frames, keyframe every {a.keyframe_every}, "
-          f"{a.mapping_iters} mapping iterations, {a.threads} threads")
+          f"{eng.cfg.mapping.iters} mapping iterations, {a.threads} threads")
     print(format_table(res))
     print(f"tracking ms/frame: median {1000 * statistics.median(track):.0f}, mean {1000 * statistics.mean(track):.0f}; "
           f"mapping ms/keyframe: median {1000 * statistics.median(kf_map):.0f}, "

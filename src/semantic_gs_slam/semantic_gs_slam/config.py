@@ -38,6 +38,15 @@ class Intrinsics:
         return [[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]]
 
 
+def _check_device_dependent(name: str, value: Any, kind: type) -> None:
+    """A device-dependent field (``DEVICE_DEFAULTS``) holds None (the device's value) or a ``kind`` (not a bool for
+    int): a YAML ``"false"`` or ``auto`` would otherwise slip through as a string."""
+    if value is None or (isinstance(value, kind) and (kind is bool or not isinstance(value, bool))):
+        return
+    raise ConfigError(f"{name} must be {'true or false' if kind is bool else 'an integer'} or null (null: the "
+                      f"device's value, config.DEVICE_DEFAULTS), got {value!r}")
+
+
 @dataclass
 class RendererConfig:
     """Pure-PyTorch tile renderer settings."""
@@ -108,6 +117,7 @@ class TrackingConfig:
     use_gt_pose: bool = False  # debugging / mapping-only runs: take the ground-truth pose given to add_frame
 
     def check(self) -> None:
+        _check_device_dependent("tracking.icp_iters", self.icp_iters, int)
         if (self.icp_iters is not None and self.icp_iters < 0) or self.icp_levels < 1 or self.photometric_iters < 0 \
                 or self.icp_row_points < 1 or not self.icp_min_step >= 0:
             raise ConfigError("tracking iteration counts and icp_min_step must be >= 0, icp_levels and icp_row_points "
@@ -178,6 +188,8 @@ class MappingConfig:
             raise ConfigError("mapping.keyframe_motion_m and keyframe_motion_deg must be >= 0 (0 = off)")
         if self.keyframe_every < 1 or self.window < 1 or self.pixel_stride < 1:
             raise ConfigError("mapping.keyframe_every, window and pixel_stride must be >= 1")
+        _check_device_dependent("mapping.iters", self.iters, int)
+        _check_device_dependent("mapping.densify_every_frame", self.densify_every_frame, bool)
         if (self.iters is not None and self.iters < 0) or self.first_frame_iters < 0:
             raise ConfigError("mapping iteration counts must be >= 0")
         if self.keyframe_pixel_stride < 0:
@@ -322,10 +334,12 @@ class SlamConfig:
                 raise ConfigError(f"override {item!r}: no setting {key!r} (SECTION.FIELD=VALUE, "
                                   "e.g. tracking.icp_iters=8)")
             cur = where[path[-1]]
-            if cur is None:  # a device-dependent field: parse as its type, "none" restores the device's value
+            device_dependent = len(path) == 2 and path[-1] in DEVICE_DEFAULTS["cpu"].get(path[0], {})
+            if device_dependent:  # parsed as its type; "none" / "null" / "auto" asks for the device's value
                 if val.strip().lower() in ("none", "null", "auto"):
+                    where[path[-1]] = None
                     continue
-                cur = device_default(path[0], path[-1], "cpu") if len(path) == 2 else val
+                cur = device_default(path[0], path[-1], "cpu")
             try:
                 if isinstance(cur, bool):
                     low = val.strip().lower()
@@ -335,7 +349,7 @@ class SlamConfig:
                 else:
                     where[path[-1]] = type(cur)(val)
             except ValueError as exc:
-                raise ConfigError(f"override {item!r}: {val!r} is not a {type(cur).__name__}") from exc
+                raise ConfigError(f"override {item!r}: {val!r} is not of type {type(cur).__name__}") from exc
         return SlamConfig.from_dict(d)
 
 

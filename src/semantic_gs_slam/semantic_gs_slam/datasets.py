@@ -320,9 +320,10 @@ def _quat_pose(v: list[str]) -> np.ndarray:
 
 
 def load_colmap_poses(path: str) -> dict[str, np.ndarray]:
-    """Camera poses in COLMAP's text convention, one image per line: ``NAME QW QX QY QZ TX TY TZ [more]``, the
-    quaternion and translation of the world-to-camera transform (what COLMAP's ``images.txt`` and the 7-Scenes /
-    12-Scenes pseudo ground truth of Brachmann et al., ICCV 2021, hold). ``#`` comments and blank lines are skipped.
+    """Camera poses in COLMAP's pose convention, one image per line: ``NAME QW QX QY QZ TX TY TZ [more]``, the
+    quaternion and translation of the world-to-camera transform, the name first (the layout of the 7-Scenes /
+    12-Scenes pseudo ground truth of Brachmann et al., ICCV 2021). COLMAP's own ``images.txt`` is not this layout (id
+    first, name last, a line of points after each). ``#`` comments and blank lines are skipped.
 
     Returns:
         image name -> camera-to-world [4, 4].

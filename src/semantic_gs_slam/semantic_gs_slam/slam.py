@@ -141,6 +141,7 @@ class SLAM:
                  initial_c2w: np.ndarray | None = None) -> None:
         config.check()
         self.device = resolve_device(config.device)
+        self.given_cfg = config  # as given: what a checkpoint keeps, so a resume on another device takes its values
         self.cfg = config.resolved(self.device.type)  # device-dependent defaults filled in (config.DEVICE_DEFAULTS)
         config = self.cfg
         self.k: Intrinsics = config.intrinsics
@@ -648,7 +649,7 @@ class SLAM:
             "since_prune": np.array(self._since_prune),
             "exposures": torch.stack(self.exposures).cpu().numpy() if self.exposures else np.zeros((0, 2, 3))}
         np.savez_compressed(os.path.join(ckpt_dir, "state.npz"), **state)
-        meta = {"config": self.cfg.to_dict(), "classes": {str(k): v for k, v in self.classes.items()},
+        meta = {"config": self.given_cfg.to_dict(), "classes": {str(k): v for k, v in self.classes.items()},
                 "frames": len(self.poses), "initial_c2w": None if self.initial_c2w is None else
                 self.initial_c2w.tolist()}
         with open(os.path.join(ckpt_dir, "checkpoint.json"), "w") as fh:

@@ -245,3 +245,20 @@ def test_reference_agreement_bench_fits_the_camera_offset_and_removes_the_scale(
     with pytest.raises(SystemExit):
         reference_agreement.main(args + ["--sequence", "seq-02"])
     assert "not in" in capsys.readouterr().err
+    # a run's params.npz (here: the dataset's own poses, 5 cm off at one frame) adds its two rows
+    from semantic_gs_slam.config import Intrinsics
+    from semantic_gs_slam.gaussian_map import GaussianMap, save_params
+
+    ours = [_pose(i) for i in range(8)]
+    ours[3] = ours[3].copy()
+    ours[3][:3, 3] += [0.0, 0.05, 0.0]
+    save_params(str(tmp_path / "params.npz"), GaussianMap(), Intrinsics(64, 48, 58.5, 58.5, 32, 24),
+                [np.linalg.inv(p) for p in ours], [None] * 8, [0])
+    assert reference_agreement.main(args + ["--map", str(tmp_path / "params.npz")]) == 0
+    rows = {r.split("|")[1].strip(): [c.strip() for c in r.split("|")[2:-1]]
+            for r in capsys.readouterr().out.splitlines() if r.startswith("| ours")}
+    assert set(rows) == {"ours vs dataset reference", "ours vs second reference"}
+    assert 1.0 < float(rows["ours vs dataset reference"][0]) < 5.0  # one of 8 frames 5 cm off
+    with pytest.raises(SystemExit):  # a run over other frames is refused
+        reference_agreement.main(args + ["--map", str(tmp_path / "params.npz"), "--frames", "4"])
+    assert "--start/--stride/--frames" in capsys.readouterr().err

@@ -76,6 +76,14 @@ def test_checkpoint_resume_continues_identically(tiny_home, tmp_path):
         b.add_frame(f.rgb, f.depth, f.semantics, f.timestamp, f.gt_c2w)
     np.testing.assert_allclose(np.stack(b.poses), np.stack(a.poses), atol=1e-6)
     assert len(b.map) == len(a.map)
+    # the checkpoint keeps the configuration as given: device-dependent fields left to the device stay so, and a
+    # resume on another device takes that device's values (config.DEVICE_DEFAULTS)
+    import json
+
+    with open(os.path.join(ck, "checkpoint.json")) as fh:
+        kept = json.load(fh)["config"]
+    assert kept["mapping"]["densify_every_frame"] is None and kept["tracking"]["icp_iters"] is None
+    assert b.cfg.mapping.densify_every_frame is True  # resumed on the CPU: the CPU's value
     # a crash between the renames of the next checkpoint leaves only "<dir>.old": resume uses it
     os.replace(ck, ck + ".old")
     assert len(SLAM.resume(ck).poses) == 4
@@ -164,8 +172,14 @@ def test_device_dependent_defaults_resolve_per_device_and_keep_what_was_set():
         for section, values in table.items():
             assert all(getattr(getattr(cfg, section), name) is None for name in values)
     eng = SLAM(SlamConfig(intrinsics=k, device="cpu"))
-    assert eng.cfg.to_dict() == cpu.to_dict() | {"device": "cpu"}  # what ran is what is saved
+    assert eng.cfg.to_dict() == cpu.to_dict() | {"device": "cpu"}  # what runs
     assert SlamConfig.from_dict(cfg.to_dict()).mapping.iters is None  # None survives the JSON / YAML round trip
+    for section, bad in [("mapping", {"iters": "auto"}), ("mapping", {"densify_every_frame": "false"}),
+                         ("tracking", {"icp_iters": True}), ("mapping", {"iters": 2.5})]:
+        d = cfg.to_dict()
+        d[section].update(bad)
+        with pytest.raises(ConfigError, match=f"{section}.{next(iter(bad))} must be .* or null"):
+            SLAM(SlamConfig.from_dict(d))  # a YAML typo is named, not taken as a truthy string or compared as one
 
 
 def test_config_overrides_parse_each_fields_type():
@@ -176,9 +190,11 @@ def test_config_overrides_parse_each_fields_type():
     assert (cfg.mapping.iters, cfg.mapping.densify_every_frame, cfg.tracking.icp_min_step, cfg.device) == (
         7, False, 1e-5, "cpu")
     assert cfg.tracking.icp_iters is None  # "none": the device's value
+    assert cfg.with_overrides(["mapping.iters=auto"]).mapping.iters is None  # also once a value was set
     assert SlamConfig(intrinsics=k).with_overrides(["mapping.seed_holes=0"]).mapping.seed_holes is False
-    for bad, why in [("mapping.iterz=2", "no setting"), ("mapping.iters=x", "not a int"), ("mapping=3", "no setting"),
-                     ("mapping.seed_holes=maybe", "not a bool"), ("mapping.iters", "no setting")]:
+    for bad, why in [("mapping.iterz=2", "no setting"), ("mapping.iters=x", "not of type int"),
+                     ("mapping=3", "no setting"), ("mapping.seed_holes=maybe", "not of type bool"),
+                     ("mapping.iters", "no setting")]:
         with pytest.raises(ConfigError, match=why):
             SlamConfig(intrinsics=k).with_overrides([bad])
 
