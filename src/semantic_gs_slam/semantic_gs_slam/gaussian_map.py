@@ -29,7 +29,7 @@ from torch import Tensor
 
 from semantic_gs_slam.config import Intrinsics
 from semantic_gs_slam.errors import MapFormatError
-from semantic_gs_slam.geometry import backproject, rotmat_to_quat
+from semantic_gs_slam.geometry import backproject, quat_to_rotmat, rotmat_to_quat
 from semantic_gs_slam.render import Gaussians
 
 PARAM_KEYS = ("means3D", "rgb_colors", "unnorm_rotations", "logit_opacities", "log_scales", "semantic_features")
@@ -410,15 +410,10 @@ def trajectory_from_params(arrays: dict[str, np.ndarray]) -> list[np.ndarray]:
         raise MapFormatError(f"no camera trajectory in the map ({exc})") from exc
     if q.ndim != 2 or q.shape[1] != 4 or t.shape != (len(q), 3):
         raise MapFormatError(f"camera trajectory of shapes {q.shape} and {t.shape}, need [T, 4] and [T, 3]")
-    out = []
-    for (w, x, y, z), tr in zip(q / np.linalg.norm(q, axis=1, keepdims=True), t, strict=True):
-        w2c = np.eye(4)
-        w2c[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                       [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                       [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]]
-        w2c[:3, 3] = tr
-        out.append(np.linalg.inv(w2c))
-    return out
+    w2c = np.tile(np.eye(4), (len(q), 1, 1))  # [T, 4, 4]
+    w2c[:, :3, :3] = quat_to_rotmat(torch.as_tensor(q)).numpy()
+    w2c[:, :3, 3] = t
+    return list(np.linalg.inv(w2c))
 
 
 def save_semantic_json(path: str, classes: dict[int, str]) -> None:

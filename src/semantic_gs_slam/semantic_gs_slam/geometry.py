@@ -149,15 +149,16 @@ def fill_depth_holes(depth: Tensor, levels: int = 8) -> Tensor:
     return torch.where(depth > 0, depth, est[0, 0] * have[0, 0])
 
 
-def umeyama_similarity(src: np.ndarray, dst: np.ndarray) -> tuple[np.ndarray, float]:
+def umeyama_similarity(src: np.ndarray, dst: np.ndarray, with_scale: bool = True) -> tuple[np.ndarray, float]:
     """Similarity transform that best maps ``src`` [N, 3] onto ``dst`` [N, 3] (least squares, Umeyama 1991):
-    ``(T [4, 4] rotation and translation, scale s)`` with ``dst ~ s * R @ src + t`` (``T[:3, 3]`` is that t)."""
+    ``(T [4, 4] rotation and translation, scale s)`` with ``dst ~ s * R @ src + t`` (``T[:3, 3]`` is that t).
+    Without ``with_scale``, s = 1 (the best rigid transform: the rotation does not depend on the scale)."""
     ms, md = src.mean(0), dst.mean(0)
     a, b = src - ms, dst - md
     u, sv, vt = np.linalg.svd(b.T @ a / len(src))
     d = np.diag([1.0, 1.0, np.sign(np.linalg.det(u) * np.linalg.det(vt))])
     r = u @ d @ vt
-    s = float(np.trace(np.diag(sv) @ d) / max((a * a).sum(1).mean(), 1e-300))
+    s = float(np.trace(np.diag(sv) @ d) / max((a * a).sum(1).mean(), 1e-300)) if with_scale else 1.0
     t = np.eye(4)
     t[:3, :3], t[:3, 3] = r, md - s * r @ ms
     return t, s
@@ -177,11 +178,4 @@ def fixed_offset(a_c2w: list[np.ndarray], b_c2w: list[np.ndarray]) -> np.ndarray
 
 def umeyama_rigid(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     """Rigid transform (no scale) [4, 4] that best maps ``src`` [N, 3] onto ``dst`` [N, 3] (least squares)."""
-    ms, md = src.mean(0), dst.mean(0)
-    h = (src - ms).T @ (dst - md)
-    u, _, vt = np.linalg.svd(h)
-    d = np.sign(np.linalg.det(vt.T @ u.T))
-    r = vt.T @ np.diag([1, 1, d]) @ u.T
-    t = np.eye(4)
-    t[:3, :3], t[:3, 3] = r, md - r @ ms
-    return t
+    return umeyama_similarity(src, dst, with_scale=False)[0]

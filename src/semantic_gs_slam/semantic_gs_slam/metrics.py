@@ -10,7 +10,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from semantic_gs_slam.geometry import umeyama_rigid, umeyama_similarity
+from semantic_gs_slam.geometry import umeyama_similarity
 
 _WINDOWS: dict[tuple, Tensor] = {}
 
@@ -97,23 +97,21 @@ def miou(conf: np.ndarray) -> float:
 
 def ate_rmse(est_c2w: list[np.ndarray], gt_c2w: list[np.ndarray]) -> float:
     """Absolute trajectory error (m): RMSE of camera positions after the best rigid alignment."""
-    e = np.stack([p[:3, 3] for p in est_c2w])
-    g = np.stack([p[:3, 3] for p in gt_c2w])
-    if len(e) < 3:
-        return float(np.sqrt(((e - g) ** 2).sum(1).mean()))
-    t = umeyama_rigid(e, g)
-    ea = e @ t[:3, :3].T + t[:3, 3]
-    return float(np.sqrt(((ea - g) ** 2).sum(1).mean()))
+    return _ate(est_c2w, gt_c2w, with_scale=False)[0]
 
 
 def ate_sim3(est_c2w: list[np.ndarray], gt_c2w: list[np.ndarray]) -> tuple[float, float]:
     """Absolute trajectory error (m) after the best similarity alignment (rotation, translation and scale), and that
     scale: for references whose metric scale is itself an estimate (structure from motion)."""
+    return _ate(est_c2w, gt_c2w, with_scale=True)
+
+
+def _ate(est_c2w: list[np.ndarray], gt_c2w: list[np.ndarray], with_scale: bool) -> tuple[float, float]:
     e = np.stack([p[:3, 3] for p in est_c2w])
     g = np.stack([p[:3, 3] for p in gt_c2w])
     if len(e) < 3:
         return float(np.sqrt(((e - g) ** 2).sum(1).mean())), 1.0
-    t, s = umeyama_similarity(e, g)
+    t, s = umeyama_similarity(e, g, with_scale)
     ea = s * e @ t[:3, :3].T + t[:3, 3]
     return float(np.sqrt(((ea - g) ** 2).sum(1).mean())), s
 
