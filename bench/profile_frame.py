@@ -145,7 +145,7 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--device", default="auto")
-    ap.add_argument("--backend", default="auto", choices=["auto", "torch", "gsplat"])
+    ap.add_argument("--backend", default="auto", choices=["auto", "torch", "gsplat", "numba"])
     ap.add_argument("--size", default="300x170", help="WIDTHxHEIGHT of the generated sequence")
     ap.add_argument("--frames", type=int, default=24)
     ap.add_argument("--threads", type=int, default=2)

@@ -236,7 +236,7 @@ def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit code."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--device", default="auto")
-    ap.add_argument("--backend", default="auto", choices=["auto", "torch", "gsplat"])
+    ap.add_argument("--backend", default="auto", choices=["auto", "torch", "gsplat", "numba"])
     ap.add_argument("--sizes", type=parse_size, nargs="+", default=[(300, 170), (600, 340), (1200, 680)])
     ap.add_argument("--frames", type=int, default=60, help="frames per size (the first is frame 0)")
     ap.add_argument("--supersample", type=int, default=1, help="synthetic colour rays per pixel side (odd)")

@@ -65,7 +65,7 @@ def main() -> int:
     ap.add_argument("--out", help="where to save the map (default: temp folder)")
     ap.add_argument("--renderer-only", action="store_true")
     ap.add_argument("--device", default="auto", help="torch device: auto (CUDA when present), cpu, cuda, cuda:N")
-    ap.add_argument("--backend", default="auto", choices=["auto", "torch", "gsplat"], help="renderer back-end")
+    ap.add_argument("--backend", default="auto", choices=["auto", "torch", "gsplat", "numba"], help="renderer back-end")
     ap.add_argument("--count-syncs", action="store_true",
                     help="print host synchronisations per frame (device_guard.DeviceGuard; slows the run)")
     ap.add_argument("--refine-iters", type=int, default=0, help="also evaluate after an offline map refinement")

@@ -56,14 +56,15 @@ class RendererConfig:
     chunk: int = 128  # Gaussians composited per step (early stop between chunks)
     stop_transmittance: float = 1e-4  # a tile stops once every pixel's transmittance is below this
     batch_elements: int = 1_000_000  # bound on tiles x pixels x Gaussians per batch (memory)
-    backend: str = "auto"  # "torch" (pure PyTorch, any device: the reference), "gsplat" (CUDA fast path) or
-    # "auto" (gsplat when the engine runs on CUDA and gsplat imports, else torch)
+    backend: str = "auto"  # "torch" (pure PyTorch, any device: the reference), "gsplat" (CUDA fast path),
+    # "numba" (compiled CPU compositor) or "auto" (gsplat on CUDA when it imports, numba on the CPU when it is
+    # installed, else torch)
 
     def check(self) -> None:
         if self.tile not in (4, 8, 16, 32):
             raise ConfigError(f"renderer.tile must be 4, 8, 16 or 32, got {self.tile}")
-        if self.backend not in ("auto", "torch", "gsplat"):
-            raise ConfigError(f"renderer.backend must be 'auto', 'torch' or 'gsplat', got {self.backend!r}")
+        if self.backend not in ("auto", "torch", "gsplat", "numba"):
+            raise ConfigError(f"renderer.backend must be 'auto', 'torch', 'gsplat' or 'numba', got {self.backend!r}")
         if self.chunk <= 0 or self.batch_elements <= 0:
             raise ConfigError("renderer.chunk and renderer.batch_elements must be positive")
 
@@ -75,6 +76,8 @@ class TrackingConfig:
     icp_iters: int | None = None  # Gauss-Newton iterations per pyramid level (None: the device's, DEVICE_DEFAULTS)
     icp_levels: int = 2  # image pyramid levels (stride 2**level), coarse to fine
     icp_min_step: float = 1e-6  # a level ends once a step's largest component (rad or m) is below this
+    icp_backend: str = "auto"  # the per-step sums: "torch" (the reference, any device), "numba" (compiled, CPU) or
+    # "auto" (numba on the CPU when it is installed, else torch)
     icp_row_points: int = 160  # about this many live points per image row at the finest level (pixel stride
     # round(width / this)); the coarser levels halve it
     icp_max_dist: float = 0.10  # metres; associations farther apart are rejected
@@ -118,6 +121,8 @@ class TrackingConfig:
 
     def check(self) -> None:
         _check_device_dependent("tracking.icp_iters", self.icp_iters, int)
+        if self.icp_backend not in ("auto", "torch", "numba"):
+            raise ConfigError(f"tracking.icp_backend must be 'auto', 'torch' or 'numba', got {self.icp_backend!r}")
         if (self.icp_iters is not None and self.icp_iters < 0) or self.icp_levels < 1 or self.photometric_iters < 0 \
                 or self.icp_row_points < 1 or not self.icp_min_step >= 0:
             raise ConfigError("tracking iteration counts and icp_min_step must be >= 0, icp_levels and icp_row_points "

@@ -1,7 +1,10 @@
-"""Which torch device the engine runs on: ``SlamConfig.device`` resolved once (``auto`` = CUDA when present)."""
+"""Which torch device the engine runs on: ``SlamConfig.device`` resolved once (``auto`` = CUDA when present),
+and whether the compiled CPU kernels (numba) can be used."""
 
 from __future__ import annotations
 
+import functools
+import importlib.util
 import re
 
 import torch
@@ -9,6 +12,14 @@ import torch
 from semantic_gs_slam.errors import ConfigError
 
 DEVICE_PATTERN = re.compile(r"^(auto|cpu|cuda(:\d+)?)$")
+
+
+@functools.cache
+def numba_available() -> bool:
+    """Whether numba is installed (without importing it: that costs ~0.4 s). numba is a wheel-world dependency
+    (requirements/python.in); with a system ROS 2 it may be missing, and every ``auto`` choice then keeps the
+    pure-PyTorch reference."""
+    return importlib.util.find_spec("numba") is not None
 
 
 def resolve_device(name: str | torch.device) -> torch.device:

@@ -10,7 +10,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from semantic_gs_slam.devices import numba_available
 from semantic_gs_slam.geometry import umeyama_similarity
+from semantic_gs_slam.metrics_numba import ssim_numba
 
 _WINDOWS: dict[tuple, Tensor] = {}
 
@@ -24,8 +26,24 @@ def _window(size: int, sigma: float, dtype: torch.dtype, device: torch.device) -
     return _WINDOWS[key]
 
 
-def ssim(a: Tensor, b: Tensor, size: int = 11, sigma: float = 1.5) -> Tensor:
-    """Mean SSIM of two images [H, W, C] in [0, 1] (Gaussian window, separable, 'same' padding)."""
+def ssim(a: Tensor, b: Tensor, size: int = 11, sigma: float = 1.5, fast: bool | None = None) -> Tensor:
+    """Mean SSIM of two images [H, W, C] in [0, 1] (Gaussian window, separable, 'same' zero padding).
+
+    Args:
+        fast: True = the compiled CPU kernel (:mod:`semantic_gs_slam.metrics_numba`; float32 CPU images, ``b``
+            without gradient), False = :func:`ssim_reference`, None = the kernel where it applies and numba is
+            installed.
+    """
+    if fast is None:
+        fast = (a.device.type == "cpu" and b.device.type == "cpu" and a.dtype == b.dtype == torch.float32
+                and not b.requires_grad and a.ndim == 3 and size % 2 == 1 and numba_available())
+    if fast:
+        return ssim_numba(a, b, _window(size, sigma, torch.float32, torch.device("cpu")))
+    return ssim_reference(a, b, size, sigma)
+
+
+def ssim_reference(a: Tensor, b: Tensor, size: int = 11, sigma: float = 1.5) -> Tensor:
+    """:func:`ssim` in grouped convolutions (any device and dtype; differentiable in both images): the reference."""
     x = a.permute(2, 0, 1)[None]
     y = b.permute(2, 0, 1)[None]
     c = x.shape[1]

@@ -25,18 +25,15 @@ opacity compensation); the projection Jacobian clamps x/z, y/z to the image plus
 
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import Tensor
 
 from semantic_gs_slam.config import Intrinsics, RendererConfig
-from semantic_gs_slam.geometry import quat_to_rotmat
 from semantic_gs_slam.render_gsplat import gsplat_available, render_gsplat, require_gsplat
+from semantic_gs_slam.render_numba import numba_available, render_numba, require_numba
+from semantic_gs_slam.render_tiles import footprint, jacobian_limits, project, project_rows, tile_pairs
 from semantic_gs_slam.render_types import (
     ALPHA_MIN,
-    BLUR_PX2,
-    FOV_MARGIN,
     OPACITY_CAP,
     STOP_TRANSMITTANCE,
     Gaussians,
@@ -44,18 +41,10 @@ from semantic_gs_slam.render_types import (
     RenderOutput,
 )
 
-__all__ = ["ALPHA_MIN", "OPACITY_CAP", "Gaussians", "RenderBackend", "RenderOutput", "footprint", "project", "render",
-           "render_reference", "render_torch", "select_backend"]
+__all__ = ["ALPHA_MIN", "OPACITY_CAP", "Gaussians", "RenderBackend", "RenderOutput", "footprint", "jacobian_limits",
+           "project", "project_rows", "render", "render_reference", "render_torch", "select_backend"]
 
 EXP_FLOOR = -20.0  # exp() of smaller inputs is slow on CPU and below ALPHA_MIN anyway
-
-
-def _check_inputs(g: Gaussians, w2c: Tensor) -> None:
-    g.check()
-    if tuple(w2c.shape) != (4, 4):
-        raise ValueError(f"w2c must be [4, 4], got {list(w2c.shape)}")
-    if w2c.device != g.means.device:
-        raise ValueError(f"w2c is on {w2c.device} but the Gaussians are on {g.means.device}")
 
 
 def select_backend(cfg: RendererConfig, device: torch.device | str = "cpu") -> RenderBackend:
@@ -63,17 +52,24 @@ def select_backend(cfg: RendererConfig, device: torch.device | str = "cpu") -> R
 
     Args:
         cfg: renderer settings; ``backend="auto"`` picks gsplat when ``device`` is CUDA and gsplat
-            imports, else the torch tiles.
+            imports, the compiled CPU compositor (numba) when ``device`` is the CPU and numba is
+            installed, else the torch tiles (the reference).
         device: the device the Gaussians live on.
 
     Raises:
-        BackendUnavailableError: ``gsplat`` asked for where gsplat or CUDA is missing.
+        BackendUnavailableError: ``gsplat`` or ``numba`` asked for where it (or CUDA) is missing.
     """
+    dev = torch.device(device).type
     if cfg.backend == "gsplat":
         require_gsplat()
         return render_gsplat
-    if cfg.backend == "auto" and torch.device(device).type == "cuda" and gsplat_available():
+    if cfg.backend == "numba":
+        require_numba()
+        return render_numba
+    if cfg.backend == "auto" and dev == "cuda" and gsplat_available():
         return render_gsplat
+    if cfg.backend == "auto" and dev == "cpu" and numba_available():
+        return render_numba
     return render_torch
 
 
@@ -91,87 +87,6 @@ def render(g: Gaussians, w2c: Tensor, k: Intrinsics, cfg: RendererConfig | None 
     """
     cfg = cfg or RendererConfig()
     return select_backend(cfg, g.means.device)(g, w2c, k, cfg)
-
-
-def jacobian_limits(k: Intrinsics) -> tuple[float, float, float, float]:
-    """Clamp range of x/z and y/z in the projection Jacobian: (x_neg, x_pos, y_neg, y_pos), gsplat's rule
-    ``cx' / fx + 0.3 tan(fov_x / 2)`` with gsplat's principal point ``cx' = cx + 0.5``."""
-    tx, ty = FOV_MARGIN * 0.5 * k.width / k.fx, FOV_MARGIN * 0.5 * k.height / k.fy
-    return ((k.cx + 0.5) / k.fx + tx, (k.width - k.cx - 0.5) / k.fx + tx,
-            (k.cy + 0.5) / k.fy + ty, (k.height - k.cy - 0.5) / k.fy + ty)
-
-
-def project(g: Gaussians, w2c: Tensor, k: Intrinsics, near: float) -> dict[str, Tensor]:
-    """Project Gaussians to the image: centres, conics, log-opacities, depths and the visible index.
-
-    Returns:
-        dict with ``idx`` [M] (indices of Gaussians in front of the camera), ``uv`` [M, 2], ``conic``
-        [M, 3] (a, b, c of the inverse 2-D covariance), ``cov`` [M, 3] (xx, xy, yy), ``log_o`` [M],
-        ``z`` [M].
-    """
-    pc = g.means @ w2c[:3, :3].T + w2c[:3, 3]  # [N, 3]
-    idx = torch.nonzero(pc[:, 2].detach() > near).squeeze(1)
-    ls = g.log_scales.index_select(0, idx)
-    quats = g.quats.index_select(0, idx) if ls.shape[1] == 3 else None
-    out = project_rows(pc.index_select(0, idx), ls, quats, g.logit_opacities.index_select(0, idx), w2c, k)
-    out["idx"] = idx
-    return out
-
-
-def project_rows(pc: Tensor, log_scales: Tensor, quats: Tensor | None, logit_opacities: Tensor, w2c: Tensor,
-                 k: Intrinsics) -> dict[str, Tensor]:
-    """The projection maths of :func:`project` on given rows (fixed shapes: no culling, no host sync).
-
-    Args:
-        pc: [M, 3] camera-frame centres (z > 0). log_scales: [M, 1] or [M, 3]. quats: [M, 4] (anisotropic
-            scales only) or None. logit_opacities: [M, 1]. w2c: [4, 4]. k: intrinsics.
-
-    Returns:
-        dict with ``uv`` [M, 2], ``conic`` [M, 3], ``cov`` [M, 3], ``log_o`` [M], ``z`` [M].
-    """
-    x, y, z = pc.unbind(-1)
-    # clamp the Jacobian's x/z, y/z to the view plus a margin (as gsplat / 3DGS), else near off-screen
-    # Gaussians blow up
-    xn, xp, yn, yp = jacobian_limits(k)
-    tx = (x / z).clamp(-xn, xp) * z
-    ty = (y / z).clamp(-yn, yp) * z
-    zero = torch.zeros_like(z)
-    j = torch.stack([k.fx / z, zero, -k.fx * tx / (z * z), zero, k.fy / z, -k.fy * ty / (z * z)], -1).reshape(-1, 2, 3)
-    ls = log_scales
-    if ls.shape[1] == 1:
-        s2 = torch.exp(2 * ls[:, 0])  # isotropic: covariance s^2 I in every frame
-        jj = j @ j.transpose(1, 2)  # [M, 2, 2]
-        cov2 = s2[:, None, None] * jj
-    else:
-        r = quat_to_rotmat(quats)  # [M, 3, 3]
-        m = w2c[:3, :3] @ r * torch.exp(ls)[:, None, :]  # camera-frame R S
-        cov2 = j @ m @ m.transpose(1, 2) @ j.transpose(1, 2)
-    cxx = cov2[:, 0, 0] + BLUR_PX2
-    cxy = cov2[:, 0, 1]
-    cyy = cov2[:, 1, 1] + BLUR_PX2
-    det = (cxx * cyy - cxy * cxy).clamp_min(1e-12)
-    conic = torch.stack([cyy / det, -cxy / det, cxx / det], -1)
-    uv = torch.stack([k.fx * x / z + k.cx, k.fy * y / z + k.cy], -1)
-    log_o = math.log(OPACITY_CAP) + torch.nn.functional.logsigmoid(logit_opacities[:, 0])
-    return {"uv": uv, "conic": conic, "cov": torch.stack([cxx, cxy, cyy], -1), "log_o": log_o, "z": z}
-
-
-def footprint(log_o: Tensor, cov: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Exact pixel box where a projected Gaussian's alpha is >= 1/255.
-
-    ``alpha >= 1/255  <=>  d^2 <= 2 ln(255 o)`` (Mahalanobis ``d``); the box's half extents are that
-    radius times the marginal standard deviations. gsplat's box is ``ceil(min(3.33, that radius) sigma)``,
-    never smaller (0.99 * 255 gives a radius of 3.327), so both back-ends blend the same pixels.
-
-    Args:
-        log_o: [M] log-opacities. cov: [M, 3] 2-D covariances (xx, xy, yy) with the low-pass added.
-
-    Returns:
-        keep [M] (opacity >= 1/255), half extents hx [M] and hy [M] in pixels.
-    """
-    r2 = 2 * (log_o + math.log(255.0))
-    rad = torch.sqrt(r2.clamp_min(0))
-    return r2 > 0, rad * torch.sqrt(cov[:, 0]), rad * torch.sqrt(cov[:, 2])
 
 
 class _Composite(torch.autograd.Function):
@@ -245,59 +160,19 @@ class _Composite(torch.autograd.Function):
 
 def render_torch(g: Gaussians, w2c: Tensor, k: Intrinsics, cfg: RendererConfig) -> RenderOutput:
     """The pure-PyTorch tile back-end (the reference; any device). Arguments as :func:`render`."""
-    _check_inputs(g, w2c)
+    tp = tile_pairs(g, w2c, k, cfg)
     dev, dt = g.means.device, g.means.dtype
-    ts = cfg.tile
-    ntx, nty = (k.width + ts - 1) // ts, (k.height + ts - 1) // ts
+    ts, ntx, nty = tp.tile, tp.ntx, tp.nty
     n_tiles = ntx * nty
-    pr = project(g, w2c, k, cfg.near)
-    idx, uv, conic, cov, log_o, z = pr["idx"], pr["uv"], pr["conic"], pr["cov"], pr["log_o"], pr["z"]
-    feats = [g.rgb.index_select(0, idx), z[:, None]]
-    if g.semantic is not None:
-        feats.append(g.semantic.index_select(0, idx))
-    feats_all = torch.cat(feats, -1)  # [M, C]
+    feats_all, pg, tcount, tstart, tiles_sorted = tp.feats, tp.pg, tp.tcount, tp.tstart, tp.tiles_sorted
+    coef_pairs = tp.coef
     c_out = feats_all.shape[1]
+    total = int(pg.numel())
     with torch.no_grad():
-        keep, hx, hy = footprint(log_o, cov)
-        x0 = torch.floor((uv[:, 0] - hx + 0.5) / ts).long()
-        x1 = torch.floor((uv[:, 0] + hx + 0.5) / ts).long()
-        y0 = torch.floor((uv[:, 1] - hy + 0.5) / ts).long()
-        y1 = torch.floor((uv[:, 1] + hy + 0.5) / ts).long()
-        keep &= (x1 >= 0) & (x0 < ntx) & (y1 >= 0) & (y0 < nty)
-        x0, x1 = x0.clamp(0, ntx - 1), x1.clamp(0, ntx - 1)
-        y0, y1 = y0.clamp(0, nty - 1), y1.clamp(0, nty - 1)
-        kidx = torch.nonzero(keep).squeeze(1)
-        # depth order first, then a stable sort by tile keeps depth order within each tile
-        kidx = kidx[torch.argsort(z[kidx])]
-        wx, wy = (x1 - x0 + 1)[kidx], (y1 - y0 + 1)[kidx]
-        cnt = wx * wy
-        total = int(cnt.sum())
-        pg = torch.repeat_interleave(kidx, cnt)  # pair -> projected-Gaussian index
-        start = torch.cumsum(cnt, 0) - cnt
-        local = torch.arange(total, device=dev) - torch.repeat_interleave(start, cnt)
-        wxr = torch.repeat_interleave(wx, cnt)
-        ptile = (y0[pg] + local // wxr) * ntx + (x0[pg] + local % wxr)
-        order = torch.sort(ptile, stable=True).indices
-        pg, ptile = pg[order], ptile[order]
-        tcount = torch.bincount(ptile, minlength=n_tiles)
-        tstart = torch.cumsum(tcount, 0) - tcount
-        tiles_sorted = torch.argsort(tcount, descending=True)
-        tiles_sorted = tiles_sorted[tcount[tiles_sorted] > 0]
         li = torch.arange(ts, dtype=dt, device=dev)
         jj, ii = torch.meshgrid(li, li, indexing="ij")  # pixel p = j * ts + i
         ii, jj = ii.reshape(-1), jj.reshape(-1)
         mono = torch.stack([torch.ones_like(ii), ii, jj, ii * ii, ii * jj, jj * jj])  # [6, P]
-    # exponent coefficients for every pair (one vectorised computation)
-    tx0 = (ptile % ntx).to(dt) * ts
-    ty0 = (ptile // ntx).to(dt) * ts
-    # index_select (backward: index_add) rather than advanced indexing (backward: slow index_put)
-    a_, b_, c_ = conic.index_select(0, pg).unbind(-1)
-    uvp = uv.index_select(0, pg)
-    du = uvp[:, 0] - tx0
-    dv = uvp[:, 1] - ty0
-    coef_pairs = torch.stack([
-        -0.5 * a_ * du * du - b_ * du * dv - 0.5 * c_ * dv * dv + log_o.index_select(0, pg),
-        a_ * du + b_ * dv, b_ * du + c_ * dv, -0.5 * a_, -b_, -0.5 * c_], -1)  # [pairs, 6]
     pad_row = torch.tensor([-30.0, 0, 0, 0, 0, 0], dtype=dt, device=dev)
     p = ts * ts
     outs, out_tiles = [], []
@@ -323,7 +198,7 @@ def render_torch(g: Gaussians, w2c: Tensor, k: Intrinsics, cfg: RendererConfig) 
     img = full.reshape(nty, ntx, c_out + 1, ts, ts).permute(2, 0, 3, 1, 4).reshape(c_out + 1, nty * ts, ntx * ts)
     img = img[:, :k.height, :k.width]
     sem = img[4:-1].permute(1, 2, 0) if g.semantic is not None else None
-    return RenderOutput(img[:3].permute(1, 2, 0), img[3], img[-1], sem, int(kidx.numel()))
+    return RenderOutput(img[:3].permute(1, 2, 0), img[3], img[-1], sem, tp.n_visible)
 
 
 def render_reference(g: Gaussians, w2c: Tensor, k: Intrinsics, near: float = 0.05,

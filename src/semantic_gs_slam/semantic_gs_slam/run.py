@@ -95,7 +95,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--keyframe-every", type=int, default=0)
     ap.add_argument("--mapping-iters", type=int)
     ap.add_argument("--device", default="auto", help="torch device: auto (CUDA when present), cpu, cuda, cuda:N")
-    ap.add_argument("--backend", default="auto", choices=["auto", "torch", "gsplat"],
+    ap.add_argument("--backend", default="auto", choices=["auto", "torch", "gsplat", "numba"],
                     help="renderer: torch tiles (any device), gsplat (CUDA), auto (gsplat on CUDA when it imports)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--refine-iters", type=int, default=0,

@@ -17,9 +17,11 @@ import torch
 from torch import Tensor
 
 from semantic_gs_slam.config import Intrinsics, RendererConfig, TrackingConfig, device_default
-from semantic_gs_slam.errors import TrackingError
+from semantic_gs_slam.devices import numba_available
+from semantic_gs_slam.errors import BackendUnavailableError, TrackingError
 from semantic_gs_slam.geometry import backproject, quat_to_rotmat, se3_exp
 from semantic_gs_slam.render import Gaussians, RenderBackend, RenderOutput, select_backend
+from semantic_gs_slam.tracking_numba import normal_equations_numba
 
 log = logging.getLogger(__name__)
 
@@ -163,16 +165,17 @@ def _solve_spd6(a: Tensor, b: Tensor) -> Tensor:
     return m[:, 6]
 
 
-def _icp_step(est: Tensor, pts: _IcpPoints, model: _IcpModel, k: Intrinsics, cfg: TrackingConfig,
-              photometric: bool, solve=torch.linalg.solve) -> tuple[Tensor, Tensor]:
-    """One Gauss-Newton step of :func:`icp` from ``est`` [4, 4] (float64).
+def icp_normal_equations(est: Tensor, pts: _IcpPoints, model: _IcpModel, k: Intrinsics, cfg: TrackingConfig,
+                         photometric: bool) -> tuple[Tensor, Tensor, Tensor]:
+    """The data terms of one ICP step from ``est`` [4, 4] (float64): the reference (any device).
 
     Every point takes part with a weight (0 for missing depth, off-image, no model vertex, too far): fixed
     shapes, no boolean indexing, so no host synchronisation and one graph per image size.
+    :func:`semantic_gs_slam.tracking_numba.normal_equations_numba` is the CPU fast path of the same sums.
 
     Returns:
-        the new estimate [4, 4] and ``[correspondences, residual RMS (m), largest step component, agreement]`` [4]
-        (float64, on the device).
+        ``A`` [6, 6], ``b`` [6] of the Gauss-Newton system ``A xi = b`` and ``[correspondences, sum of squared
+        geometric residuals, residuals within 3 sigma, points on a usable model pixel]`` [4] (float64, on the device).
     """
     dt = est.dtype
     w2c_g = model.w2c_g
@@ -224,16 +227,38 @@ def _icp_step(est: Tensor, pts: _IcpPoints, model: _IcpModel, k: Intrinsics, cfg
         jc = torch.where(use[:, None], jc, torch.zeros_like(jc))
         a = a + jcw.T @ jc
         b = b - jcw.T @ rc
+    sums = torch.stack([mask.sum(), (r * r).sum(), ((r.abs() < 3 * sg) & close).to(dt).sum(), ok.to(dt).sum()])
+    return a, b, sums
+
+
+def _icp_step(est: Tensor, pts: _IcpPoints, model: _IcpModel, k: Intrinsics, cfg: TrackingConfig,
+              photometric: bool, solve=torch.linalg.solve, fast: bool = False) -> tuple[Tensor, Tensor]:
+    """One Gauss-Newton step of :func:`icp` from ``est`` [4, 4] (float64).
+
+    Args:
+        fast: the data terms from the compiled CPU kernel (:mod:`semantic_gs_slam.tracking_numba`) instead of
+            :func:`icp_normal_equations`; CPU tensors and numba needed.
+
+    Returns:
+        the new estimate [4, 4] and ``[correspondences, residual RMS (m), largest step component, agreement]`` [4]
+        (float64, on the device).
+    """
+    if fast:
+        a, b, sums = normal_equations_numba(est, pts.lp, pts.lvalid, pts.il, model.vm, model.nm, model.nvalid,
+                                            model.col, model.w2c_g, k, cfg, photometric)
+    else:
+        a, b, sums = icp_normal_equations(est, pts, model, k, cfg, photometric)
+    dt = est.dtype
     # weak prior toward the guess: keeps directions the data leave free from drifting
-    d = est @ w2c_g
+    d = est @ model.w2c_g
     prior = torch.cat([_so3_log(d[:3, :3]), d[:3, 3]])
     a = a + model.prior_w
     b = b - model.prior_w @ prior
     a = a + torch.eye(6, dtype=dt, device=a.device) * (1e-9 * a.diagonal().mean())
     xi = solve(a, b)
-    n_in = mask.sum()
-    stats = torch.stack([n_in, torch.sqrt((r * r).sum() / n_in.clamp_min(1.0)), xi.abs().max(),
-                         ((r.abs() < 3 * sg) & close).to(dt).sum() / ok.to(dt).sum().clamp_min(1.0)])
+    n_in = sums[0]
+    stats = torch.stack([n_in, torch.sqrt(sums[1] / n_in.clamp_min(1.0)), xi.abs().max(),
+                         sums[2] / sums[3].clamp_min(1.0)])
     return se3_exp(xi) @ est, stats
 
 
@@ -401,6 +426,22 @@ class IcpGraphs:
         return None if graph is None else graph.load(pts)
 
 
+def icp_uses_numba(cfg: TrackingConfig, device: torch.device) -> bool:
+    """Whether :func:`icp` sums its steps in the compiled CPU kernel (``cfg.icp_backend``).
+
+    Raises:
+        BackendUnavailableError: ``numba`` asked for without numba, or for tensors off the CPU.
+    """
+    if cfg.icp_backend == "numba":
+        if not numba_available():
+            raise BackendUnavailableError("tracking.icp_backend 'numba' needs the numba package "
+                                          "(pip install numba; requirements/python.in pins it)")
+        if device.type != "cpu":
+            raise BackendUnavailableError(f"tracking.icp_backend 'numba' runs on the CPU, the engine is on {device}")
+        return True
+    return cfg.icp_backend == "auto" and device.type == "cpu" and numba_available()
+
+
 def icp(model_depth: Tensor, model_valid: Tensor, guess_c2w: Tensor, live_depth: Tensor, k: Intrinsics,
         cfg: TrackingConfig, model_rgb: Tensor | None = None, live_rgb: Tensor | None = None,
         start_c2w: Tensor | None = None, graphs: IcpGraphs | None = None) -> TrackResult:
@@ -462,6 +503,7 @@ def icp(model_depth: Tensor, model_valid: Tensor, guess_c2w: Tensor, live_depth:
     est = g.clone() if start_c2w is None else start_c2w.to(dt).clone()
     res_rms, n_in, agree = float("nan"), 0, float("nan")
     iters = cfg.icp_iters if cfg.icp_iters is not None else device_default("tracking", "icp_iters", dev.type)
+    fast = icp_uses_numba(cfg, dev)
     base = max(1, round(k.width / cfg.icp_row_points))  # live points per row at the finest level
     for level in reversed(range(cfg.icp_levels)):
         stride = base * 2**level
@@ -474,7 +516,7 @@ def icp(model_depth: Tensor, model_valid: Tensor, guess_c2w: Tensor, live_depth:
                 est, n_in, res_rms, agree = graph.level(est, iters)
             continue
         for _ in range(iters):
-            new, stats = _icp_step(est, pts, model, k, cfg, photometric)
+            new, stats = _icp_step(est, pts, model, k, cfg, photometric, fast=fast)
             n, rms, step, ag = stats.tolist()  # one host copy per step
             n_in = int(n)
             if n_in < cfg.min_correspondences:

@@ -27,9 +27,10 @@ from torch.overrides import TorchFunctionMode
 from semantic_gs_slam.config import Intrinsics, MappingConfig, RendererConfig, SlamConfig
 from semantic_gs_slam.datasets import load_dataset
 from semantic_gs_slam.device_guard import PACKAGE_DIR, DeviceGuard
-from semantic_gs_slam.devices import resolve_device
+from semantic_gs_slam.devices import numba_available, resolve_device
 from semantic_gs_slam.errors import BackendUnavailableError, ConfigError
 from semantic_gs_slam.render import _Composite, project_rows, render_torch, select_backend
+from semantic_gs_slam.render_numba import render_numba
 from semantic_gs_slam.render_types import RenderOutput
 from semantic_gs_slam.slam import SLAM, mapping_loss
 from semantic_gs_slam.tracking import photometric_loss_of, w2c_from_quat_trans
@@ -199,13 +200,15 @@ def test_device_selection_and_backend_choice():
         SlamConfig(intrinsics=K, device="gpu").check()
     with pytest.raises(ConfigError, match="no CUDA device"):
         SLAM(SlamConfig(intrinsics=K, device="cuda"))
-    assert select_backend(RendererConfig(), "cpu") is render_torch  # auto on the CPU: the torch tiles
+    # auto on the CPU: the compiled compositor where numba is installed, else the torch tiles
+    assert select_backend(RendererConfig(), "cpu") is (render_numba if numba_available() else render_torch)
+    assert select_backend(RendererConfig(backend="torch"), "cpu") is render_torch
     with pytest.raises(BackendUnavailableError):
         select_backend(RendererConfig(backend="gsplat"), "cpu")
     assert SLAM(SlamConfig(intrinsics=K)).device == torch.device("cpu")
 
 
-MODULES = ["render_types", "render_gsplat", "render"]
+MODULES = ["render_types", "render_tiles", "render_gsplat", "render_numba", "render", "tracking_numba", "metrics_numba"]
 
 
 @pytest.mark.parametrize("name", MODULES)
@@ -230,6 +233,7 @@ def test_no_import_cycle_between_engine_modules():
     mods = {f[:-3]: _top_level_imports(os.path.join(PACKAGE_DIR, f)) for f in os.listdir(PACKAGE_DIR)
             if f.endswith(".py")}
     assert "render_types" in mods["render_gsplat"] and "render" not in mods["render_gsplat"]
+    assert "render" not in mods["render_numba"] and "render_tiles" in mods["render_numba"]
 
     def visit(m: str, stack: list[str]) -> None:
         if m in stack:

@@ -9,9 +9,17 @@ import torch
 
 from semantic_gs_slam.config import Intrinsics, RendererConfig
 from semantic_gs_slam.errors import BackendUnavailableError
-from semantic_gs_slam.render import Gaussians, _Composite, render, render_reference
+from semantic_gs_slam.render import Gaussians, _Composite, render_reference
+from semantic_gs_slam.render import render as _render
 
 K = Intrinsics(40, 30, 30.0, 30.0, 19.5, 14.5)
+
+
+def render(g, w2c, k, cfg=None):
+    """The pure-PyTorch tiles (this file tests the reference, in float64; the compiled CPU compositor, which
+    computes in float32, is checked against it in test_render_numba.py)."""
+    return _render(g, w2c, k, cfg or RendererConfig(backend="torch"))
+
 F64 = torch.float64
 
 
@@ -34,8 +42,9 @@ def scalar(out) -> torch.Tensor:
     return (out.rgb * w).sum() + (out.depth**2).sum() + out.silhouette.sum() + (out.semantic * 0.7).sum()
 
 
-@pytest.mark.parametrize("cfg", [RendererConfig(), RendererConfig(tile=16, chunk=5, batch_elements=4000),
-                                 RendererConfig(tile=4, chunk=3)])
+@pytest.mark.parametrize("cfg", [RendererConfig(backend="torch"),
+                                 RendererConfig(tile=16, chunk=5, batch_elements=4000, backend="torch"),
+                                 RendererConfig(tile=4, chunk=3, backend="torch")])
 def test_tile_renderer_matches_dense_reference(cfg):
     g = random_scene()
     w2c = torch.eye(4, dtype=F64)

@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from semantic_gs_slam.config import MappingConfig, SlamConfig, TrackingConfig, device_default
+from semantic_gs_slam.devices import numba_available
 from semantic_gs_slam.errors import TrackingError
 from semantic_gs_slam.geometry import pose_error, se3_exp
 from semantic_gs_slam.slam import SLAM
@@ -216,9 +217,11 @@ def test_icp_in_chunks_of_steps_equals_the_step_loop(scene, monkeypatch, case):
     md, valid, out = model(eng, poses[0])
     start = se3_exp(torch.tensor([0.01, 0.01, -0.01, -0.015, 0.02, 0.0], dtype=torch.float64)) @ torch.as_tensor(
         poses[0])
-    cfg = {"runs out of steps": TrackingConfig(icp_iters=7, icp_min_step=0.0),  # 7: not a multiple of 4
-           "converges": TrackingConfig(icp_iters=40, icp_min_step=1e-4),
-           "loses the model": TrackingConfig(min_correspondences=2000)}[case]
+    # the chunks always sum with the tensor reference (the graph path is for CUDA): so does the step loop here
+    cfg = {"runs out of steps": TrackingConfig(icp_iters=7, icp_min_step=0.0, icp_backend="torch"),  # 7: not a
+           # multiple of 4
+           "converges": TrackingConfig(icp_iters=40, icp_min_step=1e-4, icp_backend="torch"),
+           "loses the model": TrackingConfig(min_correspondences=2000, icp_backend="torch")}[case]
     live = torch.as_tensor(frames[0][1]).float()
     if case == "loses the model":
         live = live.clone()
@@ -327,3 +330,60 @@ def test_icp_step_count_follows_its_settings(scene, monkeypatch):
     for bad in ({"icp_row_points": 0}, {"icp_min_step": -1.0}, {"icp_min_step": float("nan")}):
         with pytest.raises(ConfigError):
             TrackingConfig(**bad).check()
+
+
+@pytest.mark.skipif(not numba_available(), reason="numba not installed (the reference is used)")
+def test_numba_normal_equations_match_the_reference(scene):
+    """The compiled CPU sums of an ICP step equal the tensor reference's, with and without the photometric term,
+    from a start off the model's pose (so the geometric residuals, Huber weights and rejections all take part)."""
+    from semantic_gs_slam.tracking import icp_normal_equations
+    from semantic_gs_slam.tracking_numba import normal_equations_numba
+
+    eng, k, poses, frames = scene
+    pts, mdl = _problem(eng, k, poses[0], frames[1])
+    for xi in ([0.01, 0, 0, 0.01, 0, 0], [0.0, 0.015, -0.01, 0.02, -0.025, 0.015]):
+        start = se3_exp(torch.tensor(xi, dtype=torch.float64)) @ torch.as_tensor(poses[0])
+        for photometric in (False, True):
+            for cfg in (TrackingConfig(), TrackingConfig(icp_max_dist=0.02, icp_sigma_geo=0.002)):
+                a1, b1, s1 = icp_normal_equations(start, pts, mdl, k, cfg, photometric)
+                a2, b2, s2 = normal_equations_numba(start, pts.lp, pts.lvalid, pts.il, mdl.vm, mdl.nm, mdl.nvalid,
+                                                    mdl.col, mdl.w2c_g, k, cfg, photometric)
+                torch.testing.assert_close(a2, a1, rtol=1e-9, atol=1e-6)
+                torch.testing.assert_close(b2, b1, rtol=1e-9, atol=1e-6)
+                assert s2[0] == s1[0] and s2[2] == s1[2] and s2[3] == s1[3], (s1, s2)
+                torch.testing.assert_close(s2[1], s1[1], rtol=1e-9, atol=0)
+                assert 100 < float(s1[0]) < float(s1[3])  # correspondences, and some rejected as too far
+
+
+@pytest.mark.skipif(not numba_available(), reason="numba not installed (the reference is used)")
+def test_icp_with_the_numba_sums_equals_the_reference(scene):
+    eng, k, poses, frames = scene
+    md, valid, out = model(eng, poses[0])
+    start = se3_exp(torch.tensor([0.01, 0.01, -0.01, -0.015, 0.02, 0.0], dtype=torch.float64)) @ torch.as_tensor(
+        poses[0])
+    res = {}
+    for backend in ("torch", "numba", "auto"):
+        res[backend] = icp(md, valid, torch.as_tensor(poses[0]), torch.as_tensor(frames[1][1]).float(), k,
+                           TrackingConfig(icp_backend=backend), out.rgb, torch.as_tensor(frames[1][0]).float(),
+                           start_c2w=start)
+    for backend in ("numba", "auto"):
+        torch.testing.assert_close(res[backend].c2w, res["torch"].c2w, rtol=0, atol=1e-9)
+        assert res[backend].inliers == res["torch"].inliers
+        assert abs(res[backend].residual - res["torch"].residual) < 1e-9
+
+
+def test_icp_backend_is_checked_and_a_missing_numba_is_a_typed_error(monkeypatch):
+    from semantic_gs_slam import tracking
+    from semantic_gs_slam.errors import BackendUnavailableError, ConfigError
+
+    with pytest.raises(ConfigError, match="icp_backend"):
+        TrackingConfig(icp_backend="fast").check()
+    monkeypatch.setattr(tracking, "numba_available", lambda: False)
+    with pytest.raises(BackendUnavailableError, match="numba"):
+        tracking.icp_uses_numba(TrackingConfig(icp_backend="numba"), torch.device("cpu"))
+    assert not tracking.icp_uses_numba(TrackingConfig(), torch.device("cpu"))  # auto: the reference
+    monkeypatch.setattr(tracking, "numba_available", lambda: True)
+    assert tracking.icp_uses_numba(TrackingConfig(), torch.device("cpu"))
+    assert not tracking.icp_uses_numba(TrackingConfig(), torch.device("cuda"))  # never on a GPU
+    with pytest.raises(BackendUnavailableError, match="CPU"):
+        tracking.icp_uses_numba(TrackingConfig(icp_backend="numba"), torch.device("cuda"))

@@ -1,0 +1,236 @@
+"""Compiled CPU compositor (numba): the fast path of the CPU renderer.
+
+Same pairs (:func:`semantic_gs_slam.render_tiles.tile_pairs`), same compositing rules
+(:mod:`semantic_gs_slam.render_types`) and same gradients as the pure-PyTorch compositor in
+:mod:`semantic_gs_slam.render` (the reference it is tested against), but pixel by pixel in compiled
+loops instead of dense [tiles, Gaussians, pixels] tensors:
+
+* forward: each pixel walks its tile's pairs front to back, skips alphas below 1/255 and stops
+  *before* the Gaussian that would take its transmittance to <= 1e-4; it keeps its final
+  transmittance and how many pairs it walked, nothing else.
+* backward: each pixel walks the same pairs back to front, recovering the transmittance in front of
+  each Gaussian by dividing by ``1 - alpha`` (alpha <= 0.99), with the suffix sum of ``w_k (g . f_k)``
+  as in the reference: ``dL/dpower_i = w_i (g . f_i) - alpha_i / (1 - alpha_i) * suffix_i``.
+
+Every pair belongs to one tile and a tile is one thread's work, so the gradients need no atomics and
+the result does not depend on the number of threads. Tiles are dealt round robin, most pairs first, to
+the threads (as many as torch uses). numba's default threading layer is not safe for calls from two
+Python threads at once, so calls hold :data:`_LOCK`.
+
+numba is optional (a wheel-world dependency, as for :mod:`object_query.kernels`): without it,
+``renderer.backend: auto`` keeps the reference. Compiling takes a few seconds on first use and is cached
+on disk (``cache=True``).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import threading
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from semantic_gs_slam.config import Intrinsics, RendererConfig
+from semantic_gs_slam.devices import numba_available
+from semantic_gs_slam.errors import BackendUnavailableError
+from semantic_gs_slam.render_tiles import TilePairs, tile_pairs
+from semantic_gs_slam.render_types import ALPHA_MIN, Gaussians, RenderOutput
+
+__all__ = ["composite_numba", "numba_available", "render_numba", "require_numba"]
+
+_LOCK = threading.Lock()
+#: exponent below which alpha < ALPHA_MIN for sure (the exact test is on alpha itself)
+_LOG_ALPHA_SKIP = math.log(ALPHA_MIN) - 1e-3
+
+
+def require_numba() -> None:
+    """Raise :class:`BackendUnavailableError` unless numba is installed."""
+    if not numba_available():
+        raise BackendUnavailableError("renderer.backend 'numba' needs the numba package "
+                                      "(pip install numba; requirements/python.in pins it)")
+
+
+@functools.cache
+def _kernels():  # pragma: no cover - compiled (its Python twin is the reference compositor)
+    import numba
+
+    f32 = numba.float32
+
+    @numba.njit(cache=True, nogil=True, parallel=True, fastmath=True)
+    def forward(coef, feat, tstart, tcount, order, ntx, ts, height, width, stop, nw, out, t_final, n_done):
+        c = feat.shape[1]
+        n_t = order.shape[0]
+        st = f32(stop)
+        skip = f32(_LOG_ALPHA_SKIP)
+        amin = f32(ALPHA_MIN)
+        one = f32(1.0)
+        for w in numba.prange(nw):
+            acc = np.zeros(c + 1, np.float32)
+            for q in range(w, n_t, nw):
+                t = order[q]
+                s0 = tstart[t]
+                n = tcount[t]
+                y0 = (t // ntx) * ts
+                x0 = (t % ntx) * ts
+                for j in range(ts):
+                    y = y0 + j
+                    if y >= height:
+                        break
+                    fj = f32(j)
+                    for i in range(ts):
+                        x = x0 + i
+                        if x >= width:
+                            break
+                        fi = f32(i)
+                        fii, fij, fjj = fi * fi, fi * fj, fj * fj
+                        for ch in range(c + 1):
+                            acc[ch] = 0
+                        tr = one
+                        walked = n
+                        for p in range(s0, s0 + n):
+                            pw = (coef[p, 0] + coef[p, 1] * fi + coef[p, 2] * fj + coef[p, 3] * fii
+                                  + coef[p, 4] * fij + coef[p, 5] * fjj)
+                            if pw < skip:
+                                continue
+                            a = math.exp(pw)
+                            if a < amin:
+                                continue
+                            tn = tr * (one - a)
+                            if tn <= st:
+                                walked = p - s0
+                                break
+                            wt = a * tr
+                            for ch in range(c):
+                                acc[ch] += wt * feat[p, ch]
+                            acc[c] += wt
+                            tr = tn
+                        for ch in range(c + 1):
+                            out[ch, y, x] = acc[ch]
+                        t_final[y, x] = tr
+                        n_done[y, x] = walked
+
+    @numba.njit(cache=True, nogil=True, parallel=True, fastmath=True)
+    def backward(coef, feat, tstart, tcount, order, ntx, ts, height, width, nw, t_final, n_done, gout,
+                 g_coef, g_feat):
+        c = feat.shape[1]
+        n_t = order.shape[0]
+        skip = f32(_LOG_ALPHA_SKIP)
+        amin = f32(ALPHA_MIN)
+        one = f32(1.0)
+        for w in numba.prange(nw):
+            g = np.zeros(c + 1, np.float32)
+            for q in range(w, n_t, nw):
+                t = order[q]
+                s0 = tstart[t]
+                y0 = (t // ntx) * ts
+                x0 = (t % ntx) * ts
+                for j in range(ts):
+                    y = y0 + j
+                    if y >= height:
+                        break
+                    fj = f32(j)
+                    for i in range(ts):
+                        x = x0 + i
+                        if x >= width:
+                            break
+                        fi = f32(i)
+                        fii, fij, fjj = fi * fi, fi * fj, fj * fj
+                        nz = False
+                        for ch in range(c + 1):
+                            g[ch] = gout[ch, y, x]
+                            nz = nz or g[ch] != 0
+                        if not nz:
+                            continue
+                        tr = t_final[y, x]
+                        suffix = f32(0.0)
+                        for p in range(s0 + n_done[y, x] - 1, s0 - 1, -1):
+                            pw = (coef[p, 0] + coef[p, 1] * fi + coef[p, 2] * fj + coef[p, 3] * fii
+                                  + coef[p, 4] * fij + coef[p, 5] * fjj)
+                            if pw < skip:
+                                continue
+                            a = math.exp(pw)
+                            if a < amin:
+                                continue
+                            tr = tr / (one - a)  # transmittance in front of this Gaussian
+                            wt = a * tr
+                            h = g[c]
+                            for ch in range(c):
+                                h += g[ch] * feat[p, ch]
+                                g_feat[p, ch] += wt * g[ch]
+                            d_pw = wt * h - a / (one - a) * suffix
+                            suffix += wt * h
+                            g_coef[p, 0] += d_pw
+                            g_coef[p, 1] += d_pw * fi
+                            g_coef[p, 2] += d_pw * fj
+                            g_coef[p, 3] += d_pw * fii
+                            g_coef[p, 4] += d_pw * fij
+                            g_coef[p, 5] += d_pw * fjj
+
+    return forward, backward
+
+
+class _CompositeNumba(torch.autograd.Function):
+    """Front-to-back compositing of all tiles' pairs (compiled forward and backward, CPU tensors).
+
+    Inputs: coef [pairs, 6], feat [pairs, C] (the pair's Gaussian's features), tstart / tcount / order
+    (int64, see :class:`~semantic_gs_slam.render_tiles.TilePairs`), ntx, tile, height, width, stop.
+    Output: [C + 1, H, W] composited features, the last channel the silhouette.
+    """
+
+    @staticmethod
+    def forward(ctx, coef: Tensor, feat: Tensor, tstart: Tensor, tcount: Tensor, order: Tensor, ntx: int, ts: int,
+                height: int, width: int, stop: float) -> Tensor:  # noqa: D102
+        fwd, _ = _kernels()
+        cn = coef.detach().contiguous().numpy()
+        fn = feat.detach().contiguous().numpy()
+        c = fn.shape[1]
+        out = np.zeros((c + 1, height, width), cn.dtype)
+        t_final = np.ones((height, width), np.float32)
+        n_done = np.zeros((height, width), np.int64)
+        ts_n, tc_n, or_n = tstart.numpy(), tcount.numpy(), order.numpy()
+        nw = max(1, min(torch.get_num_threads(), len(or_n)))
+        with _LOCK:
+            fwd(cn, fn, ts_n, tc_n, or_n, ntx, ts, height, width, float(stop), nw, out, t_final, n_done)
+        ctx.save_for_backward(coef, feat, tstart, tcount, order)
+        ctx.state = (cn, fn, t_final, n_done, ntx, ts, height, width, nw)
+        return torch.from_numpy(out)
+
+    @staticmethod
+    def backward(ctx, gout: Tensor):  # noqa: D102
+        _, bwd = _kernels()
+        tstart, tcount, order = ctx.saved_tensors[2:]
+        cn, fn, t_final, n_done, ntx, ts, height, width, nw = ctx.state
+        g_coef = np.zeros(cn.shape, np.float32)
+        g_feat = np.zeros(fn.shape, np.float32)
+        gn = gout.detach().to(torch.float32).contiguous().numpy()
+        with _LOCK:
+            bwd(cn, fn, tstart.numpy(), tcount.numpy(), order.numpy(), ntx, ts, height, width, nw, t_final, n_done,
+                gn, g_coef, g_feat)
+        dt = gout.dtype
+        return (torch.from_numpy(g_coef).to(dt), torch.from_numpy(g_feat).to(dt), None, None, None, None, None, None,
+                None, None)
+
+
+def composite_numba(tp: TilePairs, k: Intrinsics, cfg: RendererConfig) -> Tensor:
+    """Composite the pairs ``tp`` into a [C + 1, H, W] image (last channel the silhouette)."""
+    feat = tp.feats.index_select(0, tp.pg)  # [pairs, C]
+    return _CompositeNumba.apply(tp.coef, feat, tp.tstart, tp.tcount, tp.tiles_sorted, tp.ntx, tp.tile, k.height,
+                                 k.width, cfg.stop_transmittance)
+
+
+def render_numba(g: Gaussians, w2c: Tensor, k: Intrinsics, cfg: RendererConfig) -> RenderOutput:
+    """The compiled CPU back-end. Arguments and result as :func:`semantic_gs_slam.render.render`.
+
+    Raises:
+        BackendUnavailableError: numba missing.
+        ValueError: Gaussians not on the CPU, or inconsistent inputs.
+    """
+    require_numba()
+    if g.means.device.type != "cpu":
+        raise ValueError(f"renderer.backend 'numba' renders on the CPU; the Gaussians are on {g.means.device}")
+    tp = tile_pairs(g, w2c, k, cfg)
+    img = composite_numba(tp, k, cfg)
+    sem = img[4:-1].permute(1, 2, 0) if g.semantic is not None else None
+    return RenderOutput(img[:3].permute(1, 2, 0), img[3], img[-1], sem, tp.n_visible)

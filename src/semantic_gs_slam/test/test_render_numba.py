@@ -1,0 +1,162 @@
+"""Compiled CPU compositor (numba) against the pure-PyTorch reference: images, gradients, threads, errors."""
+
+from __future__ import annotations
+
+import threading
+
+import pytest
+import torch
+
+from semantic_gs_slam.config import ConfigError, Intrinsics, RendererConfig
+from semantic_gs_slam.errors import BackendUnavailableError
+from semantic_gs_slam.render import Gaussians, render_torch, select_backend
+from semantic_gs_slam.render_numba import numba_available, render_numba
+
+pytestmark = pytest.mark.skipif(not numba_available(), reason="numba not installed (the reference is used)")
+
+F32 = torch.float32
+
+
+def scene(n: int = 300, seed: int = 0, aniso: bool = False, opaque: bool = False, semantic: int = 3) -> Gaussians:
+    """Random Gaussians in front of an identity camera, float32 like the engine's."""
+    gen = torch.Generator().manual_seed(seed)
+    means = torch.randn(n, 3, generator=gen) * torch.tensor([0.6, 0.45, 0.3]) + torch.tensor([0.0, 0.0, 2.5])
+    scales = torch.log(torch.rand(n, 3 if aniso else 1, generator=gen) * 0.06 + 0.01)
+    logits = torch.randn(n, 1, generator=gen) * 2 + (4.0 if opaque else 0.0)
+    g = Gaussians(means, torch.randn(n, 4, generator=gen), scales, logits, torch.rand(n, 3, generator=gen),
+                  torch.rand(n, semantic, generator=gen) if semantic else None)
+    for t in (g.means, g.quats, g.log_scales, g.logit_opacities, g.rgb, g.semantic):
+        if t is not None:
+            t.requires_grad_(True)
+    return g
+
+
+def loss_of(out) -> torch.Tensor:
+    """A scalar that weighs every output channel differently (so every gradient path is exercised)."""
+    gen = torch.Generator().manual_seed(7)
+    terms = [(out.rgb * torch.rand(out.rgb.shape, generator=gen)).sum(), (out.depth ** 2).sum() * 0.3,
+             (out.silhouette * torch.rand(out.silhouette.shape, generator=gen)).sum()]
+    if out.semantic is not None:
+        terms.append((out.semantic * torch.rand(out.semantic.shape, generator=gen)).sum())
+    return sum(terms)
+
+
+def params(g: Gaussians) -> list[torch.Tensor]:
+    return [t for t in (g.means, g.quats, g.log_scales, g.logit_opacities, g.rgb, g.semantic)
+            if t is not None and t.requires_grad]
+
+
+def compare(g: Gaussians, k: Intrinsics, cfg: RendererConfig, w2c: torch.Tensor | None = None) -> None:
+    w2c = torch.eye(4) if w2c is None else w2c
+    a, b = render_numba(g, w2c, k, cfg), render_torch(g, w2c, k, cfg)
+    assert a.n_visible == b.n_visible
+    for name in ("rgb", "depth", "silhouette", "semantic"):
+        x, y = getattr(a, name), getattr(b, name)
+        if y is None:
+            assert x is None
+            continue
+        assert x.shape == y.shape and x.dtype == y.dtype
+        torch.testing.assert_close(x, y, rtol=1e-4, atol=2e-5)
+    ga = torch.autograd.grad(loss_of(a), params(g), allow_unused=True)
+    gb = torch.autograd.grad(loss_of(b), params(g), allow_unused=True)
+    for x, y in zip(ga, gb, strict=True):
+        if y is None:
+            assert x is None or float(x.abs().max()) == 0
+            continue
+        # relative to the gradient's size (float32 sums in a different order)
+        assert float((x - y).norm()) <= 1e-4 * float(y.norm()) + 1e-6, (float((x - y).norm()), float(y.norm()))
+
+
+@pytest.mark.parametrize("aniso", [False, True])
+@pytest.mark.parametrize("size", [(64, 48), (37, 29)])  # tiles that fit, and partial edge tiles
+def test_numba_compositor_matches_the_reference(aniso, size):
+    k = Intrinsics(size[0], size[1], 50.0, 50.0, size[0] / 2 - 0.5, size[1] / 2 - 0.5)
+    compare(scene(aniso=aniso, seed=1 + aniso), k, RendererConfig(backend="numba"))
+
+
+@pytest.mark.parametrize("tile", [4, 16])
+def test_numba_compositor_matches_with_early_termination_and_other_tiles(tile):
+    """Opaque, overlapping Gaussians: most pixels stop before their tile's last pair."""
+    g = scene(n=500, seed=3, opaque=True, semantic=0)
+    k = Intrinsics(48, 40, 60.0, 60.0, 23.5, 19.5)
+    compare(g, k, RendererConfig(tile=tile, backend="numba"))
+    out = render_numba(g, torch.eye(4), k, RendererConfig(tile=tile))
+    assert float(out.silhouette.max()) > 0.999  # some pixels did end early
+
+
+def test_numba_compositor_with_nothing_visible_renders_zeros_and_zero_gradients():
+    g = scene(n=20, seed=4)
+    w2c = torch.eye(4)
+    w2c[2, 3] = -10.0  # everything behind the camera
+    k = Intrinsics(32, 24, 30.0, 30.0, 15.5, 11.5)
+    out = render_numba(g, w2c, k, RendererConfig())
+    assert out.n_visible == 0 and float(out.silhouette.abs().sum()) == 0 and out.rgb.shape == (24, 32, 3)
+    grads = torch.autograd.grad(loss_of(out), [g.means, g.rgb], allow_unused=True)
+    assert all(gr is None or float(gr.abs().sum()) == 0 for gr in grads)
+
+
+def test_numba_result_does_not_depend_on_the_number_of_threads():
+    g = scene(n=400, seed=5)
+    k = Intrinsics(64, 48, 50.0, 50.0, 31.5, 23.5)
+    before = torch.get_num_threads()
+    results = []
+    try:
+        for n in (1, 2, 3):
+            torch.set_num_threads(n)
+            out = render_numba(g, torch.eye(4), k, RendererConfig())
+            results.append((out.rgb.detach().clone(), torch.autograd.grad(loss_of(out), [g.means])[0]))
+    finally:
+        torch.set_num_threads(before)
+    for rgb, gm in results[1:]:
+        assert torch.equal(rgb, results[0][0]) and torch.equal(gm, results[0][1])
+
+
+def test_numba_renders_from_two_python_threads_at_once():
+    """numba's default threading layer aborts on concurrent use; the module's lock serialises the calls."""
+    g = scene(n=300, seed=6)
+    k = Intrinsics(64, 48, 50.0, 50.0, 31.5, 23.5)
+    want = render_numba(g, torch.eye(4), k, RendererConfig()).rgb.detach()
+    got, errors = [], []
+
+    def work():
+        try:
+            for _ in range(5):
+                with torch.no_grad():
+                    got.append(render_numba(g, torch.eye(4), k, RendererConfig()).rgb)
+        except Exception as exc:  # noqa: BLE001 - reported below
+            errors.append(exc)
+
+    threads = [threading.Thread(target=work) for _ in range(3)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=120)
+    assert not errors and len(got) == 15
+    assert all(torch.equal(x, want) for x in got)
+
+
+def test_auto_picks_numba_on_the_cpu_and_the_choice_is_a_setting():
+    assert select_backend(RendererConfig(), "cpu") is render_numba
+    assert select_backend(RendererConfig(backend="numba"), "cpu") is render_numba
+    assert select_backend(RendererConfig(backend="torch"), "cpu") is render_torch
+    RendererConfig(backend="numba").check()
+    with pytest.raises(ConfigError, match="'numba'"):
+        RendererConfig(backend="numbaa").check()
+
+
+def test_numba_refuses_gaussians_off_the_cpu():
+    g = scene(n=4, seed=8)
+    g = Gaussians(*(t.detach().to("meta") for t in (g.means, g.quats, g.log_scales, g.logit_opacities, g.rgb)))
+    with pytest.raises(ValueError, match="renders on the CPU"):
+        render_numba(g, torch.eye(4, device="meta"), Intrinsics(8, 8, 8.0, 8.0, 3.5, 3.5), RendererConfig())
+
+
+def test_numba_missing_is_a_typed_error(monkeypatch):
+    import semantic_gs_slam.render as render_mod
+    import semantic_gs_slam.render_numba as rn
+
+    monkeypatch.setattr(rn, "numba_available", lambda: False)
+    monkeypatch.setattr(render_mod, "numba_available", lambda: False)
+    with pytest.raises(BackendUnavailableError, match="numba"):
+        select_backend(RendererConfig(backend="numba"), "cpu")
+    assert select_backend(RendererConfig(), "cpu") is render_torch  # auto falls back to the reference
