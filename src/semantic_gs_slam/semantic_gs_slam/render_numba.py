@@ -38,7 +38,7 @@ from semantic_gs_slam.errors import BackendUnavailableError
 from semantic_gs_slam.render_tiles import TilePairs, tile_pairs
 from semantic_gs_slam.render_types import ALPHA_MIN, Gaussians, RenderOutput
 
-__all__ = ["composite_numba", "numba_available", "render_numba", "require_numba"]
+__all__ = ["bin_pairs_numba", "composite_numba", "numba_available", "render_numba", "require_numba"]
 
 _LOCK = threading.Lock()
 #: exponent below which alpha < ALPHA_MIN for sure (the exact test is on alpha itself)
@@ -168,7 +168,34 @@ def _kernels():  # pragma: no cover - compiled (its Python twin is the reference
                             g_coef[p, 4] += d_pw * fij
                             g_coef[p, 5] += d_pw * fjj
 
-    return forward, backward
+    @numba.njit(cache=True, nogil=True)
+    def bin_pairs(x0, x1, y0, y1, kidx, ntx, n_tiles):
+        """Counting sort of the pairs by tile: one pass counts, one fills (front to back within each tile)."""
+        tcount = np.zeros(n_tiles, np.int64)
+        for q in range(kidx.shape[0]):
+            i = kidx[q]
+            for ty in range(y0[i], y1[i] + 1):
+                for tx in range(x0[i], x1[i] + 1):
+                    tcount[ty * ntx + tx] += 1
+        tstart = np.zeros(n_tiles, np.int64)
+        total = 0
+        for t in range(n_tiles):
+            tstart[t] = total
+            total += tcount[t]
+        pg = np.empty(total, np.int64)
+        ptile = np.empty(total, np.int64)
+        pos = tstart.copy()
+        for q in range(kidx.shape[0]):
+            i = kidx[q]
+            for ty in range(y0[i], y1[i] + 1):
+                for tx in range(x0[i], x1[i] + 1):
+                    t = ty * ntx + tx
+                    pg[pos[t]] = i
+                    ptile[pos[t]] = t
+                    pos[t] += 1
+        return pg, ptile, tcount, tstart
+
+    return forward, backward, bin_pairs
 
 
 class _CompositeNumba(torch.autograd.Function):
@@ -182,7 +209,7 @@ class _CompositeNumba(torch.autograd.Function):
     @staticmethod
     def forward(ctx, coef: Tensor, feat: Tensor, tstart: Tensor, tcount: Tensor, order: Tensor, ntx: int, ts: int,
                 height: int, width: int, stop: float) -> Tensor:  # noqa: D102
-        fwd, _ = _kernels()
+        fwd = _kernels()[0]
         cn = coef.detach().contiguous().numpy()
         fn = feat.detach().contiguous().numpy()
         c = fn.shape[1]
@@ -199,7 +226,7 @@ class _CompositeNumba(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, gout: Tensor):  # noqa: D102
-        _, bwd = _kernels()
+        bwd = _kernels()[1]
         tstart, tcount, order = ctx.saved_tensors[2:]
         cn, fn, t_final, n_done, ntx, ts, height, width, nw = ctx.state
         g_coef = np.zeros(cn.shape, np.float32)
@@ -211,6 +238,14 @@ class _CompositeNumba(torch.autograd.Function):
         dt = gout.dtype
         return (torch.from_numpy(g_coef).to(dt), torch.from_numpy(g_feat).to(dt), None, None, None, None, None, None,
                 None, None)
+
+
+def bin_pairs_numba(x0: Tensor, x1: Tensor, y0: Tensor, y1: Tensor, kidx: Tensor, ntx: int,
+                    n_tiles: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """:func:`semantic_gs_slam.render_tiles.bin_pairs_torch` as a compiled counting sort (CPU tensors; the same
+    pairs in the same order, no comparison sort of all pairs)."""
+    out = _kernels()[2](x0.numpy(), x1.numpy(), y0.numpy(), y1.numpy(), kidx.numpy(), ntx, n_tiles)
+    return tuple(torch.from_numpy(a) for a in out)
 
 
 def composite_numba(tp: TilePairs, k: Intrinsics, cfg: RendererConfig) -> Tensor:
@@ -230,7 +265,7 @@ def render_numba(g: Gaussians, w2c: Tensor, k: Intrinsics, cfg: RendererConfig) 
     require_numba()
     if g.means.device.type != "cpu":
         raise ValueError(f"renderer.backend 'numba' renders on the CPU; the Gaussians are on {g.means.device}")
-    tp = tile_pairs(g, w2c, k, cfg)
+    tp = tile_pairs(g, w2c, k, cfg, bin_pairs_numba)
     img = composite_numba(tp, k, cfg)
     sem = img[4:-1].permute(1, 2, 0) if g.semantic is not None else None
     return RenderOutput(img[:3].permute(1, 2, 0), img[3], img[-1], sem, tp.n_visible)

@@ -135,14 +135,42 @@ class TilePairs:
     n_visible: int  # Gaussians in front of the camera whose footprint touches the image
 
 
-def tile_pairs(g: Gaussians, w2c: Tensor, k: Intrinsics, cfg: RendererConfig) -> TilePairs:
+def bin_pairs_torch(x0: Tensor, x1: Tensor, y0: Tensor, y1: Tensor, kidx: Tensor, ntx: int,
+                    n_tiles: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The (tile, Gaussian) pairs of the tile boxes ``[x0, x1] x [y0, y1]`` (int64 [M], clamped to the image's
+    tiles) of the Gaussians ``kidx`` (front to back), sorted by tile and front to back within a tile: the
+    reference (any device; a stable sort of all pairs by tile).
+
+    Returns:
+        ``pg`` [pairs] (the pair's Gaussian), ``ptile`` [pairs] (its tile), ``tcount`` and ``tstart`` [n_tiles].
+    """
+    dev = x0.device
+    wx, wy = (x1 - x0 + 1)[kidx], (y1 - y0 + 1)[kidx]
+    cnt = wx * wy
+    total = int(cnt.sum())
+    pg = torch.repeat_interleave(kidx, cnt)  # pair -> projected-Gaussian index
+    start = torch.cumsum(cnt, 0) - cnt
+    local = torch.arange(total, device=dev) - torch.repeat_interleave(start, cnt)
+    wxr = torch.repeat_interleave(wx, cnt)
+    ptile = (y0[pg] + local // wxr) * ntx + (x0[pg] + local % wxr)
+    order = torch.sort(ptile, stable=True).indices
+    pg, ptile = pg[order], ptile[order]
+    tcount = torch.bincount(ptile, minlength=n_tiles)
+    tstart = torch.cumsum(tcount, 0) - tcount
+    return pg, ptile, tcount, tstart
+
+
+def tile_pairs(g: Gaussians, w2c: Tensor, k: Intrinsics, cfg: RendererConfig, bin_pairs=bin_pairs_torch) -> TilePairs:
     """Project ``g`` seen from ``w2c`` and bin the footprints into tiles (see :class:`TilePairs`).
+
+    Args:
+        bin_pairs: the binning (:func:`bin_pairs_torch`, or a compiled one with its signature and result).
 
     Raises:
         ValueError: inconsistent Gaussians or a bad pose (:func:`check_inputs`).
     """
     check_inputs(g, w2c)
-    dev, dt = g.means.device, g.means.dtype
+    dt = g.means.dtype
     ts = cfg.tile
     ntx, nty = (k.width + ts - 1) // ts, (k.height + ts - 1) // ts
     n_tiles = ntx * nty
@@ -162,20 +190,8 @@ def tile_pairs(g: Gaussians, w2c: Tensor, k: Intrinsics, cfg: RendererConfig) ->
         x0, x1 = x0.clamp(0, ntx - 1), x1.clamp(0, ntx - 1)
         y0, y1 = y0.clamp(0, nty - 1), y1.clamp(0, nty - 1)
         kidx = torch.nonzero(keep).squeeze(1)
-        # depth order first, then a stable sort by tile keeps depth order within each tile
-        kidx = kidx[torch.argsort(z[kidx])]
-        wx, wy = (x1 - x0 + 1)[kidx], (y1 - y0 + 1)[kidx]
-        cnt = wx * wy
-        total = int(cnt.sum())
-        pg = torch.repeat_interleave(kidx, cnt)  # pair -> projected-Gaussian index
-        start = torch.cumsum(cnt, 0) - cnt
-        local = torch.arange(total, device=dev) - torch.repeat_interleave(start, cnt)
-        wxr = torch.repeat_interleave(wx, cnt)
-        ptile = (y0[pg] + local // wxr) * ntx + (x0[pg] + local % wxr)
-        order = torch.sort(ptile, stable=True).indices
-        pg, ptile = pg[order], ptile[order]
-        tcount = torch.bincount(ptile, minlength=n_tiles)
-        tstart = torch.cumsum(tcount, 0) - tcount
+        kidx = kidx[torch.argsort(z[kidx])]  # front to back
+        pg, ptile, tcount, tstart = bin_pairs(x0, x1, y0, y1, kidx, ntx, n_tiles)
         tiles_sorted = torch.argsort(tcount, descending=True)
         tiles_sorted = tiles_sorted[tcount[tiles_sorted] > 0]
     # exponent coefficients for every pair (one vectorised computation)

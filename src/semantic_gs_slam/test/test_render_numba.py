@@ -160,3 +160,18 @@ def test_numba_missing_is_a_typed_error(monkeypatch):
     with pytest.raises(BackendUnavailableError, match="numba"):
         select_backend(RendererConfig(backend="numba"), "cpu")
     assert select_backend(RendererConfig(), "cpu") is render_torch  # auto falls back to the reference
+
+
+def test_compiled_binning_gives_the_reference_pairs_in_the_reference_order():
+    from semantic_gs_slam.render_numba import bin_pairs_numba
+    from semantic_gs_slam.render_tiles import bin_pairs_torch, tile_pairs
+
+    g = scene(n=500, seed=9, aniso=True)
+    k = Intrinsics(61, 47, 50.0, 50.0, 30.0, 23.0)
+    with torch.no_grad():
+        a = tile_pairs(g, torch.eye(4), k, RendererConfig(), bin_pairs_torch)
+        b = tile_pairs(g, torch.eye(4), k, RendererConfig(), bin_pairs_numba)
+    assert a.pg.numel() > 2 * a.n_visible  # footprints that span several tiles
+    for name in ("pg", "tstart", "tcount", "tiles_sorted"):
+        assert torch.equal(getattr(a, name), getattr(b, name)), name
+    assert torch.equal(a.coef, b.coef)
