@@ -58,8 +58,26 @@ def _kernels():  # pragma: no cover - compiled (its Python twin is the reference
 
     f32 = numba.float32
 
+    @numba.njit(cache=True, nogil=True, fastmath=True)
+    def tile_coefficients(uv, conic, log_o, pg, s0, n, x0, y0, lc):
+        """The six exponent coefficients of the tile's pairs s0 .. s0 + n - 1 in tile-local pixels (as
+        render_tiles.tile_pairs writes them) into lc[:n]; the tile's corner pixel is (x0, y0)."""
+        half = f32(0.5)
+        for q in range(n):
+            i = pg[s0 + q]
+            du = uv[i, 0] - f32(x0)
+            dv = uv[i, 1] - f32(y0)
+            a, b, c = conic[i, 0], conic[i, 1], conic[i, 2]
+            lc[q, 0] = -half * a * du * du - b * du * dv - half * c * dv * dv + log_o[i]
+            lc[q, 1] = a * du + b * dv
+            lc[q, 2] = b * du + c * dv
+            lc[q, 3] = -half * a
+            lc[q, 4] = -b
+            lc[q, 5] = -half * c
+
     @numba.njit(cache=True, nogil=True, parallel=True, fastmath=True)
-    def forward(coef, feat, tstart, tcount, order, ntx, ts, height, width, stop, nw, out, t_final, n_done):
+    def forward(uv, conic, log_o, feat, pg, tstart, tcount, order, maxn, ntx, ts, height, width, stop, nw, out,
+                t_final, n_done):
         c = feat.shape[1]
         n_t = order.shape[0]
         st = f32(stop)
@@ -68,12 +86,14 @@ def _kernels():  # pragma: no cover - compiled (its Python twin is the reference
         one = f32(1.0)
         for w in numba.prange(nw):
             acc = np.zeros(c + 1, np.float32)
+            lc = np.empty((maxn, 6), np.float32)
             for q in range(w, n_t, nw):
                 t = order[q]
                 s0 = tstart[t]
                 n = tcount[t]
                 y0 = (t // ntx) * ts
                 x0 = (t % ntx) * ts
+                tile_coefficients(uv, conic, log_o, pg, s0, n, x0, y0, lc)
                 for j in range(ts):
                     y = y0 + j
                     if y >= height:
@@ -89,9 +109,9 @@ def _kernels():  # pragma: no cover - compiled (its Python twin is the reference
                             acc[ch] = 0
                         tr = one
                         walked = n
-                        for p in range(s0, s0 + n):
-                            pw = (coef[p, 0] + coef[p, 1] * fi + coef[p, 2] * fj + coef[p, 3] * fii
-                                  + coef[p, 4] * fij + coef[p, 5] * fjj)
+                        for p in range(n):
+                            pw = (lc[p, 0] + lc[p, 1] * fi + lc[p, 2] * fj + lc[p, 3] * fii
+                                  + lc[p, 4] * fij + lc[p, 5] * fjj)
                             if pw < skip:
                                 continue
                             a = math.exp(pw)
@@ -99,11 +119,12 @@ def _kernels():  # pragma: no cover - compiled (its Python twin is the reference
                                 continue
                             tn = tr * (one - a)
                             if tn <= st:
-                                walked = p - s0
+                                walked = p
                                 break
                             wt = a * tr
+                            gi = pg[s0 + p]
                             for ch in range(c):
-                                acc[ch] += wt * feat[p, ch]
+                                acc[ch] += wt * feat[gi, ch]
                             acc[c] += wt
                             tr = tn
                         for ch in range(c + 1):
@@ -112,20 +133,31 @@ def _kernels():  # pragma: no cover - compiled (its Python twin is the reference
                         n_done[y, x] = walked
 
     @numba.njit(cache=True, nogil=True, parallel=True, fastmath=True)
-    def backward(coef, feat, tstart, tcount, order, ntx, ts, height, width, nw, t_final, n_done, gout,
-                 g_coef, g_feat):
+    def backward(uv, conic, log_o, feat, pg, tstart, tcount, order, maxn, ntx, ts, height, width, nw, t_final, n_done,
+                 gout, g_uv, g_conic, g_logo, g_feat):
         c = feat.shape[1]
         n_t = order.shape[0]
+        pairs = pg.shape[0]
         skip = f32(_LOG_ALPHA_SKIP)
         amin = f32(ALPHA_MIN)
         one = f32(1.0)
+        half = f32(0.5)
+        g_geo = np.zeros((pairs, 6), np.float32)  # per pair: d/du, d/dv, d/da, d/db, d/dc, d/dlog_o
+        g_fp = np.zeros((pairs, c), np.float32)  # per pair: d/dfeature
         for w in numba.prange(nw):
             g = np.zeros(c + 1, np.float32)
+            lc = np.empty((maxn, 6), np.float32)
+            gl = np.empty((maxn, 6), np.float32)
             for q in range(w, n_t, nw):
                 t = order[q]
                 s0 = tstart[t]
+                n = tcount[t]
                 y0 = (t // ntx) * ts
                 x0 = (t % ntx) * ts
+                tile_coefficients(uv, conic, log_o, pg, s0, n, x0, y0, lc)
+                for p in range(n):
+                    for e in range(6):
+                        gl[p, e] = 0
                 for j in range(ts):
                     y = y0 + j
                     if y >= height:
@@ -145,9 +177,9 @@ def _kernels():  # pragma: no cover - compiled (its Python twin is the reference
                             continue
                         tr = t_final[y, x]
                         suffix = f32(0.0)
-                        for p in range(s0 + n_done[y, x] - 1, s0 - 1, -1):
-                            pw = (coef[p, 0] + coef[p, 1] * fi + coef[p, 2] * fj + coef[p, 3] * fii
-                                  + coef[p, 4] * fij + coef[p, 5] * fjj)
+                        for p in range(n_done[y, x] - 1, -1, -1):
+                            pw = (lc[p, 0] + lc[p, 1] * fi + lc[p, 2] * fj + lc[p, 3] * fii
+                                  + lc[p, 4] * fij + lc[p, 5] * fjj)
                             if pw < skip:
                                 continue
                             a = math.exp(pw)
@@ -155,18 +187,44 @@ def _kernels():  # pragma: no cover - compiled (its Python twin is the reference
                                 continue
                             tr = tr / (one - a)  # transmittance in front of this Gaussian
                             wt = a * tr
+                            gi = pg[s0 + p]
                             h = g[c]
                             for ch in range(c):
-                                h += g[ch] * feat[p, ch]
-                                g_feat[p, ch] += wt * g[ch]
+                                h += g[ch] * feat[gi, ch]
+                                g_fp[s0 + p, ch] += wt * g[ch]
                             d_pw = wt * h - a / (one - a) * suffix
                             suffix += wt * h
-                            g_coef[p, 0] += d_pw
-                            g_coef[p, 1] += d_pw * fi
-                            g_coef[p, 2] += d_pw * fj
-                            g_coef[p, 3] += d_pw * fii
-                            g_coef[p, 4] += d_pw * fij
-                            g_coef[p, 5] += d_pw * fjj
+                            gl[p, 0] += d_pw
+                            gl[p, 1] += d_pw * fi
+                            gl[p, 2] += d_pw * fj
+                            gl[p, 3] += d_pw * fii
+                            gl[p, 4] += d_pw * fij
+                            gl[p, 5] += d_pw * fjj
+                # the coefficients' gradients to the pair's centre, conic and log-opacity (chain rule of
+                # tile_coefficients)
+                for p in range(n):
+                    i = pg[s0 + p]
+                    du = uv[i, 0] - f32(x0)
+                    dv = uv[i, 1] - f32(y0)
+                    a, b, cc = conic[i, 0], conic[i, 1], conic[i, 2]
+                    g0, g1, g2, g3, g4, g5 = gl[p, 0], gl[p, 1], gl[p, 2], gl[p, 3], gl[p, 4], gl[p, 5]
+                    g_geo[s0 + p, 0] = g0 * (-a * du - b * dv) + g1 * a + g2 * b
+                    g_geo[s0 + p, 1] = g0 * (-b * du - cc * dv) + g1 * b + g2 * cc
+                    g_geo[s0 + p, 2] = -half * g0 * du * du + g1 * du - half * g3
+                    g_geo[s0 + p, 3] = -g0 * du * dv + g1 * dv + g2 * du - g4
+                    g_geo[s0 + p, 4] = -half * g0 * dv * dv + g2 * dv - half * g5
+                    g_geo[s0 + p, 5] = g0
+        # pairs to Gaussians, in pair order (one thread: deterministic, no atomics)
+        for p in range(pairs):
+            i = pg[p]
+            g_uv[i, 0] += g_geo[p, 0]
+            g_uv[i, 1] += g_geo[p, 1]
+            g_conic[i, 0] += g_geo[p, 2]
+            g_conic[i, 1] += g_geo[p, 3]
+            g_conic[i, 2] += g_geo[p, 4]
+            g_logo[i] += g_geo[p, 5]
+            for ch in range(c):
+                g_feat[i, ch] += g_fp[p, ch]
 
     @numba.njit(cache=True, nogil=True)
     def bin_pairs(x0, x1, y0, y1, kidx, ntx, n_tiles):
@@ -201,43 +259,41 @@ def _kernels():  # pragma: no cover - compiled (its Python twin is the reference
 class _CompositeNumba(torch.autograd.Function):
     """Front-to-back compositing of all tiles' pairs (compiled forward and backward, CPU tensors).
 
-    Inputs: coef [pairs, 6], feat [pairs, C] (the pair's Gaussian's features), tstart / tcount / order
-    (int64, see :class:`~semantic_gs_slam.render_tiles.TilePairs`), ntx, tile, height, width, stop.
-    Output: [C + 1, H, W] composited features, the last channel the silhouette.
+    Inputs: uv [M, 2], conic [M, 3], log_o [M], feat [M, C] of the projected Gaussians; pg / tstart / tcount /
+    order (int64, see :class:`~semantic_gs_slam.render_tiles.TilePairs`), ntx, tile, height, width, stop.
+    Each tile computes its pairs' exponent coefficients itself (as ``tile_pairs`` would), so no per-pair
+    tensor enters autograd. Output: [C + 1, H, W] composited features, the last channel the silhouette.
     """
 
     @staticmethod
-    def forward(ctx, coef: Tensor, feat: Tensor, tstart: Tensor, tcount: Tensor, order: Tensor, ntx: int, ts: int,
-                height: int, width: int, stop: float) -> Tensor:  # noqa: D102
+    def forward(ctx, uv: Tensor, conic: Tensor, log_o: Tensor, feat: Tensor, pg: Tensor, tstart: Tensor,
+                tcount: Tensor, order: Tensor, ntx: int, ts: int, height: int, width: int,
+                stop: float) -> Tensor:  # noqa: D102
         fwd = _kernels()[0]
-        cn = coef.detach().contiguous().numpy()
-        fn = feat.detach().contiguous().numpy()
-        c = fn.shape[1]
-        out = np.zeros((c + 1, height, width), cn.dtype)
+        arrs = tuple(x.detach().to(torch.float32).contiguous().numpy() for x in (uv, conic, log_o, feat))
+        ints = tuple(x.contiguous().numpy() for x in (pg, tstart, tcount, order))
+        c = arrs[3].shape[1]
+        out = np.zeros((c + 1, height, width), np.float32)
         t_final = np.ones((height, width), np.float32)
         n_done = np.zeros((height, width), np.int64)
-        ts_n, tc_n, or_n = tstart.numpy(), tcount.numpy(), order.numpy()
-        nw = max(1, min(torch.get_num_threads(), len(or_n)))
+        nw = max(1, min(torch.get_num_threads(), len(ints[3])))
+        maxn = max(1, int(ints[2].max())) if len(ints[2]) else 1
         with _LOCK:
-            fwd(cn, fn, ts_n, tc_n, or_n, ntx, ts, height, width, float(stop), nw, out, t_final, n_done)
-        ctx.save_for_backward(coef, feat, tstart, tcount, order)
-        ctx.state = (cn, fn, t_final, n_done, ntx, ts, height, width, nw)
-        return torch.from_numpy(out)
+            fwd(*arrs, *ints, maxn, ntx, ts, height, width, float(stop), nw, out, t_final, n_done)
+        ctx.state = (arrs, ints, maxn, t_final, n_done, ntx, ts, height, width, nw)
+        ctx.dtypes = tuple(x.dtype for x in (uv, conic, log_o, feat))
+        return torch.from_numpy(out).to(feat.dtype)
 
     @staticmethod
     def backward(ctx, gout: Tensor):  # noqa: D102
         bwd = _kernels()[1]
-        tstart, tcount, order = ctx.saved_tensors[2:]
-        cn, fn, t_final, n_done, ntx, ts, height, width, nw = ctx.state
-        g_coef = np.zeros(cn.shape, np.float32)
-        g_feat = np.zeros(fn.shape, np.float32)
+        arrs, ints, maxn, t_final, n_done, ntx, ts, height, width, nw = ctx.state
+        grads = tuple(np.zeros(x.shape, np.float32) for x in arrs)  # uv, conic, log_o, feat
         gn = gout.detach().to(torch.float32).contiguous().numpy()
         with _LOCK:
-            bwd(cn, fn, tstart.numpy(), tcount.numpy(), order.numpy(), ntx, ts, height, width, nw, t_final, n_done,
-                gn, g_coef, g_feat)
-        dt = gout.dtype
-        return (torch.from_numpy(g_coef).to(dt), torch.from_numpy(g_feat).to(dt), None, None, None, None, None, None,
-                None, None)
+            bwd(*arrs, *ints, maxn, ntx, ts, height, width, nw, t_final, n_done, gn, *grads)
+        out = tuple(torch.from_numpy(g).to(dt) for g, dt in zip(grads, ctx.dtypes, strict=True))
+        return (*out, None, None, None, None, None, None, None, None, None)
 
 
 def bin_pairs_numba(x0: Tensor, x1: Tensor, y0: Tensor, y1: Tensor, kidx: Tensor, ntx: int,
@@ -250,9 +306,8 @@ def bin_pairs_numba(x0: Tensor, x1: Tensor, y0: Tensor, y1: Tensor, kidx: Tensor
 
 def composite_numba(tp: TilePairs, k: Intrinsics, cfg: RendererConfig) -> Tensor:
     """Composite the pairs ``tp`` into a [C + 1, H, W] image (last channel the silhouette)."""
-    feat = tp.feats.index_select(0, tp.pg)  # [pairs, C]
-    return _CompositeNumba.apply(tp.coef, feat, tp.tstart, tp.tcount, tp.tiles_sorted, tp.ntx, tp.tile, k.height,
-                                 k.width, cfg.stop_transmittance)
+    return _CompositeNumba.apply(tp.uv, tp.conic, tp.log_o, tp.feats, tp.pg, tp.tstart, tp.tcount, tp.tiles_sorted,
+                                 tp.ntx, tp.tile, k.height, k.width, cfg.stop_transmittance)
 
 
 def render_numba(g: Gaussians, w2c: Tensor, k: Intrinsics, cfg: RendererConfig) -> RenderOutput:
@@ -265,7 +320,7 @@ def render_numba(g: Gaussians, w2c: Tensor, k: Intrinsics, cfg: RendererConfig) 
     require_numba()
     if g.means.device.type != "cpu":
         raise ValueError(f"renderer.backend 'numba' renders on the CPU; the Gaussians are on {g.means.device}")
-    tp = tile_pairs(g, w2c, k, cfg, bin_pairs_numba)
+    tp = tile_pairs(g, w2c, k, cfg, bin_pairs_numba, coefficients=False)
     img = composite_numba(tp, k, cfg)
     sem = img[4:-1].permute(1, 2, 0) if g.semantic is not None else None
     return RenderOutput(img[:3].permute(1, 2, 0), img[3], img[-1], sem, tp.n_visible)

@@ -126,8 +126,11 @@ class TilePairs:
     tile: int  # tile edge in pixels
     ntx: int  # tiles per row
     nty: int  # tile rows
-    coef: Tensor  # [pairs, 6] exponent coefficients (differentiable)
+    coef: Tensor | None  # [pairs, 6] exponent coefficients (differentiable); None when not asked for
     feats: Tensor  # [M, C] features of the projected Gaussians: rgb, depth (z), semantic (differentiable)
+    uv: Tensor  # [M, 2] projected centres (pixels; differentiable)
+    conic: Tensor  # [M, 3] a, b, c of the inverse 2-D covariances (differentiable)
+    log_o: Tensor  # [M] log-opacities (differentiable)
     pg: Tensor  # [pairs] int64: the pair's row of ``feats``
     tstart: Tensor  # [ntx * nty] int64: the tile's first pair
     tcount: Tensor  # [ntx * nty] int64: the tile's number of pairs
@@ -160,11 +163,14 @@ def bin_pairs_torch(x0: Tensor, x1: Tensor, y0: Tensor, y1: Tensor, kidx: Tensor
     return pg, ptile, tcount, tstart
 
 
-def tile_pairs(g: Gaussians, w2c: Tensor, k: Intrinsics, cfg: RendererConfig, bin_pairs=bin_pairs_torch) -> TilePairs:
+def tile_pairs(g: Gaussians, w2c: Tensor, k: Intrinsics, cfg: RendererConfig, bin_pairs=bin_pairs_torch,
+               coefficients: bool = True) -> TilePairs:
     """Project ``g`` seen from ``w2c`` and bin the footprints into tiles (see :class:`TilePairs`).
 
     Args:
         bin_pairs: the binning (:func:`bin_pairs_torch`, or a compiled one with its signature and result).
+        coefficients: compute the pairs' exponent coefficients (``False``: a compositor that computes them
+            per tile from ``uv``, ``conic`` and ``log_o``).
 
     Raises:
         ValueError: inconsistent Gaussians or a bad pose (:func:`check_inputs`).
@@ -194,6 +200,9 @@ def tile_pairs(g: Gaussians, w2c: Tensor, k: Intrinsics, cfg: RendererConfig, bi
         pg, ptile, tcount, tstart = bin_pairs(x0, x1, y0, y1, kidx, ntx, n_tiles)
         tiles_sorted = torch.argsort(tcount, descending=True)
         tiles_sorted = tiles_sorted[tcount[tiles_sorted] > 0]
+    if not coefficients:
+        return TilePairs(ts, ntx, nty, None, feats_all, uv, conic, log_o, pg, tstart, tcount, tiles_sorted,
+                         int(kidx.numel()))
     # exponent coefficients for every pair (one vectorised computation)
     tx0 = (ptile % ntx).to(dt) * ts
     ty0 = (ptile // ntx).to(dt) * ts
@@ -205,4 +214,5 @@ def tile_pairs(g: Gaussians, w2c: Tensor, k: Intrinsics, cfg: RendererConfig, bi
     coef = torch.stack([
         -0.5 * a_ * du * du - b_ * du * dv - 0.5 * c_ * dv * dv + log_o.index_select(0, pg),
         a_ * du + b_ * dv, b_ * du + c_ * dv, -0.5 * a_, -b_, -0.5 * c_], -1)  # [pairs, 6]
-    return TilePairs(ts, ntx, nty, coef, feats_all, pg, tstart, tcount, tiles_sorted, int(kidx.numel()))
+    return TilePairs(ts, ntx, nty, coef, feats_all, uv, conic, log_o, pg, tstart, tcount, tiles_sorted,
+                     int(kidx.numel()))

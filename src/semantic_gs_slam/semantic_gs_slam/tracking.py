@@ -21,7 +21,7 @@ from semantic_gs_slam.devices import numba_available
 from semantic_gs_slam.errors import BackendUnavailableError, TrackingError
 from semantic_gs_slam.geometry import backproject, quat_to_rotmat, se3_exp
 from semantic_gs_slam.render import Gaussians, RenderBackend, RenderOutput, select_backend
-from semantic_gs_slam.tracking_numba import normal_equations_numba
+from semantic_gs_slam.tracking_numba import icp_step_numba
 
 log = logging.getLogger(__name__)
 
@@ -236,18 +236,17 @@ def _icp_step(est: Tensor, pts: _IcpPoints, model: _IcpModel, k: Intrinsics, cfg
     """One Gauss-Newton step of :func:`icp` from ``est`` [4, 4] (float64).
 
     Args:
-        fast: the data terms from the compiled CPU kernel (:mod:`semantic_gs_slam.tracking_numba`) instead of
-            :func:`icp_normal_equations`; CPU tensors and numba needed.
+        fast: the step from :func:`semantic_gs_slam.tracking_numba.icp_step_numba` (the compiled sums, then numpy)
+            instead of this function's tensors; CPU tensors and numba needed.
 
     Returns:
         the new estimate [4, 4] and ``[correspondences, residual RMS (m), largest step component, agreement]`` [4]
         (float64, on the device).
     """
-    if fast:
-        a, b, sums = normal_equations_numba(est, pts.lp, pts.lvalid, pts.il, model.vm, model.nm, model.nvalid,
-                                            model.col, model.w2c_g, k, cfg, photometric)
-    else:
-        a, b, sums = icp_normal_equations(est, pts, model, k, cfg, photometric)
+    if fast:  # the whole step compiled and in numpy (tracking_numba.icp_step_numba); the reference below
+        return icp_step_numba(est, pts.lp, pts.lvalid, pts.il, model.vm, model.nm, model.nvalid, model.col,
+                              model.w2c_g, model.prior_w, k, cfg, photometric)
+    a, b, sums = icp_normal_equations(est, pts, model, k, cfg, photometric)
     dt = est.dtype
     # weak prior toward the guess: keeps directions the data leave free from drifting
     d = est @ model.w2c_g

@@ -11,8 +11,9 @@ in point order, one thread: the result does not depend on the machine's thread c
 * photometry (finest level only): bilinear model intensity and gradient at the projection, residual against
   the live intensity, Jacobian through the projection.
 
-It returns ``A`` [6, 6], ``b`` [6] and the four counts the step's statistics need; the prior, the solve and
-the pose update stay in :func:`semantic_gs_slam.tracking._icp_step` for both paths.
+It returns ``A`` [6, 6], ``b`` [6] and the four counts the step's statistics need. :func:`icp_step_numba` then
+adds the prior, solves and updates the pose in numpy (the tensor tail of
+:func:`semantic_gs_slam.tracking._icp_step`, a dozen small torch calls, cost as much as the sums themselves).
 
 numba is optional (without it, ``tracking.icp_backend: auto`` keeps the reference).
 """
@@ -27,7 +28,7 @@ from torch import Tensor
 
 from semantic_gs_slam.config import Intrinsics, TrackingConfig
 
-__all__ = ["normal_equations_numba"]
+__all__ = ["icp_step_numba", "normal_equations_numba"]
 
 
 @functools.cache
@@ -157,3 +158,51 @@ def normal_equations_numba(est: Tensor, lp: Tensor, lvalid: Tensor, il: Tensor |
               float(cfg.geometric_weight), photometric, float(cfg.icp_sigma_col), float(cfg.photometric_weight), a, b,
               stats)
     return torch.from_numpy(a), torch.from_numpy(b), torch.from_numpy(stats)
+
+
+def _so3_log(r: np.ndarray) -> np.ndarray:
+    """Axis-angle [3] of a rotation [3, 3] (as :func:`semantic_gs_slam.tracking._so3_log`)."""
+    c = min(1.0, max(-1.0, (np.trace(r) - 1) / 2))
+    th = np.arccos(c)
+    v = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
+    return v * (0.5 if th < 1e-6 else th / (2 * max(np.sin(th), 1e-12)))
+
+
+def _se3_exp(xi: np.ndarray) -> np.ndarray:
+    """[4, 4] of xi = (rotation vector, translation), as :func:`semantic_gs_slam.geometry.se3_exp`."""
+    w = xi[:3]
+    theta2 = float(w @ w)
+    theta = np.sqrt(theta2 + 1e-24)
+    k = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+    small = theta2 < 1e-10
+    a = 1 - theta2 / 6 if small else np.sin(theta) / theta
+    b = 0.5 - theta2 / 24 if small else (1 - np.cos(theta)) / (theta2 + 1e-24)
+    t = np.eye(4)
+    t[:3, :3] = np.eye(3) + a * k + b * (k @ k)
+    t[:3, 3] = xi[3:]
+    return t
+
+
+def icp_step_numba(est: Tensor, lp: Tensor, lvalid: Tensor, il: Tensor | None, vm: Tensor, nm: Tensor,
+                   nvalid: Tensor, col: Tensor | None, w2c_g: Tensor, prior_w: Tensor, k: Intrinsics,
+                   cfg: TrackingConfig, photometric: bool) -> tuple[Tensor, Tensor]:
+    """One whole ICP step on the CPU: :func:`normal_equations_numba`, then the prior toward the model's camera, the
+    6x6 solve and the pose update in numpy. Arguments as there, plus ``prior_w`` [6, 6] (information of the prior).
+
+    Returns:
+        the new estimate [4, 4] and ``[correspondences, residual RMS (m), largest step component, agreement]`` [4]
+        (float64 tensors), as :func:`semantic_gs_slam.tracking._icp_step`.
+    """
+    a, b, sums = (x.numpy() for x in normal_equations_numba(est, lp, lvalid, il, vm, nm, nvalid, col, w2c_g, k, cfg,
+                                                            photometric))
+    e = est.detach().numpy()
+    d = e @ w2c_g.detach().numpy()
+    prior = np.concatenate([_so3_log(d[:3, :3]), d[:3, 3]])
+    pw = prior_w.detach().numpy()
+    a = a + pw
+    b = b - pw @ prior
+    a = a + np.eye(6) * (1e-9 * np.diagonal(a).mean())
+    xi = np.linalg.solve(a, b)
+    n_in = sums[0]
+    stats = np.array([n_in, np.sqrt(sums[1] / max(n_in, 1.0)), np.abs(xi).max(), sums[2] / max(sums[3], 1.0)])
+    return torch.from_numpy(_se3_exp(xi) @ e), torch.from_numpy(stats)

@@ -387,3 +387,20 @@ def test_icp_backend_is_checked_and_a_missing_numba_is_a_typed_error(monkeypatch
     assert not tracking.icp_uses_numba(TrackingConfig(), torch.device("cuda"))  # never on a GPU
     with pytest.raises(BackendUnavailableError, match="CPU"):
         tracking.icp_uses_numba(TrackingConfig(icp_backend="numba"), torch.device("cuda"))
+
+
+@pytest.mark.skipif(not numba_available(), reason="numba not installed (the reference is used)")
+def test_numba_icp_step_equals_the_reference_step(scene):
+    """The whole fast step (compiled sums, prior, solve and pose update in numpy) against the tensor step."""
+    from semantic_gs_slam.tracking import _icp_step
+
+    eng, k, poses, frames = scene
+    pts, mdl = _problem(eng, k, poses[0], frames[1])
+    for xi in ([0.01, 0, 0, 0.01, 0, 0], [0.0, 0.0, 0.0, 0.0, 0.0, 0.0], [-0.02, 0.01, 0.005, 0.0, 0.02, -0.01]):
+        start = se3_exp(torch.tensor(xi, dtype=torch.float64)) @ torch.as_tensor(poses[0])
+        for photometric in (False, True):
+            e1, s1 = _icp_step(start, pts, mdl, k, TrackingConfig(), photometric)
+            e2, s2 = _icp_step(start, pts, mdl, k, TrackingConfig(), photometric, fast=True)
+            torch.testing.assert_close(e2, e1, rtol=0, atol=1e-11)
+            torch.testing.assert_close(s2, s1, rtol=1e-9, atol=1e-12)
+            assert e2.dtype == torch.float64 and s2.shape == (4,)
