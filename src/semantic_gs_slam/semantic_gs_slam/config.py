@@ -178,6 +178,8 @@ class MappingConfig:
     w_semantic: float = 0.3
     semantic_balance: float = 0.5  # semantic L1 weighted by class frequency^-this per keyframe (0: off)
     w_ssim: float = 0.2  # share of (1 - SSIM) in the colour term
+    ssim_backend: str = "auto"  # "torch" (grouped convolutions, any device: the reference), "numba" (compiled, float32
+    # CPU images) or "auto" (numba on the CPU when it is installed, else torch)
     exposure_compensation: bool = True  # each tracked frame's exposure relative to the map (per-channel gain and
     # bias, exposure.fit) is taken out of its colour before it is mapped, and put back into renders for evaluation
     exposure_with_odometry: bool = False  # also on frames given odometry (a robot's stream): off, because on the
@@ -187,6 +189,8 @@ class MappingConfig:
     prune_every: int = 5  # keyframes between pruning passes
 
     def check(self) -> None:
+        if self.ssim_backend not in ("auto", "torch", "numba"):
+            raise ConfigError(f"mapping.ssim_backend must be 'auto', 'torch' or 'numba', got {self.ssim_backend!r}")
         if self.window_random < 0:
             raise ConfigError("mapping.window_random must be >= 0")
         if self.keyframe_motion_m < 0 or self.keyframe_motion_deg < 0:

@@ -95,7 +95,8 @@ def mapping_loss(out: RenderOutput, rgb: Tensor, depth: Tensor, sem_img: Tensor 
     valid = (depth > 0).to(depth.dtype)
     l_depth = ((out.depth - depth).abs() * valid).sum() / valid.sum().clamp_min(1.0)
     l1 = (out.rgb - rgb).abs().mean()
-    l_col = (1 - mc.w_ssim) * l1 + mc.w_ssim * (1 - ssim(out.rgb, rgb)) if mc.w_ssim > 0 else l1
+    fast = {"auto": None, "torch": False, "numba": True}[mc.ssim_backend]
+    l_col = (1 - mc.w_ssim) * l1 + mc.w_ssim * (1 - ssim(out.rgb, rgb, fast=fast)) if mc.w_ssim > 0 else l1
     loss = mc.w_depth * l_depth + mc.w_colour * l_col
     if sem_img is not None and out.semantic is not None and mc.w_semantic > 0:
         err = (out.semantic - sem_img).abs().sum(-1) * labelled  # [H, W]; label 0 = unknown

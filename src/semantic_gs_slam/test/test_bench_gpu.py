@@ -64,7 +64,7 @@ def test_frame_profiler_prints_stages_and_operators_on_cpu(tmp_path, capsys):
     finally:
         sys.path.remove(BENCH)
     rc = profile_frame.main(["--device", "cpu", "--size", "64x36", "--frames", "6", "--threads", "1", "--workers", "1",
-                             "--data", str(tmp_path), "--profile-from", "2", "--profile-frames", "2", "--top", "5",
+                             "--data", str(tmp_path), "--profile-from", "2", "--profile-frames", "2", "--top", "40",
                              "--set", "mapping.iters=2", "--set", "mapping.keyframe_every=2"])
     out = capsys.readouterr().out
     assert rc == 0

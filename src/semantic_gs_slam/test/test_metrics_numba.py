@@ -51,3 +51,19 @@ def test_numba_ssim_refuses_what_it_cannot_do():
         ssim(torch.rand(8, 8, 3).double(), torch.rand(8, 8, 3).double(), fast=True)
     with pytest.raises(ValueError, match="one shape"):
         ssim(torch.rand(8, 8, 3), torch.rand(8, 9, 3), fast=True)
+
+
+def test_mapping_loss_follows_the_ssim_backend_setting():
+    from semantic_gs_slam.config import ConfigError, MappingConfig
+    from semantic_gs_slam.render_types import RenderOutput
+    from semantic_gs_slam.slam import mapping_loss
+
+    gen = torch.Generator().manual_seed(3)
+    out = RenderOutput(torch.rand(20, 24, 3, generator=gen), torch.rand(20, 24, generator=gen),
+                       torch.ones(20, 24), None)
+    rgb, depth = torch.rand(20, 24, 3, generator=gen), torch.rand(20, 24, generator=gen)
+    losses = [float(mapping_loss(out, rgb, depth, None, None, None, MappingConfig(ssim_backend=b)))
+              for b in ("torch", "numba", "auto")]
+    assert abs(losses[0] - losses[1]) < 1e-6 and losses[1] == losses[2]
+    with pytest.raises(ConfigError, match="ssim_backend"):
+        MappingConfig(ssim_backend="fast").check()
