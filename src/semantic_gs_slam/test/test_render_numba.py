@@ -196,3 +196,32 @@ def test_cpu_kernels_bench_prints_every_row_with_agreeing_results(capsys):
         cells = [c.strip() for c in line.strip("|").split("|")]
         assert float(cells[1]) > 0 and float(cells[2]) > 0
         assert float(cells[4].split()[0]) < 1e-3, line  # results apart
+
+
+def test_compiled_kernels_come_from_numba_s_disk_cache_in_a_new_process():
+    """The kernels are module-level functions, so a second process loads them from numba's cache instead of
+    compiling them again (kernels defined inside a function were recompiled in every process: ~10 s a start)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import torch\n"
+        "from semantic_gs_slam import numba_kernels as nk\n"
+        "from semantic_gs_slam.config import Intrinsics, RendererConfig, TrackingConfig\n"
+        "from semantic_gs_slam.metrics import ssim\n"
+        "from semantic_gs_slam.render import Gaussians\n"
+        "from semantic_gs_slam.render_numba import render_numba\n"
+        "g = Gaussians(torch.randn(30, 3) * 0.3 + torch.tensor([0, 0, 2.0]), torch.randn(30, 4),\n"
+        "              torch.full((30, 1), -3.0), torch.zeros(30, 1), torch.rand(30, 3))\n"
+        "g.means.requires_grad_(True)\n"
+        "k = Intrinsics(16, 12, 15.0, 15.0, 7.5, 5.5)\n"
+        "render_numba(g, torch.eye(4), k, RendererConfig()).rgb.sum().backward()\n"
+        "ssim(torch.rand(12, 12, 3, requires_grad=True), torch.rand(12, 12, 3)).backward()\n"
+        "fns = (nk.composite_forward, nk.composite_backward, nk.bin_pairs, nk.ssim_forward, nk.ssim_backward)\n"
+        "print(sum(len(f.stats.cache_hits) for f in fns), sum(len(f.stats.cache_misses) for f in fns))\n")
+    runs = [subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+            for _ in range(2)]
+    for r in runs:
+        assert r.returncode == 0, r.stderr
+    hits, misses = (int(x) for x in runs[1].stdout.split())
+    assert hits >= 5 and misses == 0, runs[1].stdout
