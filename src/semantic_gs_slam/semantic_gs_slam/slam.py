@@ -20,8 +20,8 @@ import torch
 from torch import Tensor
 
 from semantic_gs_slam.config import Intrinsics, MappingConfig, SlamConfig
-from semantic_gs_slam.devices import resolve_device
-from semantic_gs_slam.errors import FrameError, MapFormatError, TrackingError
+from semantic_gs_slam.devices import numba_available, resolve_device
+from semantic_gs_slam.errors import BackendUnavailableError, FrameError, MapFormatError, TrackingError
 from semantic_gs_slam.exposure import fit as fit_exposure
 from semantic_gs_slam.exposure import identity as exposure_identity
 from semantic_gs_slam.exposure import to_map
@@ -39,7 +39,14 @@ from semantic_gs_slam.metrics import ssim
 from semantic_gs_slam.posegraph import Edge
 from semantic_gs_slam.posegraph import optimise as optimise_graph
 from semantic_gs_slam.render import Gaussians, RenderOutput, select_backend
-from semantic_gs_slam.tracking import IcpGraphs, icp, photometric_refine, plane_depth_features, plane_depth_image
+from semantic_gs_slam.tracking import (
+    IcpGraphs,
+    icp,
+    icp_uses_numba,
+    photometric_refine,
+    plane_depth_features,
+    plane_depth_image,
+)
 
 log = logging.getLogger("semantic_gs_slam")
 
@@ -152,6 +159,10 @@ class SLAM:
             torch.set_num_threads(config.threads)
         torch.manual_seed(config.seed)
         self.backend = select_backend(config.renderer, self.device)  # the renderer, chosen once
+        icp_uses_numba(config.tracking, self.device)  # a compiled kernel asked for where it cannot run: say so now
+        if config.mapping.ssim_backend == "numba" and (self.device.type != "cpu" or not numba_available()):
+            raise BackendUnavailableError(f"mapping.ssim_backend 'numba' needs numba and the CPU (engine on "
+                                          f"{self.device}, numba {'installed' if numba_available() else 'missing'})")
         self.map = GaussianMap(self.device)
         self.poses: list[np.ndarray] = []  # estimated c2w per frame
         self.gt_poses: list[np.ndarray | None] = []

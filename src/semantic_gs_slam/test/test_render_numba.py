@@ -225,3 +225,21 @@ def test_compiled_kernels_come_from_numba_s_disk_cache_in_a_new_process():
         assert r.returncode == 0, r.stderr
     hits, misses = (int(x) for x in runs[1].stdout.split())
     assert hits >= 5 and misses == 0, runs[1].stdout
+
+
+def test_compiled_paths_asked_for_off_the_cpu_are_refused_when_the_engine_starts(monkeypatch):
+    """``numba`` for the renderer, ICP or SSIM on a CUDA engine: a typed error at start, not at the first frame
+    (the device check is what is tested; the CUDA device itself is not needed for it)."""
+    import semantic_gs_slam.slam as slam_mod
+    from semantic_gs_slam.config import MappingConfig, SlamConfig, TrackingConfig
+    from semantic_gs_slam.slam import SLAM
+
+    with pytest.raises(BackendUnavailableError, match="renders on the CPU"):
+        select_backend(RendererConfig(backend="numba"), "cuda")
+    k = Intrinsics(16, 12, 15.0, 15.0, 7.5, 5.5)
+    monkeypatch.setattr(slam_mod, "resolve_device", lambda name: torch.device("cuda"))
+    monkeypatch.setattr(slam_mod, "select_backend", lambda cfg, dev: render_torch)  # the renderer is not the point
+    for cfg, what in ((SlamConfig(intrinsics=k, tracking=TrackingConfig(icp_backend="numba")), "icp_backend"),
+                      (SlamConfig(intrinsics=k, mapping=MappingConfig(ssim_backend="numba")), "ssim_backend")):
+        with pytest.raises(BackendUnavailableError, match=what):
+            SLAM(cfg)
