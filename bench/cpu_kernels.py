@@ -45,13 +45,10 @@ from semantic_gs_slam.tracking import icp
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
-def _median_ms(fn, reps: int) -> float:
-    times = []
-    for _ in range(reps):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return 1000 * statistics.median(times)
+def _ms(fn) -> float:
+    t0 = time.perf_counter()
+    fn()
+    return 1000 * (time.perf_counter() - t0)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -92,8 +89,8 @@ def main(argv: list[str] | None = None) -> int:
         ref(), fast()  # warm-up (the first numba call loads or compiles its kernels)
         t_ref, t_fast = [], []
         for _ in range(a.reps):  # alternating, so both see the same machine load
-            t_ref.append(_median_ms(ref, 1))
-            t_fast.append(_median_ms(fast, 1))
+            t_ref.append(_ms(ref))
+            t_fast.append(_ms(fast))
         r, f = statistics.median(t_ref), statistics.median(t_fast)
         rows.append((name, r, f, diff, unit))
 

@@ -9,7 +9,7 @@ import re
 
 import torch
 
-from semantic_gs_slam.errors import ConfigError
+from semantic_gs_slam.errors import BackendUnavailableError, ConfigError
 
 DEVICE_PATTERN = re.compile(r"^(auto|cpu|cuda(:\d+)?)$")
 
@@ -20,6 +20,22 @@ def numba_available() -> bool:
     (requirements/python.in); with a system ROS 2 it may be missing, and every ``auto`` choice then keeps the
     pure-PyTorch reference."""
     return importlib.util.find_spec("numba") is not None
+
+
+def require_cpu_kernel(setting: str, device: torch.device | str) -> None:
+    """Raise :class:`BackendUnavailableError` unless a compiled CPU kernel (numba) can run for ``device``.
+
+    Args:
+        setting: the setting that asked for it (``renderer.backend``, ``tracking.icp_backend``,
+            ``mapping.ssim_backend``), named in the message.
+        device: where the engine's tensors live.
+    """
+    if not numba_available():
+        raise BackendUnavailableError(f"{setting} 'numba' needs the numba package (pip install numba; "
+                                      "requirements/python.in pins it), or set it to 'auto' or 'torch'")
+    if torch.device(device).type != "cpu":
+        raise BackendUnavailableError(f"{setting} 'numba' runs on the CPU, the engine is on {device}; set it to "
+                                      "'auto' or 'torch'")
 
 
 def resolve_device(name: str | torch.device) -> torch.device:

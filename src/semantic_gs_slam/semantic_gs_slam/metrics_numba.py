@@ -23,8 +23,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-__all__ = ["ssim_numba"]
+from semantic_gs_slam.devices import require_cpu_kernel
 
+__all__ = ["ssim_numba"]
 
 
 @functools.cache
@@ -60,6 +61,12 @@ def ssim_numba(a: Tensor, b: Tensor, window: Tensor) -> Tensor:
 
     Differentiable in ``a`` only (``b`` is the target; its gradient is not computed).
     """
+    require_cpu_kernel("mapping.ssim_backend", a.device)
+    if b.requires_grad:
+        raise ValueError("ssim_numba differentiates in its first image only; the second requires grad (use "
+                         "metrics.ssim_reference)")
+    if window.ndim != 1 or window.shape[0] % 2 != 1:
+        raise ValueError(f"ssim_numba needs an odd 1-D window, got {list(window.shape)}")
     if a.dtype != torch.float32 or b.dtype != torch.float32 or a.device.type != "cpu" or b.device.type != "cpu":
         raise ValueError(f"ssim_numba takes float32 CPU images, got {a.dtype} on {a.device} and {b.dtype} on "
                          f"{b.device}")

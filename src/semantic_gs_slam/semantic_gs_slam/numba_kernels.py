@@ -3,7 +3,8 @@
 :mod:`semantic_gs_slam.metrics_numba`), so the engine imports without numba.
 
 Plain numpy-in, numpy-out functions at module level, so numba's on-disk cache (``cache=True``) finds them again in
-the next process (functions defined inside other functions are compiled anew in every process: 10 s a start).
+the next process (compiling all of them takes about 16 s; defined inside another function, they were compiled anew
+in every process).
 Each has a PyTorch reference it is tested against; the glue modules' docstrings say which and how.
 """
 
@@ -20,10 +21,14 @@ f32 = numba.float32
 #: exponent below which alpha < ALPHA_MIN for sure (the exact test is on alpha itself)
 _LOG_ALPHA_SKIP = math.log(ALPHA_MIN) - 1e-3
 C1, C2 = 0.01**2, 0.03**2  # SSIM's constants (for images in [0, 1])
+# The compositing kernels use strict IEEE arithmetic: the backward must take the same alpha-threshold and
+# early-stop decisions as the forward, which a contracted or reassociated exponent in one of the two could flip, and
+# NaN must propagate as in the reference. SSIM may reorder its sums (vectorised blurs), but keeps NaN and inf.
+SSIM_FASTMATH = {"nsz", "arcp", "contract", "afn", "reassoc"}
 
 # ---------------------------------------------------------------- renderer (render_numba)
 
-@numba.njit(cache=True, nogil=True, fastmath=True)
+@numba.njit(cache=True, nogil=True)
 def tile_coefficients(uv, conic, log_o, pg, s0, n, x0, y0, lc):
     """The six exponent coefficients of the tile's pairs s0 .. s0 + n - 1 in tile-local pixels (as
     render_tiles.tile_pairs writes them) into lc[:n]; the tile's corner pixel is (x0, y0)."""
@@ -40,7 +45,7 @@ def tile_coefficients(uv, conic, log_o, pg, s0, n, x0, y0, lc):
         lc[q, 4] = -b
         lc[q, 5] = -half * c
 
-@numba.njit(cache=True, nogil=True, parallel=True, fastmath=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def composite_forward(uv, conic, log_o, feat, pg, tstart, tcount, order, maxn, ntx, ts, height, width, stop, nw, out,
             t_final, n_done):
     c = feat.shape[1]
@@ -97,7 +102,7 @@ def composite_forward(uv, conic, log_o, feat, pg, tstart, tcount, order, maxn, n
                     t_final[y, x] = tr
                     n_done[y, x] = walked
 
-@numba.njit(cache=True, nogil=True, parallel=True, fastmath=True)
+@numba.njit(cache=True, nogil=True, parallel=True)
 def composite_backward(uv, conic, log_o, feat, pg, tstart, tcount, order, maxn, ntx, ts, height, width, nw, t_final,
                        n_done, gout, g_uv, g_conic, g_logo, g_feat):
     c = feat.shape[1]
@@ -314,7 +319,7 @@ def icp_accumulate(est, w2c_g, lp, lvalid, il, vm, nm, nvalid, col, fx, fy, cx, 
 
 # ---------------------------------------------------------------- SSIM (metrics_numba)
 
-@numba.njit(cache=True, nogil=True, fastmath=True)
+@numba.njit(cache=True, nogil=True, fastmath=SSIM_FASTMATH)
 def ssim_blur(src, g, tmp, dst):
     """Separable blur of src [M, H, W] with the odd kernel g (zero padding) into dst; tmp is scratch."""
     m_, h, w = src.shape
@@ -339,7 +344,7 @@ def ssim_blur(src, g, tmp, dst):
                     for x in range(w):
                         dst[m, y, x] += gt * tmp[m, yy, x]
 
-@numba.njit(cache=True, nogil=True, fastmath=True)
+@numba.njit(cache=True, nogil=True, fastmath=SSIM_FASTMATH)
 def ssim_forward(x, y, g):
     """x, y [C, H, W] float32 -> (mean SSIM, d [3, C, H, W] per-pixel derivatives of s)."""
     c, h, w = x.shape
@@ -382,7 +387,7 @@ def ssim_forward(x, y, g):
             total += row
     return total / (c * h * w), d
 
-@numba.njit(cache=True, nogil=True, fastmath=True)
+@numba.njit(cache=True, nogil=True, fastmath=SSIM_FASTMATH)
 def ssim_backward(x, y, g, d, scale):
     """dL/dx [C, H, W] for dL/dSSIM = scale * N (the mean's 1/N folded into scale)."""
     c, h, w = x.shape

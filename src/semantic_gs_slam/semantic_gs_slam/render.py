@@ -29,9 +29,9 @@ import torch
 from torch import Tensor
 
 from semantic_gs_slam.config import Intrinsics, RendererConfig
-from semantic_gs_slam.errors import BackendUnavailableError
+from semantic_gs_slam.devices import numba_available, require_cpu_kernel
 from semantic_gs_slam.render_gsplat import gsplat_available, render_gsplat, require_gsplat
-from semantic_gs_slam.render_numba import numba_available, render_numba, require_numba
+from semantic_gs_slam.render_numba import render_numba
 from semantic_gs_slam.render_tiles import footprint, jacobian_limits, project, project_rows, tile_pairs
 from semantic_gs_slam.render_types import (
     ALPHA_MIN,
@@ -65,9 +65,7 @@ def select_backend(cfg: RendererConfig, device: torch.device | str = "cpu") -> R
         require_gsplat()
         return render_gsplat
     if cfg.backend == "numba":
-        require_numba()
-        if dev != "cpu":
-            raise BackendUnavailableError(f"renderer.backend 'numba' renders on the CPU; the engine runs on {device}")
+        require_cpu_kernel("renderer.backend", device)
         return render_numba
     if cfg.backend == "auto" and dev == "cuda" and gsplat_available():
         return render_gsplat

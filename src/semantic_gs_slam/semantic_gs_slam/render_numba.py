@@ -14,12 +14,13 @@ loops instead of dense [tiles, Gaussians, pixels] tensors:
 
 Every pair belongs to one tile and a tile is one thread's work, so the gradients need no atomics and
 the result does not depend on the number of threads. Tiles are dealt round robin, most pairs first, to
-the threads (as many as torch uses). numba's default threading layer is not safe for calls from two
-Python threads at once, so calls hold :data:`_LOCK`.
+the threads (as many as torch uses). Calls hold :data:`_LOCK`: numba's ``workqueue`` threading layer (the one
+it falls back to without OpenMP or TBB) aborts when two Python threads enter it at once.
 
 numba is optional (a wheel-world dependency, as for :mod:`object_query.kernels`): without it,
 ``renderer.backend: auto`` keeps the reference. The kernels live in :mod:`semantic_gs_slam.numba_kernels`;
-compiling them takes a few seconds once, then numba's on-disk cache loads them.
+compiling all of them takes about 16 s once after a change of their source, then numba's on-disk cache loads
+them (about 0.8 s with numba's import).
 """
 
 from __future__ import annotations
@@ -32,21 +33,13 @@ import torch
 from torch import Tensor
 
 from semantic_gs_slam.config import Intrinsics, RendererConfig
-from semantic_gs_slam.devices import numba_available
-from semantic_gs_slam.errors import BackendUnavailableError
+from semantic_gs_slam.devices import require_cpu_kernel
 from semantic_gs_slam.render_tiles import TilePairs, tile_pairs
 from semantic_gs_slam.render_types import Gaussians, RenderOutput
 
-__all__ = ["bin_pairs_numba", "composite_numba", "numba_available", "render_numba", "require_numba"]
+__all__ = ["bin_pairs_numba", "composite_numba", "render_numba"]
 
 _LOCK = threading.Lock()
-
-
-def require_numba() -> None:
-    """Raise :class:`BackendUnavailableError` unless numba is installed."""
-    if not numba_available():
-        raise BackendUnavailableError("renderer.backend 'numba' needs the numba package "
-                                      "(pip install numba; requirements/python.in pins it)")
 
 
 @functools.cache
@@ -114,13 +107,18 @@ def composite_numba(tp: TilePairs, k: Intrinsics, cfg: RendererConfig) -> Tensor
 def render_numba(g: Gaussians, w2c: Tensor, k: Intrinsics, cfg: RendererConfig) -> RenderOutput:
     """The compiled CPU back-end. Arguments and result as :func:`semantic_gs_slam.render.render`.
 
+    It composites in float32 (as gsplat does; the engine's tensors are float32). Float64 Gaussians go to the
+    reference, :func:`semantic_gs_slam.render.render_torch`, which keeps their precision.
+
     Raises:
-        BackendUnavailableError: numba missing.
-        ValueError: Gaussians not on the CPU, or inconsistent inputs.
+        BackendUnavailableError: numba missing, or Gaussians off the CPU.
+        ValueError: inconsistent inputs.
     """
-    require_numba()
-    if g.means.device.type != "cpu":
-        raise ValueError(f"renderer.backend 'numba' renders on the CPU; the Gaussians are on {g.means.device}")
+    require_cpu_kernel("renderer.backend", g.means.device)
+    if g.means.dtype != torch.float32:
+        from semantic_gs_slam.render import render_torch  # (render imports this module: no import at the top)
+
+        return render_torch(g, w2c, k, cfg)
     tp = tile_pairs(g, w2c, k, cfg, bin_pairs_numba, coefficients=False)
     img = composite_numba(tp, k, cfg)
     sem = img[4:-1].permute(1, 2, 0) if g.semantic is not None else None

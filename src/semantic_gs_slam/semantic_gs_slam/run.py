@@ -96,7 +96,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--mapping-iters", type=int)
     ap.add_argument("--device", default="auto", help="torch device: auto (CUDA when present), cpu, cuda, cuda:N")
     ap.add_argument("--backend", default="auto", choices=["auto", "torch", "gsplat", "numba"],
-                    help="renderer: torch tiles (any device), gsplat (CUDA), auto (gsplat on CUDA when it imports)")
+                    help="renderer: torch tiles (any device, the reference), numba (compiled, CPU), gsplat (CUDA), "
+                         "auto (gsplat on CUDA when it imports, numba on the CPU when it is installed)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--refine-iters", type=int, default=0,
                     help="after the run, refine the map over all keyframes for N iterations (not counted in FPS)")

@@ -20,8 +20,8 @@ import torch
 from torch import Tensor
 
 from semantic_gs_slam.config import Intrinsics, MappingConfig, SlamConfig
-from semantic_gs_slam.devices import numba_available, resolve_device
-from semantic_gs_slam.errors import BackendUnavailableError, FrameError, MapFormatError, TrackingError
+from semantic_gs_slam.devices import require_cpu_kernel, resolve_device
+from semantic_gs_slam.errors import FrameError, MapFormatError, TrackingError
 from semantic_gs_slam.exposure import fit as fit_exposure
 from semantic_gs_slam.exposure import identity as exposure_identity
 from semantic_gs_slam.exposure import to_map
@@ -160,9 +160,8 @@ class SLAM:
         torch.manual_seed(config.seed)
         self.backend = select_backend(config.renderer, self.device)  # the renderer, chosen once
         icp_uses_numba(config.tracking, self.device)  # a compiled kernel asked for where it cannot run: say so now
-        if config.mapping.ssim_backend == "numba" and (self.device.type != "cpu" or not numba_available()):
-            raise BackendUnavailableError(f"mapping.ssim_backend 'numba' needs numba and the CPU (engine on "
-                                          f"{self.device}, numba {'installed' if numba_available() else 'missing'})")
+        if config.mapping.ssim_backend == "numba":
+            require_cpu_kernel("mapping.ssim_backend", self.device)
         self.map = GaussianMap(self.device)
         self.poses: list[np.ndarray] = []  # estimated c2w per frame
         self.gt_poses: list[np.ndarray | None] = []

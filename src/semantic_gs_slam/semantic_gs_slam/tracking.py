@@ -17,8 +17,8 @@ import torch
 from torch import Tensor
 
 from semantic_gs_slam.config import Intrinsics, RendererConfig, TrackingConfig, device_default
-from semantic_gs_slam.devices import numba_available
-from semantic_gs_slam.errors import BackendUnavailableError, TrackingError
+from semantic_gs_slam.devices import numba_available, require_cpu_kernel
+from semantic_gs_slam.errors import TrackingError
 from semantic_gs_slam.geometry import backproject, quat_to_rotmat, se3_exp
 from semantic_gs_slam.render import Gaussians, RenderBackend, RenderOutput, select_backend
 from semantic_gs_slam.tracking_numba import icp_step_numba
@@ -432,11 +432,7 @@ def icp_uses_numba(cfg: TrackingConfig, device: torch.device) -> bool:
         BackendUnavailableError: ``numba`` asked for without numba, or for tensors off the CPU.
     """
     if cfg.icp_backend == "numba":
-        if not numba_available():
-            raise BackendUnavailableError("tracking.icp_backend 'numba' needs the numba package "
-                                          "(pip install numba; requirements/python.in pins it)")
-        if device.type != "cpu":
-            raise BackendUnavailableError(f"tracking.icp_backend 'numba' runs on the CPU, the engine is on {device}")
+        require_cpu_kernel("tracking.icp_backend", device)
         return True
     return cfg.icp_backend == "auto" and device.type == "cpu" and numba_available()
 

@@ -72,7 +72,8 @@ def normal_equations_numba(est: Tensor, lp: Tensor, lvalid: Tensor, il: Tensor |
 
 
 def _so3_log(r: np.ndarray) -> np.ndarray:
-    """Axis-angle [3] of a rotation [3, 3] (as :func:`semantic_gs_slam.tracking._so3_log`)."""
+    """Axis-angle [3] of a rotation [3, 3]: :func:`semantic_gs_slam.tracking._so3_log` in numpy (checked with the
+    whole step by ``test_tracking.py::test_numba_icp_step_equals_the_reference_step``)."""
     c = min(1.0, max(-1.0, (np.trace(r) - 1) / 2))
     th = np.arccos(c)
     v = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
@@ -80,7 +81,8 @@ def _so3_log(r: np.ndarray) -> np.ndarray:
 
 
 def _se3_exp(xi: np.ndarray) -> np.ndarray:
-    """[4, 4] of xi = (rotation vector, translation), as :func:`semantic_gs_slam.geometry.se3_exp`."""
+    """[4, 4] of xi = (rotation vector, translation): :func:`semantic_gs_slam.geometry.se3_exp` in numpy (checked
+    with the whole step, as :func:`_so3_log`)."""
     w = xi[:3]
     theta2 = float(w @ w)
     theta = np.sqrt(theta2 + 1e-24)

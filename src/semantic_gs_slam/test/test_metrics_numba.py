@@ -47,6 +47,10 @@ def test_ssim_picks_the_kernel_only_where_it_applies(monkeypatch):
 
 
 def test_numba_ssim_refuses_what_it_cannot_do():
+    with pytest.raises(ValueError, match="first image only"):
+        ssim(torch.rand(8, 8, 3), torch.rand(8, 8, 3, requires_grad=True), fast=True)
+    with pytest.raises(ValueError, match="odd"):
+        ssim(torch.rand(12, 12, 3), torch.rand(12, 12, 3), size=6, fast=True)
     with pytest.raises(ValueError, match="float32 CPU"):
         ssim(torch.rand(8, 8, 3).double(), torch.rand(8, 8, 3).double(), fast=True)
     with pytest.raises(ValueError, match="one shape"):

@@ -2,15 +2,14 @@
 
 from __future__ import annotations
 
-import threading
-
 import pytest
 import torch
 
 from semantic_gs_slam.config import ConfigError, Intrinsics, RendererConfig
+from semantic_gs_slam.devices import numba_available
 from semantic_gs_slam.errors import BackendUnavailableError
 from semantic_gs_slam.render import Gaussians, render_torch, select_backend
-from semantic_gs_slam.render_numba import numba_available, render_numba
+from semantic_gs_slam.render_numba import render_numba
 
 pytestmark = pytest.mark.skipif(not numba_available(), reason="numba not installed (the reference is used)")
 
@@ -47,7 +46,8 @@ def params(g: Gaussians) -> list[torch.Tensor]:
 
 
 def compare(g: Gaussians, k: Intrinsics, cfg: RendererConfig, w2c: torch.Tensor | None = None) -> None:
-    w2c = torch.eye(4) if w2c is None else w2c
+    """Images, every Gaussian parameter's gradient and the pose's gradient (photometric tracking uses it)."""
+    w2c = (torch.eye(4) if w2c is None else w2c).clone().requires_grad_(True)
     a, b = render_numba(g, w2c, k, cfg), render_torch(g, w2c, k, cfg)
     assert a.n_visible == b.n_visible
     for name in ("rgb", "depth", "silhouette", "semantic"):
@@ -57,8 +57,9 @@ def compare(g: Gaussians, k: Intrinsics, cfg: RendererConfig, w2c: torch.Tensor 
             continue
         assert x.shape == y.shape and x.dtype == y.dtype
         torch.testing.assert_close(x, y, rtol=1e-4, atol=2e-5)
-    ga = torch.autograd.grad(loss_of(a), params(g), allow_unused=True)
-    gb = torch.autograd.grad(loss_of(b), params(g), allow_unused=True)
+    ga = torch.autograd.grad(loss_of(a), params(g) + [w2c], allow_unused=True)
+    gb = torch.autograd.grad(loss_of(b), params(g) + [w2c], allow_unused=True)
+    assert float(gb[-1].abs().max()) > 0  # the pose's gradient is not trivially zero
     for x, y in zip(ga, gb, strict=True):
         if y is None:
             assert x is None or float(x.abs().max()) == 0
@@ -80,8 +81,12 @@ def test_numba_compositor_matches_with_early_termination_and_other_tiles(tile):
     g = scene(n=500, seed=3, opaque=True, semantic=0)
     k = Intrinsics(48, 40, 60.0, 60.0, 23.5, 19.5)
     compare(g, k, RendererConfig(tile=tile, backend="numba"))
-    out = render_numba(g, torch.eye(4), k, RendererConfig(tile=tile))
-    assert float(out.silhouette.detach().max()) > 0.999  # some pixels did end early
+    with torch.no_grad():
+        stop = render_numba(g, torch.eye(4), k, RendererConfig(tile=tile))
+        no_stop = render_numba(g, torch.eye(4), k, RendererConfig(tile=tile, stop_transmittance=0.0))
+        no_stop_ref = render_torch(g, torch.eye(4), k, RendererConfig(tile=tile, stop_transmittance=0.0))
+    assert float((stop.rgb - no_stop.rgb).abs().max()) > 1e-4  # pixels did end early (the rule took effect)
+    torch.testing.assert_close(no_stop.rgb, no_stop_ref.rgb, rtol=1e-4, atol=2e-5)
 
 
 def test_numba_compositor_with_nothing_visible_renders_zeros_and_zero_gradients():
@@ -111,28 +116,50 @@ def test_numba_result_does_not_depend_on_the_number_of_threads():
         assert torch.equal(rgb, results[0][0]) and torch.equal(gm, results[0][1])
 
 
-def test_numba_renders_from_two_python_threads_at_once():
-    """numba's default threading layer aborts on concurrent use; the module's lock serialises the calls."""
-    g = scene(n=300, seed=6)
-    k = Intrinsics(64, 48, 50.0, 50.0, 31.5, 23.5)
-    want = render_numba(g, torch.eye(4), k, RendererConfig()).rgb.detach()
-    got, errors = [], []
+def test_numba_renders_from_three_python_threads_at_once():
+    """numba's ``workqueue`` threading layer (its fallback without OpenMP or TBB) aborts the process when two Python
+    threads enter it at once; the module's lock serialises the calls. Run with that layer forced, in a subprocess (an
+    abort there fails this test instead of ending the test run)."""
+    import subprocess
+    import sys
 
-    def work():
-        try:
-            for _ in range(5):
-                with torch.no_grad():
-                    got.append(render_numba(g, torch.eye(4), k, RendererConfig()).rgb)
-        except Exception as exc:  # noqa: BLE001 - reported below
-            errors.append(exc)
+    code = (
+        "import threading, torch\n"
+        "import numba\n"
+        "from semantic_gs_slam.config import Intrinsics, RendererConfig\n"
+        "from semantic_gs_slam.render import Gaussians\n"
+        "from semantic_gs_slam.render_numba import render_numba\n"
+        "torch.set_num_threads(2)\n"
+        "gen = torch.Generator().manual_seed(6)\n"
+        "n = 400\n"
+        "g = Gaussians(torch.randn(n, 3, generator=gen) * 0.5 + torch.tensor([0, 0, 2.5]), torch.randn(n, 4),\n"
+        "              torch.full((n, 1), -3.0), torch.randn(n, 1, generator=gen), torch.rand(n, 3, generator=gen))\n"
+        "k = Intrinsics(96, 72, 70.0, 70.0, 47.5, 35.5)\n"
+        "want = render_numba(g, torch.eye(4), k, RendererConfig()).rgb\n"
+        "got = []\n"
+        "def work():\n"
+        "    for _ in range(20):\n"
+        "        got.append(render_numba(g, torch.eye(4), k, RendererConfig()).rgb)\n"
+        "ts = [threading.Thread(target=work) for _ in range(3)]\n"
+        "[t.start() for t in ts]; [t.join() for t in ts]\n"
+        "assert len(got) == 60 and all(torch.equal(x, want) for x in got)\n"
+        "print(numba.threading_layer())\n")
+    import os
 
-    threads = [threading.Thread(target=work) for _ in range(3)]
-    for t in threads:
-        t.start()
-    for t in threads:
-        t.join(timeout=120)
-    assert not errors and len(got) == 15
-    assert all(torch.equal(x, want) for x in got)
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                       env={**os.environ, "NUMBA_THREADING_LAYER": "workqueue"})
+    assert r.returncode == 0, r.stderr[-2000:]
+    assert r.stdout.strip() == "workqueue"
+
+
+def test_float64_gaussians_go_to_the_reference():
+    g = scene(n=200, seed=10)
+    g64 = Gaussians(*(t.detach().double() for t in (g.means, g.quats, g.log_scales, g.logit_opacities, g.rgb,
+                                                     g.semantic)))
+    k = Intrinsics(40, 30, 30.0, 30.0, 19.5, 14.5)
+    a = render_numba(g64, torch.eye(4, dtype=torch.float64), k, RendererConfig())
+    b = render_torch(g64, torch.eye(4, dtype=torch.float64), k, RendererConfig())
+    assert a.rgb.dtype == torch.float64 and torch.equal(a.rgb, b.rgb) and torch.equal(a.depth, b.depth)
 
 
 def test_auto_picks_numba_on_the_cpu_and_the_choice_is_a_setting():
@@ -147,15 +174,15 @@ def test_auto_picks_numba_on_the_cpu_and_the_choice_is_a_setting():
 def test_numba_refuses_gaussians_off_the_cpu():
     g = scene(n=4, seed=8)
     g = Gaussians(*(t.detach().to("meta") for t in (g.means, g.quats, g.log_scales, g.logit_opacities, g.rgb)))
-    with pytest.raises(ValueError, match="renders on the CPU"):
+    with pytest.raises(BackendUnavailableError, match="runs on the CPU"):
         render_numba(g, torch.eye(4, device="meta"), Intrinsics(8, 8, 8.0, 8.0, 3.5, 3.5), RendererConfig())
 
 
 def test_numba_missing_is_a_typed_error(monkeypatch):
+    import semantic_gs_slam.devices as devices
     import semantic_gs_slam.render as render_mod
-    import semantic_gs_slam.render_numba as rn
 
-    monkeypatch.setattr(rn, "numba_available", lambda: False)
+    monkeypatch.setattr(devices, "numba_available", lambda: False)
     monkeypatch.setattr(render_mod, "numba_available", lambda: False)
     with pytest.raises(BackendUnavailableError, match="numba"):
         select_backend(RendererConfig(backend="numba"), "cpu")
@@ -217,14 +244,18 @@ def test_compiled_kernels_come_from_numba_s_disk_cache_in_a_new_process():
         "k = Intrinsics(16, 12, 15.0, 15.0, 7.5, 5.5)\n"
         "render_numba(g, torch.eye(4), k, RendererConfig()).rgb.sum().backward()\n"
         "ssim(torch.rand(12, 12, 3, requires_grad=True), torch.rand(12, 12, 3)).backward()\n"
-        "fns = (nk.composite_forward, nk.composite_backward, nk.bin_pairs, nk.ssim_forward, nk.ssim_backward)\n"
+        "from semantic_gs_slam.tracking_numba import normal_equations_numba\n"
+        "e, f = torch.eye(4, dtype=torch.float64), torch.zeros(12 * 16, 3, dtype=torch.float64)\n"
+        "normal_equations_numba(e, f[:4], f[:4, 0] > 0, None, f, f, f[:, 0] > 0, None, e, k, TrackingConfig(), False)\n"
+        "fns = (nk.composite_forward, nk.composite_backward, nk.bin_pairs, nk.ssim_forward, nk.ssim_backward,\n"
+        "       nk.icp_accumulate)\n"
         "print(sum(len(f.stats.cache_hits) for f in fns), sum(len(f.stats.cache_misses) for f in fns))\n")
     runs = [subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
             for _ in range(2)]
     for r in runs:
         assert r.returncode == 0, r.stderr
     hits, misses = (int(x) for x in runs[1].stdout.split())
-    assert hits >= 5 and misses == 0, runs[1].stdout
+    assert hits >= 6 and misses == 0, runs[1].stdout
 
 
 def test_compiled_paths_asked_for_off_the_cpu_are_refused_when_the_engine_starts(monkeypatch):
@@ -234,7 +265,7 @@ def test_compiled_paths_asked_for_off_the_cpu_are_refused_when_the_engine_starts
     from semantic_gs_slam.config import MappingConfig, SlamConfig, TrackingConfig
     from semantic_gs_slam.slam import SLAM
 
-    with pytest.raises(BackendUnavailableError, match="renders on the CPU"):
+    with pytest.raises(BackendUnavailableError, match="renderer.backend 'numba' runs on the CPU"):
         select_backend(RendererConfig(backend="numba"), "cuda")
     k = Intrinsics(16, 12, 15.0, 15.0, 7.5, 5.5)
     monkeypatch.setattr(slam_mod, "resolve_device", lambda name: torch.device("cuda"))

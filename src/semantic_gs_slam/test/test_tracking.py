@@ -373,16 +373,19 @@ def test_icp_with_the_numba_sums_equals_the_reference(scene):
 
 
 def test_icp_backend_is_checked_and_a_missing_numba_is_a_typed_error(monkeypatch):
+    import semantic_gs_slam.devices as devices
     from semantic_gs_slam import tracking
     from semantic_gs_slam.errors import BackendUnavailableError, ConfigError
 
     with pytest.raises(ConfigError, match="icp_backend"):
         TrackingConfig(icp_backend="fast").check()
     monkeypatch.setattr(tracking, "numba_available", lambda: False)
+    monkeypatch.setattr(devices, "numba_available", lambda: False)
     with pytest.raises(BackendUnavailableError, match="numba"):
         tracking.icp_uses_numba(TrackingConfig(icp_backend="numba"), torch.device("cpu"))
     assert not tracking.icp_uses_numba(TrackingConfig(), torch.device("cpu"))  # auto: the reference
     monkeypatch.setattr(tracking, "numba_available", lambda: True)
+    monkeypatch.setattr(devices, "numba_available", lambda: True)
     assert tracking.icp_uses_numba(TrackingConfig(), torch.device("cpu"))
     assert not tracking.icp_uses_numba(TrackingConfig(), torch.device("cuda"))  # never on a GPU
     with pytest.raises(BackendUnavailableError, match="CPU"):
