@@ -45,6 +45,19 @@ def tile_coefficients(uv, conic, log_o, pg, s0, n, x0, y0, lc):
         lc[q, 4] = -b
         lc[q, 5] = -half * c
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def pair_alpha(lc, p, fi, fj, fii, fij, fjj, skip, amin):
+    """Alpha of the tile's pair p at the tile-local pixel (fi, fj), 0 where it is below 1/255. The forward and the
+    backward both call this, so they take the same decisions to the last bit."""
+    pw = lc[p, 0] + lc[p, 1] * fi + lc[p, 2] * fj + lc[p, 3] * fii + lc[p, 4] * fij + lc[p, 5] * fjj
+    if pw < skip:
+        return f32(0.0)
+    a = math.exp(pw)
+    if a < amin:
+        return f32(0.0)
+    return a
+
+
 @numba.njit(cache=True, nogil=True, parallel=True)
 def composite_forward(uv, conic, log_o, feat, pg, tstart, tcount, order, maxn, ntx, ts, height, width, stop, nw, out,
             t_final, n_done):
@@ -80,12 +93,8 @@ def composite_forward(uv, conic, log_o, feat, pg, tstart, tcount, order, maxn, n
                     tr = one
                     walked = n
                     for p in range(n):
-                        pw = (lc[p, 0] + lc[p, 1] * fi + lc[p, 2] * fj + lc[p, 3] * fii
-                              + lc[p, 4] * fij + lc[p, 5] * fjj)
-                        if pw < skip:
-                            continue
-                        a = math.exp(pw)
-                        if a < amin:
+                        a = pair_alpha(lc, p, fi, fj, fii, fij, fjj, skip, amin)
+                        if a == 0:
                             continue
                         tn = tr * (one - a)
                         if tn <= st:
@@ -148,12 +157,8 @@ def composite_backward(uv, conic, log_o, feat, pg, tstart, tcount, order, maxn, 
                     tr = t_final[y, x]
                     suffix = f32(0.0)
                     for p in range(n_done[y, x] - 1, -1, -1):
-                        pw = (lc[p, 0] + lc[p, 1] * fi + lc[p, 2] * fj + lc[p, 3] * fii
-                              + lc[p, 4] * fij + lc[p, 5] * fjj)
-                        if pw < skip:
-                            continue
-                        a = math.exp(pw)
-                        if a < amin:
+                        a = pair_alpha(lc, p, fi, fj, fii, fij, fjj, skip, amin)
+                        if a == 0:
                             continue
                         tr = tr / (one - a)  # transmittance in front of this Gaussian
                         wt = a * tr
