@@ -13,7 +13,7 @@
 # GPU_SITE (where the wheels are installed, default .gpu-site; put on PYTHONPATH), OUT (where the
 # table is written, default out/gpu), DATA (generated sequences, default /tmp/slam_gpu_data),
 # FRAMES (per size, default 60), SIZES (default "300x170 600x340 1200x680"), TORCH_CUDA_ARCH_LIST
-# (default: this GPU's), MAX_JOBS, FAST_COMPILE.
+# and FAST_COMPILE (gsplat's build flags: as set, the same that any later run must see), MAX_JOBS.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$PWD
@@ -67,14 +67,16 @@ export PYTHONPATH="$SITE:$ROOT/src/semantic_gs_slam:$ROOT/src/semantic_gs_slam_r
 export PATH="$SITE/bin:$PATH"  # the ninja build tool
 
 # --- 3. gsplat's CUDA extension (JIT build, cached under ~/.cache/torch_extensions) --------------
-cap=$("$PY" -c 'import torch; print("%d.%d" % torch.cuda.get_device_capability(0))')
+# The build flags (FAST_COMPILE, NO_FAST_MATH, TORCH_CUDA_ARCH_LIST) are left as the environment has them:
+# torch's JIT loader rebuilds the whole extension in any later process whose flags differ, so a build made
+# here with other flags than a plain run's would cost that run ~85 s at its first frame (and FAST_COMPILE=1
+# builds at -O0). MAX_JOBS only sets the parallelism.
 nproc=$(nproc)
-export TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-$cap} FAST_COMPILE=${FAST_COMPILE:-1}
 export MAX_JOBS=${MAX_JOBS:-$(( nproc > 2 ? nproc - 2 : 1 ))}
-log "building gsplat's CUDA code (arch $TORCH_CUDA_ARCH_LIST, FAST_COMPILE=$FAST_COMPILE, MAX_JOBS=$MAX_JOBS; ~80 s the first time)"
+log "building gsplat's CUDA code (arch ${TORCH_CUDA_ARCH_LIST:-default: this GPU}, FAST_COMPILE=${FAST_COMPILE:-0}, MAX_JOBS=$MAX_JOBS; ~85 s the first time)"
 t=$(date +%s)
 "$PY" -c 'import sys; from gsplat.cuda._backend import _C; sys.exit(0 if _C is not None else 1)' \
-  || die "gsplat's CUDA build failed (see above; nvcc must support arch $TORCH_CUDA_ARCH_LIST and match torch's CUDA major)"
+  || die "gsplat's CUDA build failed (see above; nvcc must support this GPU's arch and match torch's CUDA major)"
 log "gsplat ready in $(( $(date +%s) - t )) s"
 [ "${1:-}" = --setup-only ] && { log "setup done: export PYTHONPATH=$SITE:\$PYTHONPATH to use it"; exit 0; }
 

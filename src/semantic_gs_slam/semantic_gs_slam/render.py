@@ -25,12 +25,14 @@ opacity compensation); the projection Jacobian clamps x/z, y/z to the image plus
 
 from __future__ import annotations
 
+import warnings
+
 import torch
 from torch import Tensor
 
 from semantic_gs_slam.config import Intrinsics, RendererConfig
 from semantic_gs_slam.devices import numba_available, require_cpu_kernel
-from semantic_gs_slam.render_gsplat import gsplat_available, render_gsplat, require_gsplat
+from semantic_gs_slam.render_gsplat import gsplat_available, load_gsplat_extension, render_gsplat, require_gsplat
 from semantic_gs_slam.render_numba import render_numba
 from semantic_gs_slam.render_tiles import footprint, jacobian_limits, project, project_rows, tile_pairs
 from semantic_gs_slam.render_types import (
@@ -52,13 +54,16 @@ def select_backend(cfg: RendererConfig, device: torch.device | str = "cpu") -> R
     """The renderer back-end ``cfg.backend`` names (chosen once; the engine keeps the result).
 
     Args:
-        cfg: renderer settings; ``backend="auto"`` picks gsplat when ``device`` is CUDA and gsplat
-            imports, the compiled CPU compositor (numba) when ``device`` is the CPU and numba is
-            installed, else the torch tiles (the reference).
+        cfg: renderer settings; ``backend="auto"`` picks gsplat when ``device`` is CUDA, gsplat
+            imports and its CUDA code loads (built now if needed, see
+            :func:`~semantic_gs_slam.render_gsplat.load_gsplat_extension`; else a ``RuntimeWarning``),
+            the compiled CPU compositor (numba) when ``device`` is the CPU and numba is installed, else
+            the torch tiles (the reference).
         device: the device the Gaussians live on.
 
     Raises:
-        BackendUnavailableError: ``gsplat`` or ``numba`` asked for where it (or CUDA) is missing.
+        BackendUnavailableError: ``gsplat`` or ``numba`` asked for where it (or CUDA, or gsplat's built CUDA
+            code) is missing.
     """
     dev = torch.device(device).type
     if cfg.backend == "gsplat":
@@ -68,7 +73,12 @@ def select_backend(cfg: RendererConfig, device: torch.device | str = "cpu") -> R
         require_cpu_kernel("renderer.backend", device)
         return render_numba
     if cfg.backend == "auto" and dev == "cuda" and gsplat_available():
-        return render_gsplat
+        ok, why = load_gsplat_extension()
+        if ok:
+            return render_gsplat
+        warnings.warn(f"renderer backend 'auto' on CUDA: gsplat's CUDA code did not build or load ({why}); "
+                      "rendering with the PyTorch tiles instead (slower). `make setup-gpu` shows the build.",
+                      RuntimeWarning, stacklevel=2)
     if cfg.backend == "auto" and dev == "cpu" and numba_available():
         return render_numba
     return render_torch

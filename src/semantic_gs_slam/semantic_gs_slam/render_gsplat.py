@@ -32,11 +32,37 @@ def gsplat_available() -> bool:
     return torch.cuda.is_available()
 
 
+_EXTENSION: dict[str, object] = {}  # the one attempt per process to load gsplat's CUDA code: {"ok": bool, "why": str}
+
+
+def load_gsplat_extension() -> tuple[bool, str]:
+    """Load gsplat's compiled CUDA code now, once per process; returns (loaded, why not).
+
+    gsplat compiles its CUDA code with torch's JIT loader on first use: ~85 s after an install, and again
+    whenever gsplat's build flags (``FAST_COMPILE``, ``NO_FAST_MATH``, ``TORCH_CUDA_ARCH_LIST``) differ from the
+    last build's. The engine calls this when it chooses its renderer, so that time is spent at start, not at
+    the first frame, and a build that cannot succeed (no ``nvcc``) is found before any frame arrives.
+    """
+    if not _EXTENSION:
+        try:
+            from gsplat.cuda._backend import _C
+        except Exception as exc:  # noqa: BLE001  (a failed build raises ImportError, OSError or RuntimeError)
+            _EXTENSION.update(ok=False, why=f"{type(exc).__name__}: {exc}".splitlines()[0][:300])
+        else:
+            _EXTENSION.update(ok=_C is not None, why="" if _C is not None else "gsplat found no CUDA toolkit (nvcc)")
+    return bool(_EXTENSION["ok"]), str(_EXTENSION["why"])
+
+
 def require_gsplat() -> None:
-    """Raise :class:`BackendUnavailableError` unless gsplat and a CUDA device exist."""
+    """Raise :class:`BackendUnavailableError` unless gsplat, a CUDA device and gsplat's built CUDA code exist."""
     if not gsplat_available():
         raise BackendUnavailableError("renderer backend 'gsplat' needs the gsplat package and a CUDA GPU; "
                                       "use backend='torch' on this machine (or `make setup-gpu` on a CUDA one)")
+    ok, why = load_gsplat_extension()
+    if not ok:
+        raise BackendUnavailableError(f"renderer backend 'gsplat': gsplat's CUDA code did not build or load ({why}); "
+                                      "it needs nvcc (CUDA_HOME) matching torch's CUDA: `make setup-gpu` shows "
+                                      "the build, or use backend='torch'")
 
 
 def gsplat_intrinsics(k: Intrinsics, dtype: torch.dtype, device: torch.device) -> torch.Tensor:

@@ -24,6 +24,7 @@ import pytest
 import torch
 from torch.overrides import TorchFunctionMode
 
+import semantic_gs_slam.render_gsplat as rgm
 from semantic_gs_slam.config import Intrinsics, MappingConfig, RendererConfig, SlamConfig
 from semantic_gs_slam.datasets import load_dataset
 from semantic_gs_slam.device_guard import PACKAGE_DIR, DeviceGuard
@@ -262,3 +263,54 @@ def test_map_arrays_round_trip_keeps_the_device(tmp_path):
     back = GaussianMap.from_arrays(m.to_arrays(), torch.device("cpu"))
     assert back.params["means3D"].device == back.semantic_ids.device == back.normals.device == torch.device("cpu")
     np.testing.assert_allclose(back.params["means3D"].detach().numpy(), m.params["means3D"].detach().numpy())
+
+
+@pytest.fixture
+def gsplat_outcome(monkeypatch):
+    """A machine with a CUDA device and gsplat installed, where gsplat's JIT build gives ``outcome``.
+
+    Only our choice of back-end is under test here: torch's CUDA check and gsplat's extension module are
+    stand-ins (the real build runs on the GPU machine, ``make bench-gpu``); nothing is compiled or rendered.
+    """
+    if torch.cuda.is_available():
+        pytest.skip("this test describes a machine without a working gsplat build; a GPU machine has the real one")
+    pytest.importorskip("gsplat")
+
+    def setup(outcome):
+        monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+        monkeypatch.setattr(rgm, "_EXTENSION", {})
+        mod = types.ModuleType("gsplat.cuda._backend")
+        if isinstance(outcome, Exception):
+            def fail(name):  # the module's import raises, as torch's JIT loader does when a build fails
+                raise outcome
+            mod.__getattr__ = fail
+        else:
+            mod._C = outcome
+        monkeypatch.setitem(sys.modules, "gsplat.cuda._backend", mod)
+        return rgm
+
+    return setup
+
+
+def test_gsplat_without_its_cuda_code_is_refused_at_start(gsplat_outcome):
+    rg = gsplat_outcome(None)  # gsplat found no CUDA toolkit: its extension is None
+    with pytest.raises(BackendUnavailableError, match="did not build or load.*no CUDA toolkit"):
+        select_backend(RendererConfig(backend="gsplat"), "cuda")
+    with pytest.warns(RuntimeWarning, match="PyTorch tiles instead"):
+        assert select_backend(RendererConfig(), "cuda") is render_torch
+    assert rg.load_gsplat_extension() == (False, "gsplat found no CUDA toolkit (nvcc)")
+
+
+def test_gsplat_build_failure_is_one_clear_error(gsplat_outcome):
+    rg = gsplat_outcome(OSError("CUDA_HOME environment variable is not set.\nmore lines"))
+    first_line_only = r"\(OSError: CUDA_HOME environment variable is not set\.\); it needs"
+    with pytest.raises(BackendUnavailableError, match=first_line_only):
+        select_backend(RendererConfig(backend="gsplat"), "cuda")
+    with pytest.raises(BackendUnavailableError, match="CUDA_HOME"):  # one attempt per process: same answer
+        rg.require_gsplat()
+
+
+def test_gsplat_loaded_at_start_is_chosen(gsplat_outcome):
+    gsplat_outcome(object())  # a loaded extension
+    assert select_backend(RendererConfig(), "cuda") is rgm.render_gsplat
+    assert select_backend(RendererConfig(backend="gsplat"), "cuda") is rgm.render_gsplat
