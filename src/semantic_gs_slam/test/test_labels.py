@@ -20,6 +20,7 @@ from semantic_gs_slam.labels.geometry import (
     TABLE,
     WALL,
     GeometryLabeller,
+    best_plane_hypothesis,
     connected_components,
 )
 from semantic_gs_slam.labels.names import main as names_main
@@ -59,6 +60,38 @@ def test_connected_components_match_a_flood_fill(seed):
     # same partition: a one-to-one map between the two labellings
     pairs = set(zip(got[mask].tolist(), ref[mask].tolist(), strict=True))
     assert len(pairs) == n and (got[~mask] == 0).all()
+
+
+def _sequential_ransac(p_h, n_h, p, n, tol, normal_cos):
+    """Reference: one hypothesis at a time, keeping a strictly better score (the loop the search had before)."""
+    best, best_score = None, 0
+    for ph, nh in zip(p_h, n_h, strict=True):
+        d = -float(nh @ ph)
+        score = int(((np.abs(p @ nh + d) < tol) & (n @ nh > normal_cos)).sum())
+        if score > best_score:
+            best, best_score = (nh, d), score
+    return best
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_plane_hypotheses_scored_at_once_match_one_at_a_time(seed):
+    rng = np.random.default_rng(seed)
+    # two noisy planes and clutter; hypotheses drawn from the points themselves, as the labeller draws them
+    s = 600
+    p = rng.normal(size=(s, 3))
+    p[:250, 2] = 1.5 + 0.004 * rng.normal(size=250)
+    p[250:400, 1] = -0.8 + 0.004 * rng.normal(size=150)
+    n = rng.normal(size=(s, 3))
+    n[:250] = [0, 0, 1]
+    n[250:400] = [0, 1, 0]
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    tol = 0.012 * np.maximum(np.abs(p[:, 2]), 0.3) ** 2
+    hyp = rng.choice(s, 40, replace=False)
+    got = best_plane_hypothesis(p[hyp], n[hyp], p, n, tol, 0.85)
+    ref = _sequential_ransac(p[hyp], n[hyp], p, n, tol, 0.85)
+    assert got is not None and ref is not None
+    assert np.array_equal(got[0], ref[0]) and abs(got[1] - ref[1]) < 1e-12
+    assert best_plane_hypothesis(p[hyp], n[hyp], p + 100.0, n, tol, 0.85) is None  # no inlier anywhere
 
 
 @pytest.fixture(scope="module")

@@ -204,6 +204,23 @@ def concave_pixels(pts: np.ndarray, normals: np.ndarray, step: int, threshold: f
     return out
 
 
+def best_plane_hypothesis(p_h: np.ndarray, n_h: np.ndarray, p: np.ndarray, n: np.ndarray, tol: np.ndarray,
+                          normal_cos: float) -> tuple[np.ndarray, float] | None:
+    """RANSAC scoring, all hypotheses at once: each point ``p_h[k]`` with its normal ``n_h[k]`` ([K, 3]) is a
+    plane; its score is how many of the sample points ``p`` ([S, 3], normals ``n``) lie within ``tol`` ([S])
+    of it with a normal within ``normal_cos`` of its own. Returns the plane (unit normal [3], offset) of the
+    first best-scoring hypothesis, as a sequential search that keeps strictly better ones would, or None
+    when no hypothesis has a single inlier.
+    """
+    d_h = -(n_h * p_h).sum(-1)  # [K]
+    dist = np.abs(p @ n_h.T + d_h)  # [S, K]
+    scores = ((dist < tol[:, None]) & (n @ n_h.T > normal_cos)).sum(0)  # [K]
+    k = int(np.argmax(scores))  # argmax returns the first of equal maxima
+    if scores[k] <= 0:
+        return None
+    return n_h[k], float(d_h[k])
+
+
 def _voxel_keys(world: np.ndarray, voxel: float) -> np.ndarray:
     """Unique int64 keys of the voxels holding the points [N, 3] (21 bits per axis, +-42 km at 2 cm)."""
     q = np.floor(world / voxel).astype(np.int64) + (1 << 20)
@@ -334,14 +351,9 @@ class GeometryLabeller:
             p_all = pts.reshape(-1, 3)
             n_all = normals.reshape(-1, 3)
             sub = cand if cand.size <= 2000 else self._rng.choice(cand, 2000, replace=False)
-            best, best_score = None, 0
-            for s in self._rng.choice(cand, min(cfg.ransac_iters, cand.size), replace=False):
-                n0 = n_all[s]  # one point + its normal is a plane hypothesis
-                d0 = -float(n0 @ p_all[s])
-                dist = np.abs(p_all[sub] @ n0 + d0)
-                score = int(((dist < tol.reshape(-1)[sub]) & (n_all[sub] @ n0 > cfg.plane_normal_cos)).sum())
-                if score > best_score:
-                    best, best_score = (n0, d0), score
+            hyp = self._rng.choice(cand, min(cfg.ransac_iters, cand.size), replace=False)
+            best = best_plane_hypothesis(p_all[hyp], n_all[hyp], p_all[sub], n_all[sub], tol.reshape(-1)[sub],
+                                         cfg.plane_normal_cos)
             if best is None:
                 break
             n0, d0 = best
