@@ -44,6 +44,10 @@ class EngineAdapter:
     def save_checkpoint(self, ckpt_dir: str) -> None:
         self.slam.checkpoint(ckpt_dir)
 
+    def refine(self, iters: int) -> float:
+        """``iters`` Adam iterations over all keyframes (:meth:`semantic_gs_slam.slam.SLAM.refine`)."""
+        return self.slam.refine(iters)
+
     @property
     def num_gaussians(self) -> int:
         return len(self.slam.map)

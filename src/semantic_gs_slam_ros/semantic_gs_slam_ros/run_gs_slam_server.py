@@ -70,6 +70,7 @@ class SlamServer(Node):
         p("lag_low", 150)
         p("checkpoint_every", 20)
         p("export_every", 0)
+        p("refine_iters", 0)  # Adam iterations over all keyframes after the last frame, before the map is written
         p("slam_config", "")  # YAML of the engine's SlamConfig ("" = defaults)
         p("device", "auto")  # torch device of the engine: auto (CUDA when present), cpu, cuda, cuda:N;
         # overrides slam_config's device (with CUDA and gsplat installed, renderer backend auto picks gsplat)
@@ -228,7 +229,7 @@ class SlamServer(Node):
             min_motion_m=float(g("min_motion_m").value), min_motion_deg=float(g("min_motion_deg").value),
             lag_high=g("lag_high").value, lag_low=g("lag_low").value,
             checkpoint_every=g("checkpoint_every").value, export_every=g("export_every").value,
-            max_frames=goal.max_frames, clean_start=not goal.resume)
+            refine_iters=int(g("refine_iters").value), max_frames=goal.max_frames, clean_start=not goal.resume)
 
     def _execute(self, goal_handle) -> RunSlam.Result:
         result = RunSlam.Result()
@@ -247,10 +248,10 @@ class SlamServer(Node):
 
     def _run(self, goal_handle, result: RunSlam.Result) -> RunSlam.Result:
         goal: RunSlam.Goal = goal_handle.request
-        cfg = self._config(goal)
         self._done_expected = None
         self._done_deadline = float("inf")
         try:
+            cfg = self._config(goal)  # a bad parameter value is a StreamingError: the goal aborts with it
             resume_state = checkpoint_state(cfg.work_dir) if goal.resume else None
             cfg.frames_before = int(resume_state["processed"]) if resume_state else 0
             engine = None

@@ -35,6 +35,8 @@ from semantic_gs_slam_ros.writer import AsyncFrameWriter, WrittenFrame, prepare_
 ODOMETRY_KEEP = 2000
 #: seconds a frame waits for an odometry pose published after its images
 ODOMETRY_WAIT = 0.5
+#: refinement iterations between two looks at a cancel request (``SessionConfig.refine_iters``)
+REFINE_CHUNK = 10
 
 
 class SlamEngine(Protocol):
@@ -53,6 +55,9 @@ class SlamEngine(Protocol):
 
     @property
     def num_gaussians(self) -> int: ...
+
+    # optional: ``refine(iters) -> float`` (Adam steps over all keyframes, poses fixed; the last loss) and
+    # ``frame_report() -> (lost, corrected, note)``; the session asks with getattr
 
 
 @dataclass
@@ -76,6 +81,9 @@ class SessionConfig:
         export_every: write the map to ``map_dir`` every N processed frames (0 = only at the end).
         map_dir: where the object-query server reads params.npz + semantic.json ("" = work_dir/map).
         max_frames: stop after this many processed frames (0 = until the client is done).
+        refine_iters: after the last frame and before the final map is written, this many Adam iterations
+            over all keyframes (poses fixed; what ``semantic_gs_slam.run --refine-iters`` does). 0 = none; a
+            cancelled run skips it, and a cancel during it keeps what is done and writes the map.
         clean_start: remove frames of an earlier run from work_dir at start.
         frames_before: frames processed by the run this one resumes (checkpoint bookkeeping).
     """
@@ -96,8 +104,13 @@ class SessionConfig:
     export_every: int = 0
     map_dir: str = ""
     max_frames: int = 0
+    refine_iters: int = 0
     clean_start: bool = True
     frames_before: int = 0
+
+    def __post_init__(self) -> None:
+        if self.refine_iters < 0:
+            raise StreamingError(f"refine_iters must be >= 0 (0 = no refinement), got {self.refine_iters}")
 
     def resolved_map_dir(self) -> str:
         return self.map_dir or os.path.join(self.work_dir, "map")
@@ -378,17 +391,43 @@ class StreamingSession:
             ok = self._writer.error is None
             return SessionResult(ok, "", "", n, f"{message + ': ' if message else ''}recorded {n} frames "
                                                 f"to {self.cfg.work_dir} (no SLAM)")
+        rate = n / max(time.monotonic() - t0, 1e-9)  # frames over the time until the last one, not the refinement
+        refined = self._refine() if message != "cancelled" else ""
         try:
             map_path, sem_path = self._export()
         except (OSError, StreamingError) as exc:
             return SessionResult(False, "", "", n, f"cannot write the map: {exc}")
-        rate = n / max(time.monotonic() - t0, 1e-9)
         ok = self._writer.error is None
         p = self.progress()
-        summary = f"{n} frames processed ({rate:.2f} frames/s), {p.gaussians} Gaussians"
+        summary = f"{n} frames processed ({rate:.2f} frames/s), {p.gaussians} Gaussians{refined}"
         if p.lost or p.drift_corrections:
             summary += f", tracking lost on {p.lost} frames, drift corrected {p.drift_corrections} times"
         return SessionResult(ok, map_path, sem_path, n, f"{message + ': ' if message else ''}{summary}")
+
+    def _refine(self) -> str:
+        """``refine_iters`` iterations of the engine's map refinement, in chunks of ``REFINE_CHUNK`` with a look
+        at a cancel request between them; returns the summary's note ("" when none ran)."""
+        refine = getattr(self.engine, "refine", None)
+        total = self.cfg.refine_iters
+        if total <= 0 or refine is None:
+            return ""
+        self._log(f"refining the map: {total} iterations over all keyframes before it is written")
+        t0, done = time.monotonic(), 0
+        while done < total:
+            with self._lock:
+                if self._cancelled:
+                    break
+            try:
+                refine(min(REFINE_CHUNK, total - done))
+            except Exception as exc:  # noqa: BLE001  (the map as it is is still written)
+                self._log(f"map refinement stopped after {done} iterations: {exc}")
+                break
+            done += min(REFINE_CHUNK, total - done)
+        with self._lock:
+            self._progress.gaussians = int(self.engine.num_gaussians)
+        note = f"refined {done} of {total} iterations in {time.monotonic() - t0:.1f} s"
+        self._log(f"map {note}" + ("" if done == total else " (cancelled or stopped)"))
+        return f", {note}"
 
     def _still(self, odom: np.ndarray) -> bool:
         """Whether the camera moved less than ``min_motion_*`` since the last frame given to SLAM (which

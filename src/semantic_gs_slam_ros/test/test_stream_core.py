@@ -353,3 +353,78 @@ def test_engine_adapter_reports_the_engines_last_frame():
     adapter.add_frame(rgb, depth, None, 0.0)
     assert adapter.frame_report() == (False, False, "")
     assert len(adapter.slam.logs) == 1  # the report is the engine's own log of that frame
+
+
+def _engine_session(tmp_path, refine_iters: int, log: list[str]):
+    """A session around the real engine (EngineAdapter + SLAM) fed four frames of the synthetic home."""
+    from semantic_gs_slam.config import SlamConfig
+    from semantic_gs_slam.slam import SLAM
+    from semantic_gs_slam.synthetic import HomeRenderer, default_intrinsics, trajectory
+    from semantic_gs_slam_ros.engine import EngineAdapter
+    from semantic_gs_slam_ros.session import SessionConfig, StreamingSession
+
+    k = default_intrinsics(64, 36)
+    engine = EngineAdapter(SLAM(SlamConfig(intrinsics=k, threads=1)))
+    cfg = SessionConfig(work_dir=str(tmp_path / "work"), width=0, height=0, checkpoint_every=0,
+                        refine_iters=refine_iters)
+    session = StreamingSession(cfg, engine, log=log.append)
+    r = HomeRenderer(0)
+    for i, c2w in enumerate(trajectory(4, 6.0)):
+        rgb, depth, _ = r.render(c2w, k)
+        session.on_image("depth", float(i), depth.astype(np.float32))
+        session.on_image("rgb", float(i), np.round(rgb * 255).astype(np.uint8))  # as a camera sends it
+    session.data_transfer_done()
+    return session, engine
+
+
+def test_session_refines_the_map_before_writing_it(tmp_path):
+    import threading
+
+    import semantic_gs_slam_ros.session as session_mod
+    from semantic_gs_slam.gaussian_map import load_params
+
+    log: list[str] = []
+    session, engine = _engine_session(tmp_path, 25, log)
+    calls: list[int] = []
+    before: list[np.ndarray] = []  # the map's colours when the refinement starts
+    refine = engine.refine
+
+    def counted(n):  # the real refinement, its calls counted
+        if not calls:
+            before.append(engine.slam.map.params["rgb_colors"].detach().cpu().numpy().copy())
+        calls.append(n)
+        return refine(n)
+
+    engine.refine = counted
+    result = session.run()
+    assert result.success and "refined 25 of 25 iterations" in result.message
+    assert calls == [10, 10, 5] and session_mod.REFINE_CHUNK == 10
+    assert any("refining the map: 25 iterations" in m for m in log)
+    # the map written is the refined one: the engine's map after the refinement, not the one before it
+    written = load_params(result.map_path)["rgb_colors"]
+    np.testing.assert_array_equal(written, engine.slam.map.params["rgb_colors"].detach().cpu().numpy())
+    assert written.shape != before[0].shape or not np.array_equal(written, before[0])
+
+    # a cancel during the refinement keeps what is done and still writes the map
+    log2: list[str] = []
+    session2, engine2 = _engine_session(tmp_path / "b", 1000, log2)
+    refine2 = engine2.refine
+
+    def refine_then_cancel(n):
+        out = refine2(n)
+        threading.Thread(target=session2.cancel).start()  # as the action's cancel callback would, from elsewhere
+        return out
+
+    engine2.refine = refine_then_cancel
+    result2 = session2.run()
+    assert result2.success and os.path.isfile(result2.map_path)
+    assert "refined" in result2.message and "of 1000 iterations" in result2.message
+    assert "refined 1000 of 1000" not in result2.message
+
+
+def test_session_refuses_a_negative_refinement(tmp_path):
+    from semantic_gs_slam_ros.errors import StreamingError
+    from semantic_gs_slam_ros.session import SessionConfig
+
+    with pytest.raises(StreamingError, match="refine_iters must be >= 0"):
+        SessionConfig(work_dir=str(tmp_path), refine_iters=-1)

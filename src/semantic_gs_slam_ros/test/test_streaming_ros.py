@@ -81,7 +81,7 @@ def test_stream_to_map_to_object_query(launch_nodes, ros_node, ros_domain, seque
     oq = NodeSpec("object_query_server", "object_query", "object_query_server", ready="ready:",
                   parameters={"map_path": str(work / "map" / "params.npz"),
                               "semantic_path": str(work / "map" / "semantic.json")})
-    launch_nodes(nodes=[oq, server_spec(work, sequence)])
+    launch_nodes(nodes=[oq, server_spec(work, sequence, refine_iters=20)])  # the map refined before it is written
     queries = ObjectQueryClient(ros_node)
     assert queries.wait_for_service(20.0)
     assert queries.query("placeholder", 5.0).found
@@ -89,6 +89,7 @@ def test_stream_to_map_to_object_query(launch_nodes, ros_node, ros_domain, seque
     client = Client(ros_domain, sequence / "home")
     assert client.wait() == 0, client.text()
     assert "map ready" in client.text() and "8 frames processed" in client.text()
+    assert "refined 20 of 20 iterations" in client.text(), client.text()
     # frames on disk, 64x36 after the server's resize, depth in millimetres
     from PIL import Image
 
