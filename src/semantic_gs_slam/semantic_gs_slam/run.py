@@ -101,9 +101,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--refine-iters", type=int, default=0,
                     help="after the run, refine the map over all keyframes for N iterations (not counted in FPS)")
+    ap.add_argument("--refine-poses", action="store_true",
+                    help="the refinement also optimises the keyframes' poses (bundle adjustment through the renderer; "
+                         "on real data it gives a sharper map and a better trajectory)")
     ap.add_argument("--eval", action="store_true", help="print the evaluation table at the end")
     ap.add_argument("--quiet", action="store_true", help="no per-frame log lines")
     args = ap.parse_args(argv)
+    if args.refine_poses and args.refine_iters <= 0:
+        ap.error("--refine-poses needs --refine-iters N (N > 0): it says what the refinement also optimises")
     try:
         ds = load_dataset(args.dataset, args.layout, size=parse_size(args.size) if args.size else None,
                           colour_calib=args.colour_calib)
@@ -138,8 +143,9 @@ def main(argv: list[str] | None = None) -> int:
         wall = time.perf_counter() - t0
         if args.refine_iters > 0:
             t1 = time.perf_counter()
-            eng.refine(args.refine_iters)
-            print(f"refined the map over {len(eng.keyframes)} keyframes for {args.refine_iters} iterations in "
+            eng.refine(args.refine_iters, poses=args.refine_poses)
+            print(f"refined the map{' and the keyframes poses' if args.refine_poses else ''} over "
+                  f"{len(eng.keyframes)} keyframes for {args.refine_iters} iterations in "
                   f"{time.perf_counter() - t1:.1f} s", file=sys.stderr)
         paths = eng.save(args.out)
         done = len(eng.poses) - start

@@ -13,6 +13,7 @@ import math
 import os
 import shutil
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 
 import numpy as np
@@ -46,9 +47,12 @@ from semantic_gs_slam.tracking import (
     photometric_refine,
     plane_depth_features,
     plane_depth_image,
+    w2c_from_quat_trans,
 )
 
 log = logging.getLogger("semantic_gs_slam")
+#: iterations of a refinement between two looks at its ``should_stop`` (a cancel request)
+STOP_CHECK_EVERY = 10
 
 
 @dataclass
@@ -569,46 +573,102 @@ class SLAM:
 
     def optimise(self, window: list[Keyframe], iters: int) -> float:
         """Adam over all Gaussian parameters on the keyframes of ``window`` (cycled). Returns the last loss."""
+        return self._optimise(window, iters)[0]
+
+    def _optimise(self, window: list[Keyframe], iters: int, pose_deltas: list[tuple[Tensor, Tensor]] | None = None,
+                  should_stop: Callable[[], bool] | None = None) -> tuple[float, int]:
+        """:meth:`optimise`, returning (last loss, iterations done).
+
+        Args:
+            pose_deltas: per keyframe of ``window``, a rotation [3] (the vector part of a quaternion whose real
+                part is 1) and a translation [3], leaf tensors that require grad: keyframe ``j`` is rendered
+                at ``delta_j @ w2c_j`` and every delta but the first (the gauge) is optimised too, with the
+                tracking's photometric learning rates. None: poses fixed.
+            should_stop: asked before every ``STOP_CHECK_EVERY``-th iteration; True ends the loop there.
+        """
         if iters <= 0 or len(self.map) == 0:
-            return float("nan")
+            return float("nan"), 0
         mc = self.cfg.mapping
         p = self.map.params
-        opt = torch.optim.Adam([
+        groups = [
             {"params": [p["means3D"]], "lr": mc.lr_means}, {"params": [p["rgb_colors"]], "lr": mc.lr_rgb},
             {"params": [p["unnorm_rotations"]], "lr": mc.lr_rotations},
             {"params": [p["logit_opacities"]], "lr": mc.lr_opacity},
             {"params": [p["log_scales"]], "lr": mc.lr_scales},
-            {"params": [p["semantic_features"]], "lr": mc.lr_semantic}],
-            fused=self.device.type == "cuda")  # on CUDA one kernel per step instead of ~50 (measured: 2.2 ms of host
-        # time per step at 1200x680, H200); the CPU keeps the default implementation
+            {"params": [p["semantic_features"]], "lr": mc.lr_semantic}]
+        if pose_deltas is not None and len(pose_deltas) > 1:
+            tc = self.cfg.tracking
+            groups += [{"params": [d[0] for d in pose_deltas[1:]], "lr": tc.photometric_lr_rot},
+                       {"params": [d[1] for d in pose_deltas[1:]], "lr": tc.photometric_lr_trans}]
+        opt = torch.optim.Adam(groups, fused=self.device.type == "cuda")  # on CUDA one kernel per step instead
+        # of ~50 (measured: 2.2 ms of host time per step at 1200x680, H200); the CPU keeps the default implementation
         w2cs = [torch.linalg.inv(kf.c2w).float() for kf in window]
+        one = torch.ones(1, device=self.device)
         sem_imgs = [None if kf.sem is None else self.map.one_hot(kf.sem) for kf in window]  # [H, W, C]
         labelled = [None if kf.sem is None else (kf.sem > 0).float() for kf in window]
         sem_w = [None if (kf.sem is None or mc.semantic_balance <= 0) else _class_balance(kf.sem, mc.semantic_balance)
                  for kf in window]
         loss = None
+        done = 0
         for it in range(iters):
+            if should_stop is not None and it % STOP_CHECK_EVERY == 0 and should_stop():
+                break
             j = it % len(window)
             kf = window[j]
-            out = self._render(self.map.gaussians(), w2cs[j], plane=mc.plane_depth_loss)
+            w2c = w2cs[j] if pose_deltas is None else \
+                w2c_from_quat_trans(torch.cat([one, pose_deltas[j][0]]), pose_deltas[j][1]) @ w2cs[j]
+            out = self._render(self.map.gaussians(), w2c, plane=mc.plane_depth_loss)
             loss = mapping_loss(out, kf.rgb, kf.depth, sem_imgs[j], labelled[j], sem_w[j], mc)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             with torch.device(self.device):  # some torch versions (2.11) make Adam's step counter on the default device
                 opt.step()
-        return float(loss.detach()) if loss is not None else float("nan")  # one host copy per keyframe
+            done += 1
+        return (float(loss.detach()) if loss is not None else float("nan")), done  # one host copy per keyframe
 
-    def refine(self, iters: int) -> float:
-        """Offline map refinement after the run: ``iters`` Adam steps cycling over all keyframes (poses fixed).
+    def refine(self, iters: int, poses: bool = False,
+               should_stop: Callable[[], bool] | None = None) -> tuple[float, int]:
+        """Offline map refinement after the run: ``iters`` Adam steps cycling over all keyframes.
+
+        Args:
+            poses: also optimise the keyframes' poses (a bundle adjustment through the renderer; the first
+                keyframe stays where it is). Each keyframe's correction then moves the frames it starts, as a
+                loop closure moves them. False: poses fixed.
+            should_stop: asked every ``STOP_CHECK_EVERY`` iterations (a cancel request); True ends the
+                refinement there, and what is done is kept.
 
         Returns:
-            The last loss (NaN when there is nothing to do).
+            (the last loss, iterations done); (NaN, 0) when there is nothing to do.
         """
         if not self.keyframes:
-            return float("nan")
-        loss = self.optimise(self.keyframes, iters)
+            return float("nan"), 0
+        deltas = None
+        if poses:
+            deltas = [(torch.zeros(3, device=self.device, requires_grad=True),
+                       torch.zeros(3, device=self.device, requires_grad=True)) for _ in self.keyframes]
+        loss, done = self._optimise(self.keyframes, iters, deltas, should_stop)
+        if deltas is not None:
+            self._apply_keyframe_deltas(deltas)
         self.map.prune(self.cfg.mapping.prune_opacity, self.cfg.mapping.prune_max_scale)
-        return loss
+        return loss, done
+
+    def _apply_keyframe_deltas(self, deltas: list[tuple[Tensor, Tensor]]) -> None:
+        """Keyframe ``j`` moves to ``inv(delta_j @ w2c_j)``; every frame from it to the next keyframe takes the same
+        world correction (``new @ inv(old)``)."""
+        old = [self.poses[kf.index] for kf in self.keyframes]
+        corr = []
+        with torch.no_grad():
+            for j, (kf, (dq, dt), o) in enumerate(zip(self.keyframes, deltas, old, strict=True)):
+                if j == 0:  # the gauge: never optimised, kept exactly
+                    corr.append(np.eye(4))
+                    continue
+                d = w2c_from_quat_trans(torch.cat([torch.ones(1, device=self.device), dq]), dt).double()
+                kf.c2w = torch.linalg.inv(d @ torch.linalg.inv(kf.c2w.double()))
+                corr.append(kf.c2w.cpu().numpy() @ np.linalg.inv(o))
+        starts = [kf.index for kf in self.keyframes]
+        for f in range(len(self.poses)):
+            slot = int(np.searchsorted(starts, f, side="right")) - 1
+            self.poses[f] = corr[max(slot, 0)] @ self.poses[f]
 
     # ------------------------------------------------------------------ output
     def semantic_ids(self) -> np.ndarray:

@@ -44,9 +44,10 @@ class EngineAdapter:
     def save_checkpoint(self, ckpt_dir: str) -> None:
         self.slam.checkpoint(ckpt_dir)
 
-    def refine(self, iters: int) -> float:
-        """``iters`` Adam iterations over all keyframes (:meth:`semantic_gs_slam.slam.SLAM.refine`)."""
-        return self.slam.refine(iters)
+    def refine(self, iters: int, poses: bool = False, should_stop: Callable[[], bool] | None = None) -> int:
+        """``iters`` Adam iterations over all keyframes (:meth:`semantic_gs_slam.slam.SLAM.refine`; ``poses``: the
+        keyframes' poses too); returns the iterations done (fewer when ``should_stop`` said so)."""
+        return self.slam.refine(iters, poses=poses, should_stop=should_stop)[1]
 
     @property
     def num_gaussians(self) -> int:

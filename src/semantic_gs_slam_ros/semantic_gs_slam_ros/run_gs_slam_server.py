@@ -71,6 +71,7 @@ class SlamServer(Node):
         p("checkpoint_every", 20)
         p("export_every", 0)
         p("refine_iters", 0)  # Adam iterations over all keyframes after the last frame, before the map is written
+        p("refine_poses", False)  # the refinement also optimises the keyframes' poses
         p("slam_config", "")  # YAML of the engine's SlamConfig ("" = defaults)
         p("device", "auto")  # torch device of the engine: auto (CUDA when present), cpu, cuda, cuda:N;
         # overrides slam_config's device (with CUDA and gsplat installed, renderer backend auto picks gsplat)
@@ -229,7 +230,8 @@ class SlamServer(Node):
             min_motion_m=float(g("min_motion_m").value), min_motion_deg=float(g("min_motion_deg").value),
             lag_high=g("lag_high").value, lag_low=g("lag_low").value,
             checkpoint_every=g("checkpoint_every").value, export_every=g("export_every").value,
-            refine_iters=int(g("refine_iters").value), max_frames=goal.max_frames, clean_start=not goal.resume)
+            refine_iters=int(g("refine_iters").value),
+            refine_poses=bool(g("refine_poses").value), max_frames=goal.max_frames, clean_start=not goal.resume)
 
     def _execute(self, goal_handle) -> RunSlam.Result:
         result = RunSlam.Result()

@@ -35,8 +35,6 @@ from semantic_gs_slam_ros.writer import AsyncFrameWriter, WrittenFrame, prepare_
 ODOMETRY_KEEP = 2000
 #: seconds a frame waits for an odometry pose published after its images
 ODOMETRY_WAIT = 0.5
-#: refinement iterations between two looks at a cancel request (``SessionConfig.refine_iters``)
-REFINE_CHUNK = 10
 
 
 class SlamEngine(Protocol):
@@ -56,7 +54,7 @@ class SlamEngine(Protocol):
     @property
     def num_gaussians(self) -> int: ...
 
-    # optional: ``refine(iters) -> float`` (Adam steps over all keyframes, poses fixed; the last loss) and
+    # optional: ``refine(iters, poses, should_stop) -> iterations done`` (Adam steps over all keyframes) and
     # ``frame_report() -> (lost, corrected, note)``; the session asks with getattr
 
 
@@ -82,8 +80,9 @@ class SessionConfig:
         map_dir: where the object-query server reads params.npz + semantic.json ("" = work_dir/map).
         max_frames: stop after this many processed frames (0 = until the client is done).
         refine_iters: after the last frame and before the final map is written, this many Adam iterations
-            over all keyframes (poses fixed; what ``semantic_gs_slam.run --refine-iters`` does). 0 = none; a
-            cancelled run skips it, and a cancel during it keeps what is done and writes the map.
+            over all keyframes (what ``semantic_gs_slam.run --refine-iters`` does). 0 = none; a cancelled run
+            skips it, and a cancel during it keeps what is done and writes the map.
+        refine_poses: the refinement also optimises the keyframes' poses (``--refine-poses``).
         clean_start: remove frames of an earlier run from work_dir at start.
         frames_before: frames processed by the run this one resumes (checkpoint bookkeeping).
     """
@@ -105,12 +104,15 @@ class SessionConfig:
     map_dir: str = ""
     max_frames: int = 0
     refine_iters: int = 0
+    refine_poses: bool = False
     clean_start: bool = True
     frames_before: int = 0
 
     def __post_init__(self) -> None:
         if self.refine_iters < 0:
             raise StreamingError(f"refine_iters must be >= 0 (0 = no refinement), got {self.refine_iters}")
+        if self.refine_poses and self.refine_iters == 0:
+            raise StreamingError("refine_poses needs refine_iters > 0: it says what the refinement also optimises")
 
     def resolved_map_dir(self) -> str:
         return self.map_dir or os.path.join(self.work_dir, "map")
@@ -405,24 +407,24 @@ class StreamingSession:
         return SessionResult(ok, map_path, sem_path, n, f"{message + ': ' if message else ''}{summary}")
 
     def _refine(self) -> str:
-        """``refine_iters`` iterations of the engine's map refinement, in chunks of ``REFINE_CHUNK`` with a look
-        at a cancel request between them; returns the summary's note ("" when none ran)."""
+        """``refine_iters`` iterations of the engine's map refinement, which looks at a cancel request every few
+        iterations; returns the summary's note ("" when none ran)."""
         refine = getattr(self.engine, "refine", None)
         total = self.cfg.refine_iters
         if total <= 0 or refine is None:
             return ""
-        self._log(f"refining the map: {total} iterations over all keyframes before it is written")
-        t0, done = time.monotonic(), 0
-        while done < total:
+        what = "the map and the keyframes' poses" if self.cfg.refine_poses else "the map"
+        self._log(f"refining {what}: {total} iterations over all keyframes before the map is written")
+
+        def cancelled() -> bool:
             with self._lock:
-                if self._cancelled:
-                    break
-            try:
-                refine(min(REFINE_CHUNK, total - done))
-            except Exception as exc:  # noqa: BLE001  (the map as it is is still written)
-                self._log(f"map refinement stopped after {done} iterations: {exc}")
-                break
-            done += min(REFINE_CHUNK, total - done)
+                return self._cancelled
+
+        t0, done = time.monotonic(), 0
+        try:
+            done = int(refine(total, poses=self.cfg.refine_poses, should_stop=cancelled))
+        except Exception as exc:  # noqa: BLE001  (the map as it is is still written)
+            self._log(f"map refinement failed: {exc}; the map is written as it is")
         with self._lock:
             self._progress.gaussians = int(self.engine.num_gaussians)
         note = f"refined {done} of {total} iterations in {time.monotonic() - t0:.1f} s"

@@ -355,7 +355,7 @@ def test_engine_adapter_reports_the_engines_last_frame():
     assert len(adapter.slam.logs) == 1  # the report is the engine's own log of that frame
 
 
-def _engine_session(tmp_path, refine_iters: int, log: list[str]):
+def _engine_session(tmp_path, refine_iters: int, log: list[str], refine_poses: bool = False):
     """A session around the real engine (EngineAdapter + SLAM) fed four frames of the synthetic home."""
     from semantic_gs_slam.config import SlamConfig
     from semantic_gs_slam.slam import SLAM
@@ -363,11 +363,13 @@ def _engine_session(tmp_path, refine_iters: int, log: list[str]):
     from semantic_gs_slam_ros.engine import EngineAdapter
     from semantic_gs_slam_ros.session import SessionConfig, StreamingSession
 
-    k = default_intrinsics(64, 36)
-    engine = EngineAdapter(SLAM(SlamConfig(intrinsics=k, threads=1)))
-    cfg = SessionConfig(work_dir=str(tmp_path / "work"), width=0, height=0, checkpoint_every=0,
-                        refine_iters=refine_iters)
-    session = StreamingSession(cfg, engine, log=log.append)
+    k = default_intrinsics(128, 72)
+    cfg = SlamConfig(intrinsics=k, threads=1)
+    cfg.mapping.keyframe_every = 2  # frames 0 and 2 are keyframes: a pose to refine besides the gauge
+    engine = EngineAdapter(SLAM(cfg))
+    session = StreamingSession(SessionConfig(work_dir=str(tmp_path / "work"), width=0, height=0, checkpoint_every=0,
+                                             refine_iters=refine_iters, refine_poses=refine_poses),
+                               engine, log=log.append)
     r = HomeRenderer(0)
     for i, c2w in enumerate(trajectory(4, 6.0)):
         rgb, depth, _ = r.render(c2w, k)
@@ -377,54 +379,60 @@ def _engine_session(tmp_path, refine_iters: int, log: list[str]):
     return session, engine
 
 
-def test_session_refines_the_map_before_writing_it(tmp_path):
-    import threading
-
-    import semantic_gs_slam_ros.session as session_mod
+@pytest.mark.parametrize("poses", [False, True])
+def test_session_refines_the_map_before_writing_it(tmp_path, poses):
     from semantic_gs_slam.gaussian_map import load_params
 
     log: list[str] = []
-    session, engine = _engine_session(tmp_path, 25, log)
-    calls: list[int] = []
-    before: list[np.ndarray] = []  # the map's colours when the refinement starts
+    session, engine = _engine_session(tmp_path, 25, log, refine_poses=poses)
+    calls: list[tuple[int, bool]] = []
+    before: list[np.ndarray] = []  # the map's colours and the last pose when the refinement starts
     refine = engine.refine
 
-    def counted(n):  # the real refinement, its calls counted
-        if not calls:
-            before.append(engine.slam.map.params["rgb_colors"].detach().cpu().numpy().copy())
-        calls.append(n)
-        return refine(n)
+    def watched(n, poses=False, should_stop=None):  # the real refinement, its call recorded
+        before.append(engine.slam.map.params["rgb_colors"].detach().cpu().numpy().copy())
+        before.append(engine.slam.poses[-1].copy())
+        calls.append((n, poses))
+        assert should_stop is not None and should_stop() is False
+        return refine(n, poses=poses, should_stop=should_stop)
 
-    engine.refine = counted
+    engine.refine = watched
     result = session.run()
-    assert result.success and "refined 25 of 25 iterations" in result.message
-    assert calls == [10, 10, 5] and session_mod.REFINE_CHUNK == 10
-    assert any("refining the map: 25 iterations" in m for m in log)
+    assert result.success and "refined 25 of 25 iterations" in result.message, result.message
+    assert calls == [(25, poses)]
+    assert any("refining the map" in m and "25 iterations" in m for m in log)
     # the map written is the refined one: the engine's map after the refinement, not the one before it
-    written = load_params(result.map_path)["rgb_colors"]
-    np.testing.assert_array_equal(written, engine.slam.map.params["rgb_colors"].detach().cpu().numpy())
-    assert written.shape != before[0].shape or not np.array_equal(written, before[0])
-
-    # a cancel during the refinement keeps what is done and still writes the map
-    log2: list[str] = []
-    session2, engine2 = _engine_session(tmp_path / "b", 1000, log2)
-    refine2 = engine2.refine
-
-    def refine_then_cancel(n):
-        out = refine2(n)
-        threading.Thread(target=session2.cancel).start()  # as the action's cancel callback would, from elsewhere
-        return out
-
-    engine2.refine = refine_then_cancel
-    result2 = session2.run()
-    assert result2.success and os.path.isfile(result2.map_path)
-    assert "refined" in result2.message and "of 1000 iterations" in result2.message
-    assert "refined 1000 of 1000" not in result2.message
+    written = load_params(result.map_path)
+    colours = written["rgb_colors"]
+    np.testing.assert_array_equal(colours, engine.slam.map.params["rgb_colors"].detach().cpu().numpy())
+    assert colours.shape != before[0].shape or not np.array_equal(colours, before[0])
+    # poses move only when asked to (the last frame follows its keyframe's correction)
+    assert np.array_equal(engine.slam.poses[-1], before[1]) is not poses
 
 
-def test_session_refuses_a_negative_refinement(tmp_path):
+def test_session_cancel_during_the_refinement_still_writes_the_map(tmp_path):
+    import threading
+
+    log: list[str] = []
+    session, engine = _engine_session(tmp_path, 100000, log)
+    refine = engine.refine
+
+    def refine_and_cancel(n, poses=False, should_stop=None):
+        threading.Timer(0.5, session.cancel).start()  # as the action's cancel callback would, from elsewhere
+        return refine(n, poses=poses, should_stop=should_stop)
+
+    engine.refine = refine_and_cancel
+    result = session.run()
+    assert result.success and os.path.isfile(result.map_path)
+    assert "of 100000 iterations" in result.message and "refined 100000 of" not in result.message
+    assert any("cancelled or stopped" in m for m in log)
+
+
+def test_session_refuses_bad_refinement_settings(tmp_path):
     from semantic_gs_slam_ros.errors import StreamingError
     from semantic_gs_slam_ros.session import SessionConfig
 
     with pytest.raises(StreamingError, match="refine_iters must be >= 0"):
         SessionConfig(work_dir=str(tmp_path), refine_iters=-1)
+    with pytest.raises(StreamingError, match="refine_poses needs refine_iters > 0"):
+        SessionConfig(work_dir=str(tmp_path), refine_poses=True)

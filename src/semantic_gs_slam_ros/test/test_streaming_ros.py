@@ -81,7 +81,8 @@ def test_stream_to_map_to_object_query(launch_nodes, ros_node, ros_domain, seque
     oq = NodeSpec("object_query_server", "object_query", "object_query_server", ready="ready:",
                   parameters={"map_path": str(work / "map" / "params.npz"),
                               "semantic_path": str(work / "map" / "semantic.json")})
-    launch_nodes(nodes=[oq, server_spec(work, sequence, refine_iters=20)])  # the map refined before it is written
+    # the map and the keyframes' poses refined before the map is written
+    sup = launch_nodes(nodes=[oq, server_spec(work, sequence, refine_iters=20, refine_poses=True)])
     queries = ObjectQueryClient(ros_node)
     assert queries.wait_for_service(20.0)
     assert queries.query("placeholder", 5.0).found
@@ -90,6 +91,7 @@ def test_stream_to_map_to_object_query(launch_nodes, ros_node, ros_domain, seque
     assert client.wait() == 0, client.text()
     assert "map ready" in client.text() and "8 frames processed" in client.text()
     assert "refined 20 of 20 iterations" in client.text(), client.text()
+    assert "refining the map and the keyframes' poses: 20 iterations" in sup.get("run_gs_slam_server").output()
     # frames on disk, 64x36 after the server's resize, depth in millimetres
     from PIL import Image
 
