@@ -51,8 +51,6 @@ from semantic_gs_slam.tracking import (
 )
 
 log = logging.getLogger("semantic_gs_slam")
-#: iterations of a refinement between two looks at its ``should_stop`` (a cancel request)
-STOP_CHECK_EVERY = 10
 
 
 @dataclass
@@ -584,7 +582,7 @@ class SLAM:
                 part is 1) and a translation [3], leaf tensors that require grad: keyframe ``j`` is rendered
                 at ``delta_j @ w2c_j`` and every delta but the first (the gauge) is optimised too, with the
                 tracking's photometric learning rates. None: poses fixed.
-            should_stop: asked before every ``STOP_CHECK_EVERY``-th iteration; True ends the loop there.
+            should_stop: asked before each iteration (cheap next to a render); True ends the loop there.
         """
         if iters <= 0 or len(self.map) == 0:
             return float("nan"), 0
@@ -611,7 +609,7 @@ class SLAM:
         loss = None
         done = 0
         for it in range(iters):
-            if should_stop is not None and it % STOP_CHECK_EVERY == 0 and should_stop():
+            if should_stop is not None and should_stop():
                 break
             j = it % len(window)
             kf = window[j]
@@ -634,8 +632,8 @@ class SLAM:
             poses: also optimise the keyframes' poses (a bundle adjustment through the renderer; the first
                 keyframe stays where it is). Each keyframe's correction then moves the frames it starts, as a
                 loop closure moves them. False: poses fixed.
-            should_stop: asked every ``STOP_CHECK_EVERY`` iterations (a cancel request); True ends the
-                refinement there, and what is done is kept.
+            should_stop: asked before each iteration (a cancel request); True ends the refinement there,
+                and what is done is kept.
 
         Returns:
             (the last loss, iterations done); (NaN, 0) when there is nothing to do.

@@ -407,8 +407,8 @@ class StreamingSession:
         return SessionResult(ok, map_path, sem_path, n, f"{message + ': ' if message else ''}{summary}")
 
     def _refine(self) -> str:
-        """``refine_iters`` iterations of the engine's map refinement, which looks at a cancel request every few
-        iterations; returns the summary's note ("" when none ran)."""
+        """``refine_iters`` iterations of the engine's map refinement, which looks at a cancel request before each
+        iteration; returns the summary's note ("" when none ran)."""
         refine = getattr(self.engine, "refine", None)
         total = self.cfg.refine_iters
         if total <= 0 or refine is None:
