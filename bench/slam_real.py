@@ -163,6 +163,8 @@ def main() -> int:
     ap.add_argument("--colour-calib", default="auto",
                     help="auto (the dataset's own or the layout's default), none (colour as recorded), or a file")
     args = ap.parse_args()
+    if args.refine_poses and args.refine_iters <= 0:
+        ap.error("--refine-poses needs --refine-iters N (N > 0)")
     ds = load_dataset(args.dataset, size=parse_size(args.size) if args.size else None,
                       colour_calib=args.colour_calib)
     idx = frame_indices(len(ds), args.start, args.stride, args.frames)

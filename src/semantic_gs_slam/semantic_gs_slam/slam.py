@@ -644,23 +644,27 @@ class SLAM:
         if poses:
             deltas = [(torch.zeros(3, device=self.device, requires_grad=True),
                        torch.zeros(3, device=self.device, requires_grad=True)) for _ in self.keyframes]
-        loss, done = self._optimise(self.keyframes, iters, deltas, should_stop)
-        if deltas is not None:
-            self._apply_keyframe_deltas(deltas)
+        try:
+            loss, done = self._optimise(self.keyframes, iters, deltas, should_stop)
+        finally:  # the map was fitted at the moved poses: they go with it, also when an iteration raised
+            if deltas is not None:
+                self._apply_keyframe_deltas(deltas)
         self.map.prune(self.cfg.mapping.prune_opacity, self.cfg.mapping.prune_max_scale)
         return loss, done
 
     def _apply_keyframe_deltas(self, deltas: list[tuple[Tensor, Tensor]]) -> None:
         """Keyframe ``j`` moves to ``inv(delta_j @ w2c_j)``; every frame from it to the next keyframe takes the same
-        world correction (``new @ inv(old)``)."""
+        world correction (``new @ inv(old)``). A delta still at zero (the gauge, a keyframe never visited, no
+        iteration done) moves nothing, exactly."""
         old = [self.poses[kf.index] for kf in self.keyframes]
         corr = []
         with torch.no_grad():
             for j, (kf, (dq, dt), o) in enumerate(zip(self.keyframes, deltas, old, strict=True)):
-                if j == 0:  # the gauge: never optimised, kept exactly
+                if j == 0 or not (bool(dq.any()) or bool(dt.any())):
                     corr.append(np.eye(4))
                     continue
-                d = w2c_from_quat_trans(torch.cat([torch.ones(1, device=self.device), dq]), dt).double()
+                one = torch.ones(1, dtype=torch.float64, device=self.device)
+                d = w2c_from_quat_trans(torch.cat([one, dq.double()]), dt.double())
                 kf.c2w = torch.linalg.inv(d @ torch.linalg.inv(kf.c2w.double()))
                 corr.append(kf.c2w.cpu().numpy() @ np.linalg.inv(o))
         starts = [kf.index for kf in self.keyframes]

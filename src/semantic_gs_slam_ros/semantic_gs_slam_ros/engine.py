@@ -4,6 +4,7 @@ memory for the whole run (no rclpy here)."""
 from __future__ import annotations
 
 import os
+import time
 from collections.abc import Callable
 from typing import Any
 
@@ -120,6 +121,34 @@ def make_labels(mode: str, onnx_model: str, intrinsics: Any, streamed_labels: bo
         return LabelStage(LabelConfig(mode=mode, onnx_model=onnx_model), intrinsics, streamed_labels)
     except ConfigError as exc:
         raise StreamingError(f"labels: {exc}") from exc
+
+
+def prepare_renderer(device: str, log: Callable[[str], None]) -> None:
+    """Load gsplat's CUDA code now when ``device`` resolves to CUDA and gsplat is installed.
+
+    The first use after an install, or after gsplat's build flags changed, builds it: 1-2 minutes. The
+    server calls this before it says it is ready, so that no goal waits for a build (a client gives the
+    server ``server_timeout``, 30 s, to start a run). On the CPU, or with ``device: cpu``, it does nothing;
+    a device that cannot be had is left to the goal, which reports it.
+    """
+    if device == "cpu":
+        return
+    from semantic_gs_slam.devices import resolve_device
+    from semantic_gs_slam.errors import ConfigError
+    from semantic_gs_slam.render_gsplat import gsplat_available, load_gsplat_extension
+
+    try:
+        dev = resolve_device(device)
+    except ConfigError:
+        return
+    if dev.type != "cuda" or not gsplat_available():
+        return
+    log("loading gsplat's CUDA code (built on its first use: 1-2 minutes)")
+    t0 = time.monotonic()
+    ok, why = load_gsplat_extension()
+    log(f"gsplat's CUDA code loaded in {time.monotonic() - t0:.1f} s" if ok else
+        f"gsplat's CUDA code did not build or load ({why}): renderer 'auto' will use the PyTorch tiles, "
+        "'gsplat' will refuse the goal")
 
 
 def make_engine(slam_config: str, wait_intrinsics: Callable[[], Any], cfg: Any,

@@ -38,7 +38,7 @@ from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
-from semantic_gs_slam_ros.engine import make_engine
+from semantic_gs_slam_ros.engine import make_engine, prepare_renderer
 from semantic_gs_slam_ros.errors import ImageFormatError, StreamingError
 from semantic_gs_slam_ros.images import image_to_array
 from semantic_gs_slam_ros.lag import LagAction
@@ -118,6 +118,8 @@ class SlamServer(Node):
             except ImportError as exc:  # ConfigError / OSError (a bad or taken port) are reported by main()
                 raise ValueError(f"live_view_port needs viser (pip install -r requirements/viewer.in): {exc}") from exc
             self.get_logger().info(f"live view at {self.viewer.url} (the map as it is written, the camera's path)")
+        if self.get_parameter("slam_enabled").value:
+            prepare_renderer(str(self.get_parameter("device").value), self.get_logger().info)
         self.get_logger().info("ready: waiting for a run_gs_slam goal")
 
     # ------------------------------------------------------------------ images
@@ -274,6 +276,8 @@ class SlamServer(Node):
         with self._session_lock:
             self._session = session
             self._subscribe()
+        if goal_handle.is_cancel_requested:  # cancelled while the engine was being made: _on_cancel had no session
+            session.cancel()
         done_before = cfg.frames_before
         what = f"resuming after frame {done_before}" if resume_state else "fresh start"
         self._goal_id = bytes(goal_handle.goal_id.uuid).hex()

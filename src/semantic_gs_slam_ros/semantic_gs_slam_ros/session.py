@@ -394,7 +394,8 @@ class StreamingSession:
             return SessionResult(ok, "", "", n, f"{message + ': ' if message else ''}recorded {n} frames "
                                                 f"to {self.cfg.work_dir} (no SLAM)")
         rate = n / max(time.monotonic() - t0, 1e-9)  # frames over the time until the last one, not the refinement
-        refined = self._refine() if message != "cancelled" else ""
+        # refined after a normal end only (not after a cancel, or a writer / checkpoint failure)
+        refined = self._refine() if not message or message.startswith("reached max_frames") else ""
         try:
             map_path, sem_path = self._export()
         except (OSError, StreamingError) as exc:
@@ -420,15 +421,17 @@ class StreamingSession:
             with self._lock:
                 return self._cancelled
 
-        t0, done = time.monotonic(), 0
+        t0 = time.monotonic()
         try:
             done = int(refine(total, poses=self.cfg.refine_poses, should_stop=cancelled))
         except Exception as exc:  # noqa: BLE001  (the map as it is is still written)
             self._log(f"map refinement failed: {exc}; the map is written as it is")
+            note = f"map refinement failed ({exc})"
+        else:
+            note = f"refined {done} of {total} iterations in {time.monotonic() - t0:.1f} s"
+            self._log(f"map {note}" + ("" if done == total else " (cancelled)"))
         with self._lock:
             self._progress.gaussians = int(self.engine.num_gaussians)
-        note = f"refined {done} of {total} iterations in {time.monotonic() - t0:.1f} s"
-        self._log(f"map {note}" + ("" if done == total else " (cancelled or stopped)"))
         return f", {note}"
 
     def _still(self, odom: np.ndarray) -> bool:

@@ -32,3 +32,30 @@ def test_make_engine_explains_a_missing_gpu():
         make_engine("", lambda: CAM, session_cfg, overrides={"device": "cuda"})
     eng = make_engine("", lambda: CAM, session_cfg, overrides={"device": "auto"})
     assert eng.slam.device == torch.device("cpu")
+
+
+def test_prepare_renderer_loads_gsplat_before_the_server_is_ready(monkeypatch):
+    """On CUDA with gsplat installed the server loads (builds) gsplat's CUDA code before "ready:", and says how
+    it went; on the CPU it does nothing. torch's CUDA check and gsplat's extension module are stand-ins here:
+    only what the server does with their answers is under test (the real build runs in ``make bench-gpu``)."""
+    if torch.cuda.is_available():
+        pytest.skip("this test describes a machine without CUDA")
+    pytest.importorskip("gsplat")
+    import sys
+
+    import semantic_gs_slam.render_gsplat as rgm
+    from semantic_gs_slam_ros.engine import prepare_renderer
+
+    lines: list[str] = []
+    prepare_renderer("auto", lines.append)  # no CUDA here: nothing to load
+    prepare_renderer("cpu", lines.append)
+    assert lines == []
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    for ext, said in ((None, "did not build or load (gsplat found no CUDA toolkit (nvcc))"), (object(), "loaded in")):
+        monkeypatch.setattr(rgm, "_EXTENSION", {})
+        mod = types.ModuleType("gsplat.cuda._backend")
+        mod._C = ext
+        monkeypatch.setitem(sys.modules, "gsplat.cuda._backend", mod)
+        lines.clear()
+        prepare_renderer("cuda", lines.append)
+        assert lines[0].startswith("loading gsplat's CUDA code") and said in lines[1], lines

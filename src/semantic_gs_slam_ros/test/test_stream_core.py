@@ -424,8 +424,25 @@ def test_session_cancel_during_the_refinement_still_writes_the_map(tmp_path):
     engine.refine = refine_and_cancel
     result = session.run()
     assert result.success and os.path.isfile(result.map_path)
-    assert "of 100000 iterations" in result.message and "refined 100000 of" not in result.message
-    assert any("cancelled or stopped" in m for m in log)
+    import re
+
+    m = re.search(r"refined (\d+) of 100000 iterations", result.message)
+    assert m and 0 < int(m.group(1)) < 100000, result.message
+    assert any("(cancelled)" in line for line in log) and not any("failed" in line for line in log)
+
+
+def test_session_refinement_failure_is_reported_and_the_map_still_written(tmp_path):
+    log: list[str] = []
+    session, engine = _engine_session(tmp_path, 50, log)
+
+    def broken(n, poses=False, should_stop=None):
+        raise RuntimeError("out of memory")
+
+    engine.refine = broken
+    result = session.run()
+    assert result.success and os.path.isfile(result.map_path)
+    assert "map refinement failed (out of memory)" in result.message
+    assert any("map refinement failed: out of memory; the map is written as it is" in line for line in log)
 
 
 def test_session_refuses_bad_refinement_settings(tmp_path):
