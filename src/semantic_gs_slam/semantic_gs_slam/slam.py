@@ -529,9 +529,7 @@ class SLAM:
                 corr[cur] = corr[cur - 1]
                 new[cur] = corr[cur] @ old[cur]
         starts = [kf.index for kf in self.keyframes] + [idx]
-        for f in range(len(self.poses)):
-            slot = int(np.searchsorted(starts, f, side="right")) - 1
-            self.poses[f] = corr[max(slot, 0)] @ self.poses[f]
+        self._move_frames(starts, corr)
         for kf, n in zip(self.keyframes, new[:-1], strict=False):
             kf.c2w = torch.as_tensor(n, device=self.device)
         self.map.move_by_frame(torch.as_tensor(starts, dtype=torch.int64, device=self.device),
@@ -658,16 +656,20 @@ class SLAM:
         iteration done) moves nothing, exactly."""
         old = [self.poses[kf.index] for kf in self.keyframes]
         corr = []
+        one = torch.ones(1, dtype=torch.float64, device=self.device)
         with torch.no_grad():
             for j, (kf, (dq, dt), o) in enumerate(zip(self.keyframes, deltas, old, strict=True)):
                 if j == 0 or not (bool(dq.any()) or bool(dt.any())):
                     corr.append(np.eye(4))
                     continue
-                one = torch.ones(1, dtype=torch.float64, device=self.device)
                 d = w2c_from_quat_trans(torch.cat([one, dq.double()]), dt.double())
                 kf.c2w = torch.linalg.inv(d @ torch.linalg.inv(kf.c2w.double()))
                 corr.append(kf.c2w.cpu().numpy() @ np.linalg.inv(o))
-        starts = [kf.index for kf in self.keyframes]
+        self._move_frames([kf.index for kf in self.keyframes], corr)
+
+    def _move_frames(self, starts: list[int], corr: list[np.ndarray]) -> None:
+        """Frame ``f`` takes the world correction ``corr[k]`` ([4, 4]) of the last segment start ``starts[k] <= f``
+        (frames before the first start take the first)."""
         for f in range(len(self.poses)):
             slot = int(np.searchsorted(starts, f, side="right")) - 1
             self.poses[f] = corr[max(slot, 0)] @ self.poses[f]
