@@ -115,6 +115,16 @@ def mapping_loss(out: RenderOutput, rgb: Tensor, depth: Tensor, sem_img: Tensor 
     return loss
 
 
+POSE_PRIOR_TRANS_M = 0.01  # scale of a keyframe's translation correction in pose_prior (1 cm)
+POSE_PRIOR_ROT_QV = 0.004  # scale of its rotation correction, as a quaternion's vector part (~0.46 degrees)
+
+
+def pose_prior(dq: Tensor, dt: Tensor, weight: float) -> Tensor:
+    """``weight * (|dt|^2 / (1 cm)^2 + |dq|^2 / 0.004^2)``: the refinement's pull of a keyframe's pose correction
+    (``dq`` [3], the vector part of a quaternion whose real part is 1; ``dt`` [3], metres) toward none. Scalar."""
+    return weight * ((dt * dt).sum() / POSE_PRIOR_TRANS_M ** 2 + (dq * dq).sum() / POSE_PRIOR_ROT_QV ** 2)
+
+
 @dataclass
 class FrameLog:
     """What happened to one frame (printed per frame by the CLI)."""
@@ -579,7 +589,8 @@ class SLAM:
             pose_deltas: per keyframe of ``window``, a rotation [3] (the vector part of a quaternion whose real
                 part is 1) and a translation [3], leaf tensors that require grad: keyframe ``j`` is rendered
                 at ``delta_j @ w2c_j`` and every delta but the first (the gauge) is optimised too, with the
-                tracking's photometric learning rates. None: poses fixed.
+                tracking's photometric learning rates and :func:`pose_prior` (``mapping.refine_pose_prior``).
+                None: poses fixed.
             should_stop: asked before each iteration (cheap next to a render); True ends the loop there.
         """
         if iters <= 0 or len(self.map) == 0:
@@ -615,6 +626,8 @@ class SLAM:
                 w2c_from_quat_trans(torch.cat([one, pose_deltas[j][0]]), pose_deltas[j][1]) @ w2cs[j]
             out = self._render(self.map.gaussians(), w2c, plane=mc.plane_depth_loss)
             loss = mapping_loss(out, kf.rgb, kf.depth, sem_imgs[j], labelled[j], sem_w[j], mc)
+            if pose_deltas is not None and j > 0 and mc.refine_pose_prior > 0:
+                loss = loss + pose_prior(pose_deltas[j][0], pose_deltas[j][1], mc.refine_pose_prior)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             with torch.device(self.device):  # some torch versions (2.11) make Adam's step counter on the default device
