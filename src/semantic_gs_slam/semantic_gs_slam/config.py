@@ -188,9 +188,9 @@ class MappingConfig:
     prune_max_scale: float = 0.3  # metres; bigger Gaussians are removed
     prune_every: int = 5  # keyframes between pruning passes
     refine_pose_prior: float = 0.001  # SLAM.refine(poses=True): weight w of a prior that holds each keyframe's pose
-    # correction near zero, w * (|t|^2 / (1 cm)^2 + |q_v|^2 / 0.004^2) per rendered keyframe. Where pixels are too coarse
-    # to see a pose error the poses would random-walk under Adam (2.7 cm on the synthetic home at 120x68); 0.001
-    # halves that at the 320x240 kitchen's quality (docs/slam.md "Refined at the end"); 0 = no prior
+    # correction near zero, w * (|t|^2 / (1 cm)^2 + |q_v|^2 / 0.004^2) per rendered keyframe. Where pixels are too
+    # coarse to see a pose error the poses would random-walk under Adam (2.7 cm on the synthetic home at 120x68);
+    # 0.001 halves that at the 320x240 kitchen's quality (docs/slam.md "Refined at the end"); 0 = no prior
 
     def check(self) -> None:
         if self.ssim_backend not in ("auto", "torch", "numba"):
