@@ -87,7 +87,8 @@ class SlamServer(Node):
         p("min_motion_m", 0.0)  # with odometry: skip frames that moved less than this and ...
         p("min_motion_deg", 0.0)  # ... turned less than this since the last mapped one (0 = take every frame)
         self._busy = threading.Lock()  # held while a goal runs (one goal at a time)
-        self._session_lock = threading.Lock()  # guards _session, _subs, _intrinsics
+        self._session_lock = threading.Lock()  # guards _session, _subs, _intrinsics, _early_cancels
+        self._early_cancels: set[bytes] = set()  # ids of goals cancelled before their session existed
         self._session: StreamingSession | None = None
         self._subs: list = []
         self._intrinsics: tuple[float, float, float, float, int, int] | None = None  # fx fy cx cy w h
@@ -215,8 +216,11 @@ class SlamServer(Node):
             return GoalResponse.REJECT
         return GoalResponse.ACCEPT
 
-    def _on_cancel(self, _goal_handle) -> CancelResponse:
-        session = self._session
+    def _on_cancel(self, goal_handle) -> CancelResponse:
+        with self._session_lock:
+            session = self._session
+            if session is None:  # the goal's session is not made yet: _run looks here once it is
+                self._early_cancels.add(bytes(goal_handle.goal_id.uuid))
         if session is not None:
             session.cancel()
         return CancelResponse.ACCEPT
@@ -248,6 +252,7 @@ class SlamServer(Node):
                 self._unsubscribe()
                 self._session = None
                 self._goal_id = None
+                self._early_cancels.discard(bytes(goal_handle.goal_id.uuid))
             self._busy.release()
 
     def _run(self, goal_handle, result: RunSlam.Result) -> RunSlam.Result:
@@ -275,8 +280,11 @@ class SlamServer(Node):
             return result
         with self._session_lock:
             self._session = session
+            early = bytes(goal_handle.goal_id.uuid) in self._early_cancels
             self._subscribe()
-        if goal_handle.is_cancel_requested:  # cancelled while the engine was being made: _on_cancel had no session
+        # cancelled while the engine was being made: _on_cancel had no session to tell (the set closes the window
+        # between _on_cancel's answer and the goal's state change that is_cancel_requested reads)
+        if early or goal_handle.is_cancel_requested:
             session.cancel()
         done_before = cfg.frames_before
         what = f"resuming after frame {done_before}" if resume_state else "fresh start"

@@ -287,3 +287,38 @@ def test_live_view_flag_serves_the_map_as_it_is_written(launch_nodes, ros_domain
     assert wait_for(lambda: len(re.findall(r"live view: (\d+) Gaussians", log())) >= 2, 30), log()
     counts = [int(n) for n in re.findall(r"live view: (\d+) Gaussians", log())]
     assert counts[0] > 0 and counts[-1] >= counts[0]  # at frame 4, then the final map
+
+
+def test_cancel_while_the_engine_is_made_ends_the_goal(launch_nodes, ros_node, sequence, tmp_path):
+    """A cancel that arrives before the run's session exists (the server is still waiting for camera_info to
+    make the engine) is kept: once the engine is made the goal ends as cancelled instead of waiting for frames
+    that will never come."""
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from semantic_gs_slam_interfaces.action import RunSlam
+    from sensor_msgs.msg import CameraInfo
+
+    from home_robot_ros.actions import ActionClient
+
+    work = tmp_path / "run"
+    sup = launch_nodes(nodes=[server_spec(work, sequence)])
+    info_pub = ros_node.create_publisher(CameraInfo, "camera_info", QoSProfile(depth=5,
+                                         reliability=ReliabilityPolicy.RELIABLE))
+    action = ActionClient(ros_node, RunSlam, "run_gs_slam")
+    assert action.wait_for_server(timeout_sec=20)
+    sent = action.send_goal_async(RunSlam.Goal())
+    assert wait_for(lambda: sent.done(), 20)
+    handle = sent.result()
+    assert handle.accepted
+    result = handle.get_result_async()
+    cancel = handle.cancel_goal_async()  # no camera_info yet: the server is inside make_engine, no session
+    assert wait_for(lambda: cancel.done(), 20)
+    assert len(cancel.result().goals_canceling) == 1
+    assert not result.done()
+    info_pub.publish(CameraInfo(width=96, height=54, k=[60.0, 0, 47.5, 0, 60.0, 26.5, 0, 0, 1]))
+    assert wait_for(lambda: result.done(), 60), sup.output()
+    res = result.result()
+    from action_msgs.msg import GoalStatus
+
+    assert res.status == GoalStatus.STATUS_CANCELED, (res.status, res.result.message)
+    assert res.result.frames_processed == 0
+    assert wait_for(lambda: "run finished: cancelled" in sup.get("run_gs_slam_server").output(), 20), sup.output()
