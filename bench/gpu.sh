@@ -14,6 +14,11 @@
 # table is written, default out/gpu), DATA (generated sequences, default /tmp/slam_gpu_data),
 # FRAMES (per size, default 60), SIZES (default "300x170 600x340 1200x680"), TORCH_CUDA_ARCH_LIST
 # and FAST_COMPILE (gsplat's build flags: as set, the same that any later run must see), MAX_JOBS.
+# REAL_DATA (a real RGB-D sequence folder, e.g. 7-Scenes; default none): after the table, bench/slam_real.py on
+# CUDA three times (the defaults with a 900-iteration refinement with poses; every pixel seeded on keyframes with
+# the same refinement; geometry labels), REAL_FRAMES (default 250) every REAL_STRIDE-th frame (default 2; 1 for a
+# copy of every 2nd frame, which is what fits beside the wheels on a device machine). Run nothing else on the
+# machine meanwhile: a busy host slows the GPU loop (its frames are paced by one host thread).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$PWD
@@ -39,6 +44,10 @@ if [ "${1:-}" = --download ]; then
     --platform manylinux2014_x86_64 --platform manylinux_2_28_x86_64 "${GPU_WHEELS[@]}"
   ls -1 "$WHEELS" >&2
   exit 0
+fi
+
+if [ -n "${REAL_DATA:-}" ] && [ ! -d "$REAL_DATA" ]; then
+  die "REAL_DATA=$REAL_DATA is not a folder (a real RGB-D sequence: 7-Scenes, TUM RGB-D, Replica layout)"
 fi
 
 # --- 1. a CUDA torch and nvcc ------------------------------------------------------------------
@@ -98,5 +107,20 @@ log "quality / speed table ($SIZES, $FRAMES frames each) and streaming"
 "$PY" bench/slam_gpu.py --device cuda --backend gsplat --frames "$FRAMES" --sizes $SIZES \
   --threads "$(( nproc < 8 ? nproc : 8 ))" --workers "$nproc" --data "${DATA:-/tmp/slam_gpu_data}" --baseline \
   | tee "$OUT_DIR/table.md"
+
+# --- 6. a real sequence on CUDA (issue 17 section 5), when REAL_DATA names one ---------------------
+if [ -n "${REAL_DATA:-}" ]; then
+  real=("$PY" bench/slam_real.py "$REAL_DATA" --frames "${REAL_FRAMES:-250}" --stride "${REAL_STRIDE:-2}"
+        --device cuda --no-open3d --quiet --curve-every 125)
+  echo '{"mapping": {"keyframe_pixel_stride": 1}}' > "$OUT_DIR/kps1.json"
+  set +e  # one failing run must not hide the others
+  log "real sequence $REAL_DATA: defaults, then a 900-iteration refinement with poses"
+  "${real[@]}" --refine-iters 900 --refine-poses | tee "$OUT_DIR/real.md"
+  log "the same with every pixel seeded on keyframes (mapping.keyframe_pixel_stride 1)"
+  "${real[@]}" --config "$OUT_DIR/kps1.json" --refine-iters 900 --refine-poses | tee "$OUT_DIR/real_kps1.md"
+  log "geometry labels"
+  "${real[@]}" --labels geometry | tee "$OUT_DIR/real_labels.md"
+  set -e
+fi
 log "done in $(( $(date +%s) - T0 )) s; tests exit $tests_rc; table in $OUT_DIR/table.md (paste into docs/slam.md)"
 exit "$tests_rc"

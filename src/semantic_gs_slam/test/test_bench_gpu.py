@@ -44,6 +44,14 @@ def test_gpu_script_is_valid_bash_and_refuses_a_cpu_torch_clearly():
     assert r.returncode == 2 and "needs a CUDA machine" in r.stderr
 
 
+def test_gpu_script_refuses_a_real_data_path_that_is_not_a_folder(tmp_path):
+    """``REAL_DATA`` is checked first, before any GPU work, so a typo does not cost a device run."""
+    script = os.path.join(BENCH, "gpu.sh")
+    r = subprocess.run(["bash", script], capture_output=True, text=True, timeout=60,
+                       env={**os.environ, "PYTHON": sys.executable, "REAL_DATA": str(tmp_path / "nope")})
+    assert r.returncode == 2 and "REAL_DATA=" in r.stderr and "is not a folder" in r.stderr, r.stderr
+
+
 def test_size_argument_errors_are_clear():
     sys.path.insert(0, BENCH)
     try:
