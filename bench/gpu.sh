@@ -20,6 +20,7 @@
 # copy of every 2nd frame, which is what fits beside the wheels on a device machine). Run nothing else on the
 # machine meanwhile: a busy host slows the GPU loop (its frames are paced by one host thread).
 set -euo pipefail
+if [ -n "${REAL_DATA:-}" ] && [ -d "$REAL_DATA" ]; then REAL_DATA=$(cd "$REAL_DATA" && pwd); fi  # before the cd below
 cd "$(dirname "$0")/.."
 ROOT=$PWD
 PY=${PYTHON:-python3}
