@@ -38,6 +38,7 @@ from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
+from semantic_gs_slam_ros.cancels import CancelRouter
 from semantic_gs_slam_ros.engine import make_engine, prepare_renderer
 from semantic_gs_slam_ros.errors import ImageFormatError, StreamingError
 from semantic_gs_slam_ros.images import image_to_array
@@ -87,8 +88,8 @@ class SlamServer(Node):
         p("min_motion_m", 0.0)  # with odometry: skip frames that moved less than this and ...
         p("min_motion_deg", 0.0)  # ... turned less than this since the last mapped one (0 = take every frame)
         self._busy = threading.Lock()  # held while a goal runs (one goal at a time)
-        self._session_lock = threading.Lock()  # guards _session, _subs, _intrinsics, _early_cancels
-        self._early_cancels: set[bytes] = set()  # ids of goals cancelled before their session existed
+        self._session_lock = threading.Lock()  # guards _session, _subs, _intrinsics
+        self._cancels = CancelRouter()  # a cancel reaches its own goal's session, also one that comes before it
         self._session: StreamingSession | None = None
         self._subs: list = []
         self._intrinsics: tuple[float, float, float, float, int, int] | None = None  # fx fy cx cy w h
@@ -217,12 +218,7 @@ class SlamServer(Node):
         return GoalResponse.ACCEPT
 
     def _on_cancel(self, goal_handle) -> CancelResponse:
-        with self._session_lock:
-            session = self._session
-            if session is None:  # the goal's session is not made yet: _run looks here once it is
-                self._early_cancels.add(bytes(goal_handle.goal_id.uuid))
-        if session is not None:
-            session.cancel()
+        self._cancels.request(bytes(goal_handle.goal_id.uuid))
         return CancelResponse.ACCEPT
 
     def _config(self, goal: RunSlam.Goal) -> SessionConfig:
@@ -242,6 +238,7 @@ class SlamServer(Node):
     def _execute(self, goal_handle) -> RunSlam.Result:
         result = RunSlam.Result()
         if not self._busy.acquire(blocking=False):
+            self._cancels.finish(bytes(goal_handle.goal_id.uuid))  # its early cancel, if any, is not kept
             goal_handle.abort()
             result.message = "another run is in progress"
             return result
@@ -252,7 +249,7 @@ class SlamServer(Node):
                 self._unsubscribe()
                 self._session = None
                 self._goal_id = None
-                self._early_cancels.discard(bytes(goal_handle.goal_id.uuid))
+            self._cancels.finish(bytes(goal_handle.goal_id.uuid))
             self._busy.release()
 
     def _run(self, goal_handle, result: RunSlam.Result) -> RunSlam.Result:
@@ -280,11 +277,9 @@ class SlamServer(Node):
             return result
         with self._session_lock:
             self._session = session
-            early = bytes(goal_handle.goal_id.uuid) in self._early_cancels
             self._subscribe()
-        # cancelled while the engine was being made: _on_cancel had no session to tell (the set closes the window
-        # between _on_cancel's answer and the goal's state change that is_cancel_requested reads)
-        if early or goal_handle.is_cancel_requested:
+        # a cancel that came while the engine was being made had no session to reach: the router kept it
+        if not self._cancels.start(bytes(goal_handle.goal_id.uuid), session) and goal_handle.is_cancel_requested:
             session.cancel()
         done_before = cfg.frames_before
         what = f"resuming after frame {done_before}" if resume_state else "fresh start"
