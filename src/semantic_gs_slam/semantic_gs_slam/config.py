@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import re
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any
@@ -207,7 +208,7 @@ class MappingConfig:
             raise ConfigError("mapping iteration counts must be >= 0")
         if self.keyframe_pixel_stride < 0:
             raise ConfigError("mapping.keyframe_pixel_stride must be >= 0 (0 = pixel_stride)")
-        if not self.refine_pose_prior >= 0:  # also NaN
+        if not (math.isfinite(self.refine_pose_prior) and self.refine_pose_prior >= 0):
             raise ConfigError(f"mapping.refine_pose_prior must be >= 0 (0 = no prior), got {self.refine_pose_prior}")
 
 

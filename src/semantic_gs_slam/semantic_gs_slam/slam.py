@@ -647,7 +647,8 @@ class SLAM:
                 and what is done is kept.
 
         Returns:
-            (the last loss, iterations done); (NaN, 0) when there is nothing to do.
+            (the last loss, iterations done); (NaN, 0) when there is nothing to do. With ``poses`` the loss
+            includes the pose prior (``mapping.refine_pose_prior``).
         """
         if not self.keyframes:
             return float("nan"), 0

@@ -98,7 +98,7 @@ def test_three_term_helpers_give_numpys_bits():
     """The labeller's per-pixel 3-vector arithmetic, written out, equals numpy's reductions bit for bit (so its
     labels did not change when it was sped up): dot products, norms, cross products, any-non-zero. (The plane
     distances were a matmul, which rounds in another order: within an ulp, same labels on 60 real frames.)"""
-    from semantic_gs_slam.labels.geometry import _dot3, _nonzero3
+    from semantic_gs_slam.labels.geometry import _cross3, _dot3, _nonzero3, normals_from_points
 
     rng = np.random.default_rng(0)
     a = rng.normal(size=(37, 53, 3)) * 10.0 ** rng.integers(-6, 3, size=(37, 53, 1))
@@ -111,9 +111,24 @@ def test_three_term_helpers_give_numpys_bits():
     np.testing.assert_allclose(_dot3(a, v), a @ v, rtol=1e-14, atol=1e-14 * float(np.abs(a).max()))
     assert np.array_equal(np.sqrt(_dot3(a, a)), np.linalg.norm(a, axis=-1))
     assert np.array_equal(_nonzero3(a), np.abs(a).sum(-1) > 0)
-    cross = np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1], a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
-                      a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], -1)
-    assert np.array_equal(cross, np.cross(a, b))
+    assert np.array_equal(_cross3(a, b), np.cross(a, b))
+    # normals_from_points as it was written with numpy's reductions (the flip by boolean indexing)
+    pts = np.concatenate([rng.normal(size=(37, 53, 2)), 1.0 + rng.random((37, 53, 1))], -1)
+    valid = rng.random((37, 53)) > 0.1
+    dx, dy = np.zeros_like(pts), np.zeros_like(pts)
+    dx[:, 1:-1] = pts[:, 2:] - pts[:, :-2]
+    dy[1:-1] = pts[2:] - pts[:-2]
+    n = np.cross(dx, dy)
+    ok = valid.copy()
+    ok[:, 1:-1] &= valid[:, 2:] & valid[:, :-2]
+    ok[1:-1] &= valid[2:] & valid[:-2]
+    ok[[0, -1], :] = False
+    ok[:, [0, -1]] = False
+    norm = np.linalg.norm(n, axis=-1)
+    ok &= norm > 1e-12
+    n = np.where(ok[..., None], n / np.maximum(norm, 1e-12)[..., None], 0.0)
+    n[(n * pts).sum(-1) > 0] *= -1
+    assert np.array_equal(normals_from_points(pts, valid), n)
 
 
 @pytest.fixture(scope="module")

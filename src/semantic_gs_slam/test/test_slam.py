@@ -539,6 +539,6 @@ def test_pose_prior_value_and_bad_weights():
     assert float(pose_prior(dq, dt, 0.5)) == pytest.approx(0.5 * (1.0 + 2.0))
     assert float(pose_prior(torch.zeros(3), torch.zeros(3), 1.0)) == 0.0
     k = Intrinsics(40, 30, 30.0, 30.0, 20.0, 15.0)
-    for bad in (-0.001, float("nan")):
+    for bad in (-0.001, float("nan"), float("inf")):
         with pytest.raises(ConfigError, match="refine_pose_prior"):
             SLAM(SlamConfig(intrinsics=k, mapping=MappingConfig(refine_pose_prior=bad)))

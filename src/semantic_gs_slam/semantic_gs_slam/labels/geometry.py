@@ -100,6 +100,13 @@ def _dot3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1] + a[..., 2] * b[..., 2]
 
 
+def _cross3(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.cross(a, b)`` of [..., 3] arrays, the same bits, without its axis juggling."""
+    return np.stack([a[..., 1] * b[..., 2] - a[..., 2] * b[..., 1],
+                     a[..., 2] * b[..., 0] - a[..., 0] * b[..., 2],
+                     a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]], -1)
+
+
 def _nonzero3(a: np.ndarray) -> np.ndarray:
     """``np.abs(a).sum(-1) > 0`` of a finite [..., 3] array: any component non-zero."""
     return (a[..., 0] != 0) | (a[..., 1] != 0) | (a[..., 2] != 0)
@@ -137,9 +144,7 @@ def normals_from_points(pts: np.ndarray, valid: np.ndarray) -> np.ndarray:
     dy = np.zeros_like(pts)
     dx[:, 1:-1] = pts[:, 2:] - pts[:, :-2]
     dy[1:-1] = pts[2:] - pts[:-2]
-    n = np.stack([dx[..., 1] * dy[..., 2] - dx[..., 2] * dy[..., 1],  # np.cross(dx, dy), the same bits
-                  dx[..., 2] * dy[..., 0] - dx[..., 0] * dy[..., 2],
-                  dx[..., 0] * dy[..., 1] - dx[..., 1] * dy[..., 0]], -1)
+    n = _cross3(dx, dy)
     ok = valid.copy()
     ok[:, 1:-1] &= valid[:, 2:] & valid[:, :-2]
     ok[1:-1] &= valid[2:] & valid[:-2]
