@@ -55,6 +55,11 @@ def stamp_seconds(msg: Image) -> float:
     return msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
 
 
+def goal_key(goal_handle) -> bytes:
+    """A goal's id as bytes (the cancel router's key; ``.hex()`` is what the start and done signals carry)."""
+    return bytes(goal_handle.goal_id.uuid)
+
+
 class SlamServer(Node):
     def __init__(self) -> None:
         super().__init__("run_gs_slam_server")
@@ -218,7 +223,7 @@ class SlamServer(Node):
         return GoalResponse.ACCEPT
 
     def _on_cancel(self, goal_handle) -> CancelResponse:
-        self._cancels.request(bytes(goal_handle.goal_id.uuid))
+        self._cancels.request(goal_key(goal_handle))
         return CancelResponse.ACCEPT
 
     def _config(self, goal: RunSlam.Goal) -> SessionConfig:
@@ -238,7 +243,7 @@ class SlamServer(Node):
     def _execute(self, goal_handle) -> RunSlam.Result:
         result = RunSlam.Result()
         if not self._busy.acquire(blocking=False):
-            self._cancels.finish(bytes(goal_handle.goal_id.uuid))  # its early cancel, if any, is not kept
+            self._cancels.finish(goal_key(goal_handle))  # its early cancel, if any, is not kept
             goal_handle.abort()
             result.message = "another run is in progress"
             return result
@@ -249,7 +254,7 @@ class SlamServer(Node):
                 self._unsubscribe()
                 self._session = None
                 self._goal_id = None
-            self._cancels.finish(bytes(goal_handle.goal_id.uuid))
+            self._cancels.finish(goal_key(goal_handle))
             self._busy.release()
 
     def _run(self, goal_handle, result: RunSlam.Result) -> RunSlam.Result:
@@ -279,11 +284,11 @@ class SlamServer(Node):
             self._session = session
             self._subscribe()
         # a cancel that came while the engine was being made had no session to reach: the router kept it
-        if not self._cancels.start(bytes(goal_handle.goal_id.uuid), session) and goal_handle.is_cancel_requested:
+        if not self._cancels.start(goal_key(goal_handle), session) and goal_handle.is_cancel_requested:
             session.cancel()
         done_before = cfg.frames_before
         what = f"resuming after frame {done_before}" if resume_state else "fresh start"
-        self._goal_id = bytes(goal_handle.goal_id.uuid).hex()
+        self._goal_id = goal_key(goal_handle).hex()
         self._start_pub.publish(String(data=json.dumps({"goal": self._goal_id, "frames_done": done_before,
                                                         "dataset": goal.dataset_name})))
         self.get_logger().info(f"run started ({what}); work_dir={cfg.work_dir}, map_dir={cfg.resolved_map_dir()}")
