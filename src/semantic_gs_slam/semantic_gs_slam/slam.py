@@ -347,7 +347,8 @@ class SLAM:
             guess = prev @ (np.linalg.inv(self.poses[-2]) @ prev) if len(self.poses) >= 2 else prev
         g = torch.as_tensor(guess, device=self.device)
         tc = self.cfg.tracking
-        out = self.render_view(guess, scale_shrink=tc.render_scale_shrink, semantic=False)
+        shrink = tc.render_scale_shrink if odom_guess is None else tc.render_scale_shrink_odometry
+        out = self.render_view(guess, scale_shrink=shrink, semantic=False)
         sil = out.silhouette
         valid = sil > tc.min_silhouette
         md = out.depth / sil.clamp_min(1e-6)

@@ -354,6 +354,38 @@ def test_tracking_failure_keeps_the_odometry_guess_and_maps_it_only_when_asked(t
     assert strict.logs[1].pose_source == "previous" and strict.logs[1].tracking_failed
 
 
+def test_the_tracking_render_size_follows_where_the_guess_came_from(tiny_home):
+    """Frames without odometry (a handheld camera) are tracked against the model rendered with radii x
+    tracking.render_scale_shrink, frames tracked from an odometry guess (a robot) with
+    tracking.render_scale_shrink_odometry; both must be finite and > 0."""
+    ds = load_dataset(str(tiny_home))
+    assert (TrackingConfig.render_scale_shrink, TrackingConfig.render_scale_shrink_odometry) == (0.7, 0.35)
+    cfg = config(ds)
+    cfg.tracking.render_scale_shrink, cfg.tracking.render_scale_shrink_odometry = 0.6, 0.4
+    seen = {}
+    for odometry in (False, True):
+        eng = SLAM(cfg, ds.classes)
+        shrinks = seen[odometry] = []
+        render_view = eng.render_view
+
+        def spy(c2w, scale_shrink=1.0, semantic=True, render_view=render_view, shrinks=shrinks):
+            shrinks.append(scale_shrink)
+            return render_view(c2w, scale_shrink, semantic)
+
+        eng.render_view = spy
+        for i in range(3):
+            f = ds[i]
+            eng.add_frame(f.rgb, f.depth, f.semantics, f.timestamp, odom_c2w=f.gt_c2w if odometry else None)
+        assert [lg.pose_source for lg in eng.logs] == ["first", "tracking", "tracking"]
+    # tracking renders once per frame after the first (densification renders at full size, 1.0)
+    assert [s for s in seen[False] if s != 1.0] == [0.6, 0.6]
+    assert [s for s in seen[True] if s != 1.0] == [0.4, 0.4]
+    for name in ("render_scale_shrink", "render_scale_shrink_odometry"):
+        for bad in (0.0, -1.0, float("inf"), float("nan")):
+            with pytest.raises(ConfigError, match=name):
+                replace(TrackingConfig(), **{name: bad}).check()
+
+
 def test_odometry_poses_survive_checkpoint_and_bad_ones_are_refused(tiny_home, tmp_path):
     ds = load_dataset(str(tiny_home))
     ck = str(tmp_path / "ck")
