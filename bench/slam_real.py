@@ -56,7 +56,7 @@ def run_ours(ds, idx: list[int], args: argparse.Namespace) -> dict:
                 d[sec] = {**d[sec], **vals} if isinstance(vals, dict) else vals
         cfg = SlamConfig.from_dict(d)
     eng = SLAM(cfg)
-    stage = LabelStage(LabelConfig(mode=args.labels), ds.intrinsics, ds.sem_paths is not None)
+    stage = LabelStage(LabelConfig(mode=args.labels, every=args.labels_every), ds.intrinsics, ds.sem_paths is not None)
     label_s = decode_s = 0.0
     proc = []  # per frame: labelling + SLAM seconds (decoding the files is timed apart, as for Open3D)
     for n, i in enumerate(idx):
@@ -94,7 +94,7 @@ def run_ours(ds, idx: list[int], args: argparse.Namespace) -> dict:
                wall_s=wall, label_ms=1000 * label_s / len(idx),
                lost=sum(lg.tracking_failed for lg in eng.logs), loops=list(eng.loops),
                poses=online_poses, keyframes=len(eng.keyframes),
-               classes=len(eng.classes))
+               classes=len(eng.classes), labelled=float((eng.semantic_ids() > 0).mean()) if len(eng.map) else 0.0)
     return res
 
 
@@ -146,6 +146,7 @@ def main() -> int:
     ap.add_argument("--start", type=int, default=0)
     ap.add_argument("--size", default="320x240", help="working size WIDTHxHEIGHT")
     ap.add_argument("--labels", default="none", choices=list(LABEL_MODES), help="labelling stage (default none)")
+    ap.add_argument("--labels-every", type=int, default=1, help="geometry / onnx labels on every k-th frame only")
     ap.add_argument("--config", help="JSON of SlamConfig overrides, e.g. {\"tracking\": {\"icp_iters\": 20}}")
     ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     ap.add_argument("--threads", type=int, default=2)
@@ -165,6 +166,8 @@ def main() -> int:
     args = ap.parse_args()
     if args.refine_poses and args.refine_iters <= 0:
         ap.error("--refine-poses needs --refine-iters N (N > 0)")
+    if args.labels_every < 1:
+        ap.error("--labels-every must be >= 1")
     ds = load_dataset(args.dataset, size=parse_size(args.size) if args.size else None,
                       colour_calib=args.colour_calib)
     idx = frame_indices(len(ds), args.start, args.stride, args.frames)
@@ -198,7 +201,8 @@ def main() -> int:
                 f", largest {max(x['found_cm'] for x in ours['loops']):.1f} cm / "
                 f"{max(x['found_deg'] for x in ours['loops']):.2f} deg" if ours["loops"] else "")),
             ("Gaussians", str(ours["gaussians"])), ("labelling ms/frame", f"{ours['label_ms']:.0f}"),
-            ("label classes in the map", str(ours["classes"]))]
+            ("label classes in the map", str(ours["classes"])),
+            ("Gaussians with a label", f"{100 * ours['labelled']:.1f} %")]
     masked = f"{ours['psnr_masked']:.2f}"
     if "refined" in ours:
         r = ours["refined"]

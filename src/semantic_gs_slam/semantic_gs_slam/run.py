@@ -65,7 +65,7 @@ def label_frame(stage: LabelStage, eng: SLAM, f) -> np.ndarray | None:
     """The labels ``stage`` gives frame ``f`` (a :class:`~semantic_gs_slam.datasets.Frame`) at the engine's
     constant-velocity pose guess; their names go into ``eng.classes`` before the frame is added."""
     first = eng.initial_c2w if eng.initial_c2w is not None else f.gt_c2w
-    sem = stage(f.rgb, f.depth, f.semantics, predict_pose(eng.poses, first))
+    sem = stage(f.rgb, f.depth, f.semantics, predict_pose(eng.poses, first), index=len(eng.poses))
     if stage.mode != "dataset":
         eng.classes.update(stage.classes)
     return sem
@@ -89,6 +89,9 @@ def main(argv: list[str] | None = None) -> int:
                          "auto = dataset when it has labels, else geometry")
     ap.add_argument("--onnx-model", default="", help="ONNX instance segmenter/detector with COCO classes "
                                                      "(--labels onnx)")
+    ap.add_argument("--labels-every", type=int, default=1,
+                    help="geometry / onnx labels on every k-th frame only (faster; 2 or 4 keep the regular "
+                         "keyframes labelled)")
     ap.add_argument("--checkpoint-every", type=int, default=0, help="checkpoint into <out>/checkpoint every N frames")
     ap.add_argument("--resume", action="store_true", help="continue from <out>/checkpoint")
     ap.add_argument("--config", help="JSON file of config overrides, e.g. {\"mapping\": {\"iters\": 20}}")
@@ -114,8 +117,8 @@ def main(argv: list[str] | None = None) -> int:
                           colour_calib=args.colour_calib)
         idx = frame_indices(len(ds), args.start, args.stride, args.frames)
         cfg = build_config(args, ds.intrinsics)
-        stage = LabelStage(LabelConfig(mode=args.labels, onnx_model=args.onnx_model), ds.intrinsics,
-                           ds.sem_paths is not None)
+        stage = LabelStage(LabelConfig(mode=args.labels, onnx_model=args.onnx_model, every=args.labels_every),
+                           ds.intrinsics, ds.sem_paths is not None)
         ckpt = os.path.join(args.out, "checkpoint")
         if args.resume:
             eng = SLAM.resume(ckpt)

@@ -198,6 +198,24 @@ def test_label_stage_modes(home_frames):
         LabelStage(LabelConfig(mode="onnx", onnx_model="/nonexistent.onnx"), k)
 
 
+def test_label_stage_every_kth_frame(home_frames):
+    """labels.every k: geometry labels on engine frames 0, k, 2k, ... (the index the caller gives, else the frames
+    seen); the others get none. Dataset labels cost nothing and come on every frame."""
+    k, frames = home_frames
+    c2w, rgb, depth, sem = frames[0]
+    st = LabelStage(LabelConfig(mode="geometry", every=2), k)
+    got = [st(rgb, depth, None, c2w) for _ in range(4)]
+    assert [g is not None for g in got] == [True, False, True, False]
+    np.testing.assert_array_equal(got[0], LabelStage(LabelConfig(mode="geometry"), k)(rgb, depth, None, c2w))
+    # the engine's frame index wins over the count (a resumed run keeps the same frames labelled)
+    assert st(rgb, depth, None, c2w, index=7) is None and st(rgb, depth, None, c2w, index=8) is not None
+    data = LabelStage(LabelConfig(mode="dataset", every=4), k, dataset_has_labels=True)
+    assert all(data(rgb, depth, sem, c2w, index=i) is not None for i in range(3))
+    for bad in (0, -1, 1.5, True, "2"):
+        with pytest.raises(ConfigError, match="labels.every"):
+            LabelStage(LabelConfig(mode="geometry", every=bad), k)
+
+
 def test_predict_pose_is_constant_velocity():
     a, b = np.eye(4), np.eye(4)
     b[0, 3] = 0.1
@@ -367,6 +385,8 @@ def test_cli_runs_a_7scenes_layout_with_geometry_labels(tiny_home, tmp_path, cap
     assert "ATE RMSE" in capsys.readouterr().out
     assert main(["--dataset", str(seq), "--out", str(out), "--labels", "dataset"]) == 2
     assert "no label images" in capsys.readouterr().err
+    assert main(["--dataset", str(seq), "--out", str(out), "--labels-every", "0"]) == 2
+    assert "labels.every must be an integer >= 1" in capsys.readouterr().err
 
 
 def _write(path, obj) -> str:

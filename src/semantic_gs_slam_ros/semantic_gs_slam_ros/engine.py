@@ -31,7 +31,7 @@ class EngineAdapter:
             if guess is None:
                 guess = odom_c2w if odom_c2w is not None and not self.slam.poses else \
                     predict_pose(self.slam.poses, self.slam.initial_c2w)
-            semantics = self.labels(rgb, depth, semantics, guess)
+            semantics = self.labels(rgb, depth, semantics, guess, index=len(self.slam.poses))
             if self.labels.mode != "dataset":
                 self.slam.classes.update(self.labels.classes)
         if odom_c2w is None:
@@ -101,7 +101,7 @@ def scaled_intrinsics(k: tuple[float, float, float, float, int, int], width: int
     return fx * sx, fy * sy, (cx + 0.5) * sx - 0.5, (cy + 0.5) * sy - 0.5, width, height
 
 
-def make_labels(mode: str, onnx_model: str, intrinsics: Any, streamed_labels: bool) -> Any:
+def make_labels(mode: str, onnx_model: str, intrinsics: Any, streamed_labels: bool, every: int = 1) -> Any:
     """The labelling stage for a run (:class:`semantic_gs_slam.labels.LabelStage`).
 
     Args:
@@ -110,15 +110,16 @@ def make_labels(mode: str, onnx_model: str, intrinsics: Any, streamed_labels: bo
         onnx_model: ONNX file for mode ``onnx``.
         intrinsics: the engine's :class:`~semantic_gs_slam.config.Intrinsics`.
         streamed_labels: whether a ``semantic`` stream comes with the images.
+        every: geometry / onnx labels on every k-th engine frame only (``LabelConfig.every``).
 
     Raises:
-        StreamingError: a bad mode, a missing or unloadable model.
+        StreamingError: a bad mode or ``every``, a missing or unloadable model.
     """
     from semantic_gs_slam.errors import ConfigError
     from semantic_gs_slam.labels import LabelConfig, LabelStage
 
     try:
-        return LabelStage(LabelConfig(mode=mode, onnx_model=onnx_model), intrinsics, streamed_labels)
+        return LabelStage(LabelConfig(mode=mode, onnx_model=onnx_model, every=every), intrinsics, streamed_labels)
     except ConfigError as exc:
         raise StreamingError(f"labels: {exc}") from exc
 
@@ -154,7 +155,7 @@ def prepare_renderer(device: str, log: Callable[[str], None]) -> None:
 def make_engine(slam_config: str, wait_intrinsics: Callable[[], Any], cfg: Any,
                 classes: dict[int, str] | None = None, resume_dir: str | None = None,
                 overrides: dict[str, Any] | None = None,
-                labels: tuple[str, str] = ("dataset", "")) -> EngineAdapter:
+                labels: tuple[str, str] | tuple[str, str, int] = ("dataset", "")) -> EngineAdapter:
     """Create (or resume) the engine for a run.
 
     Args:
@@ -164,7 +165,7 @@ def make_engine(slam_config: str, wait_intrinsics: Callable[[], Any], cfg: Any,
         classes: semantic id → class name.
         resume_dir: checkpoint folder to resume from, or None.
         overrides: top-level SlamConfig fields that win over the YAML (e.g. ``{"device": "cuda"}``).
-        labels: (mode, onnx model path) of the labelling stage (:func:`make_labels`; ``cfg.use_semantic``
+        labels: (mode, onnx model path[, every]) of the labelling stage (:func:`make_labels`; ``cfg.use_semantic``
             says whether labels are streamed).
 
     Raises:
@@ -179,7 +180,8 @@ def make_engine(slam_config: str, wait_intrinsics: Callable[[], Any], cfg: Any,
     config, _ = load_slam_config(slam_config, scaled_intrinsics(k, cfg.width, cfg.height), overrides)
     stage = None
     if labels[0] != "dataset":
-        stage = make_labels(labels[0], labels[1], config.intrinsics, bool(getattr(cfg, "use_semantic", False)))
+        stage = make_labels(labels[0], labels[1], config.intrinsics, bool(getattr(cfg, "use_semantic", False)),
+                            *labels[2:])
     try:
         if resume_dir and os.path.isdir(resume_dir):
             return EngineAdapter(SLAM.resume(os.path.join(resume_dir, "engine"), config), stage)

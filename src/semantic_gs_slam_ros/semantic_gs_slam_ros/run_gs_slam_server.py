@@ -87,6 +87,7 @@ class SlamServer(Node):
         p("image_qos_depth", 50)
         p("labels", "auto")  # auto | dataset | geometry | onnx | none (auto: the semantic stream if any, else geometry)
         p("onnx_model", "")  # ONNX COCO instance segmenter/detector for labels:=onnx
+        p("labels_every", 1)  # geometry / onnx labels on every k-th frame only (2 or 4: faster, fewer labelled)
         p("odometry_topic", "")  # PoseStamped camera-to-map odometry (OpenCV axes) as the tracking prior; "" = none
         p("live_view_port", 0)  # > 0: serve the map as it grows and the camera's path in a browser (viser)
         p("live_view_host", "127.0.0.1")  # loopback by default
@@ -272,7 +273,8 @@ class SlamServer(Node):
                                      classes=parse_classes(goal.semantic_classes),
                                      resume_dir=os.path.join(cfg.work_dir, "checkpoint") if resume_state else None,
                                      labels=(self.get_parameter("labels").value,
-                                             self.get_parameter("onnx_model").value))
+                                             self.get_parameter("onnx_model").value,
+                                             self.get_parameter("labels_every").value))
             session = StreamingSession(cfg, engine, on_map=self._request_reload,
                                        log=lambda line: self.get_logger().info(line))
         except StreamingError as exc:

@@ -41,7 +41,27 @@ def test_adapter_labels_label_less_frames():
     assert make_labels("auto", "", k, streamed_labels=True).mode == "dataset"
 
 
-@pytest.mark.parametrize("mode, model", [("magic", ""), ("onnx", ""), ("onnx", "/nonexistent.onnx")])
-def test_make_labels_bad_settings(mode, model):
+@pytest.mark.parametrize("mode, model, every", [("magic", "", 1), ("onnx", "", 1), ("onnx", "/nonexistent.onnx", 1),
+                                               ("geometry", "", 0)])
+def test_make_labels_bad_settings(mode, model, every):
     with pytest.raises(StreamingError, match="labels"):
-        make_labels(mode, model, default_intrinsics(32, 18), streamed_labels=False)
+        make_labels(mode, model, default_intrinsics(32, 18), streamed_labels=False, every=every)
+
+
+def test_adapter_labels_every_kth_engine_frame():
+    """labels_every 2: the adapter gives the stage the engine's frame index, so frames 0 and 2 are labelled, also
+    when the engine already holds frames (a resumed run: frame 3 is not labelled, frame 4 is)."""
+    k = default_intrinsics(96, 54)
+    rgb, depth, _ = HomeRenderer(0).render(trajectory(4, 10.0)[0], k)
+    rgb8 = (rgb * 255).astype(np.uint8)
+    slam = _Recorder()
+    adapter = EngineAdapter(slam, make_labels("geometry", "", k, streamed_labels=False, every=2))
+    for t in range(3):
+        adapter.add_frame(rgb8, depth, None, float(t))
+    assert [g is not None for g in slam.given] == [True, False, True]
+    resumed = _Recorder()
+    resumed.poses = [np.eye(4)] * 3
+    adapter = EngineAdapter(resumed, make_labels("geometry", "", k, streamed_labels=False, every=2))
+    for t in range(2):
+        adapter.add_frame(rgb8, depth, None, float(t))
+    assert [g is not None for g in resumed.given] == [False, True]
