@@ -65,7 +65,8 @@ def label_frame(stage: LabelStage, eng: SLAM, f) -> np.ndarray | None:
     """The labels ``stage`` gives frame ``f`` (a :class:`~semantic_gs_slam.datasets.Frame`) at the engine's
     constant-velocity pose guess; their names go into ``eng.classes`` before the frame is added."""
     first = eng.initial_c2w if eng.initial_c2w is not None else f.gt_c2w
-    sem = stage(f.rgb, f.depth, f.semantics, predict_pose(eng.poses, first), index=len(eng.poses))
+    guess = predict_pose(eng.poses, first)
+    sem = stage(f.rgb, f.depth, f.semantics, guess, index=len(eng.poses), keyframe=eng.keyframe_expected(guess))
     if stage.mode != "dataset":
         eng.classes.update(stage.classes)
     return sem
@@ -90,8 +91,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--onnx-model", default="", help="ONNX instance segmenter/detector with COCO classes "
                                                      "(--labels onnx)")
     ap.add_argument("--labels-every", type=int, default=1,
-                    help="geometry / onnx labels on every k-th frame only (faster; 2 or 4 keep the regular "
-                         "keyframes labelled)")
+                    help="geometry / onnx labels on every k-th frame only, and on frames expected to be keyframes "
+                         "(faster, fewer Gaussians labelled)")
     ap.add_argument("--checkpoint-every", type=int, default=0, help="checkpoint into <out>/checkpoint every N frames")
     ap.add_argument("--resume", action="store_true", help="continue from <out>/checkpoint")
     ap.add_argument("--config", help="JSON file of config overrides, e.g. {\"mapping\": {\"iters\": 20}}")
@@ -112,6 +113,8 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
     if args.refine_poses and args.refine_iters <= 0:
         ap.error("--refine-poses needs --refine-iters N (N > 0): it says what the refinement also optimises")
+    if args.labels_every < 1:
+        ap.error("--labels-every must be >= 1")
     try:
         ds = load_dataset(args.dataset, args.layout, size=parse_size(args.size) if args.size else None,
                           colour_calib=args.colour_calib)

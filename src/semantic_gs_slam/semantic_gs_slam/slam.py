@@ -319,6 +319,13 @@ class SLAM:
             return None
         return self.exposures[n]
 
+    def keyframe_expected(self, guess_c2w: np.ndarray) -> bool:
+        """Whether the next frame will be a keyframe if it is tracked near ``guess_c2w`` ([4, 4], e.g. the
+        constant-velocity or odometry guess): its index is a multiple of ``mapping.keyframe_every``, or the guess
+        moved past ``mapping.keyframe_motion_*`` from the last keyframe. What the labelling stage asks before the
+        frame is added (``LabelConfig.every``); the engine decides after tracking, with the tracked pose."""
+        return len(self.poses) % self.cfg.mapping.keyframe_every == 0 or self._new_view(np.asarray(guess_c2w))
+
     def _new_view(self, c2w: np.ndarray) -> bool:
         """Whether ``c2w`` moved or turned past ``mapping.keyframe_motion_*`` from the last keyframe."""
         mc = self.cfg.mapping

@@ -209,11 +209,13 @@ def test_label_stage_every_kth_frame(home_frames):
     np.testing.assert_array_equal(got[0], LabelStage(LabelConfig(mode="geometry"), k)(rgb, depth, None, c2w))
     # the engine's frame index wins over the count (a resumed run keeps the same frames labelled)
     assert st(rgb, depth, None, c2w, index=7) is None and st(rgb, depth, None, c2w, index=8) is not None
+    assert st(rgb, depth, None, c2w, index=7, keyframe=True) is not None  # an expected keyframe always is
     data = LabelStage(LabelConfig(mode="dataset", every=4), k, dataset_has_labels=True)
     assert all(data(rgb, depth, sem, c2w, index=i) is not None for i in range(3))
     for bad in (0, -1, 1.5, True, "2"):
         with pytest.raises(ConfigError, match="labels.every"):
             LabelStage(LabelConfig(mode="geometry", every=bad), k)
+    assert LabelStage(LabelConfig(mode="geometry", every=np.int64(3)), k).cfg.every == 3
 
 
 def test_predict_pose_is_constant_velocity():
@@ -385,8 +387,9 @@ def test_cli_runs_a_7scenes_layout_with_geometry_labels(tiny_home, tmp_path, cap
     assert "ATE RMSE" in capsys.readouterr().out
     assert main(["--dataset", str(seq), "--out", str(out), "--labels", "dataset"]) == 2
     assert "no label images" in capsys.readouterr().err
-    assert main(["--dataset", str(seq), "--out", str(out), "--labels-every", "0"]) == 2
-    assert "labels.every must be an integer >= 1" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["--dataset", str(seq), "--out", str(out), "--labels-every", "0"])
+    assert "--labels-every must be >= 1" in capsys.readouterr().err
 
 
 def _write(path, obj) -> str:

@@ -386,6 +386,25 @@ def test_the_tracking_render_size_follows_where_the_guess_came_from(tiny_home):
                 replace(TrackingConfig(), **{name: bad}).check()
 
 
+def test_keyframe_expected_before_the_frame_is_added(tiny_home):
+    """What the labelling stage asks: the index (mapping.keyframe_every) or a guess past keyframe_motion_* from the
+    last keyframe; and the engine then makes those frames keyframes."""
+    ds = load_dataset(str(tiny_home))
+    eng = SLAM(config(ds), ds.classes)
+    for i in range(2):
+        f = ds[i]
+        assert eng.keyframe_expected(f.gt_c2w) == (i == 0)
+        eng.add_frame(f.rgb, f.depth, f.semantics, f.timestamp, f.gt_c2w)
+    far = ds[1].gt_c2w.copy()
+    far[:3, 3] += [0.3, 0.0, 0.0]  # 30 cm from the last keyframe (keyframe_motion_m 0.25)
+    assert not eng.keyframe_expected(ds[2].gt_c2w) and eng.keyframe_expected(far)
+    for i in range(2, 5):
+        f = ds[i]
+        expected = eng.keyframe_expected(f.gt_c2w)
+        eng.add_frame(f.rgb, f.depth, f.semantics, f.timestamp, f.gt_c2w)
+        assert eng.logs[-1].keyframe == expected == (i == 4)
+
+
 def test_odometry_poses_survive_checkpoint_and_bad_ones_are_refused(tiny_home, tmp_path):
     ds = load_dataset(str(tiny_home))
     ck = str(tmp_path / "ck")

@@ -31,7 +31,8 @@ class EngineAdapter:
             if guess is None:
                 guess = odom_c2w if odom_c2w is not None and not self.slam.poses else \
                     predict_pose(self.slam.poses, self.slam.initial_c2w)
-            semantics = self.labels(rgb, depth, semantics, guess, index=len(self.slam.poses))
+            semantics = self.labels(rgb, depth, semantics, guess, index=len(self.slam.poses),
+                                    keyframe=self.slam.keyframe_expected(guess))
             if self.labels.mode != "dataset":
                 self.slam.classes.update(self.labels.classes)
         if odom_c2w is None:
@@ -155,7 +156,7 @@ def prepare_renderer(device: str, log: Callable[[str], None]) -> None:
 def make_engine(slam_config: str, wait_intrinsics: Callable[[], Any], cfg: Any,
                 classes: dict[int, str] | None = None, resume_dir: str | None = None,
                 overrides: dict[str, Any] | None = None,
-                labels: tuple[str, str] | tuple[str, str, int] = ("dataset", "")) -> EngineAdapter:
+                labels: tuple[str, str] = ("dataset", ""), labels_every: int = 1) -> EngineAdapter:
     """Create (or resume) the engine for a run.
 
     Args:
@@ -165,8 +166,10 @@ def make_engine(slam_config: str, wait_intrinsics: Callable[[], Any], cfg: Any,
         classes: semantic id → class name.
         resume_dir: checkpoint folder to resume from, or None.
         overrides: top-level SlamConfig fields that win over the YAML (e.g. ``{"device": "cuda"}``).
-        labels: (mode, onnx model path[, every]) of the labelling stage (:func:`make_labels`; ``cfg.use_semantic``
+        labels: (mode, onnx model path) of the labelling stage (:func:`make_labels`; ``cfg.use_semantic``
             says whether labels are streamed).
+        labels_every: computed labels on every k-th engine frame only (``LabelConfig.every``; checked in every
+            mode, though only geometry and onnx use it).
 
     Raises:
         StreamingError: no camera intrinsics, bad settings, unusable checkpoint.
@@ -174,6 +177,8 @@ def make_engine(slam_config: str, wait_intrinsics: Callable[[], Any], cfg: Any,
     from semantic_gs_slam.errors import SlamError
     from semantic_gs_slam.slam import SLAM
 
+    if isinstance(labels_every, bool) or not isinstance(labels_every, int) or labels_every < 1:
+        raise StreamingError(f"labels_every must be an integer >= 1, got {labels_every!r}")
     k = wait_intrinsics()
     if k is None:
         raise StreamingError("no camera_info received: publish sensor_msgs/CameraInfo on 'camera_info'")
@@ -181,7 +186,7 @@ def make_engine(slam_config: str, wait_intrinsics: Callable[[], Any], cfg: Any,
     stage = None
     if labels[0] != "dataset":
         stage = make_labels(labels[0], labels[1], config.intrinsics, bool(getattr(cfg, "use_semantic", False)),
-                            *labels[2:])
+                            labels_every)
     try:
         if resume_dir and os.path.isdir(resume_dir):
             return EngineAdapter(SLAM.resume(os.path.join(resume_dir, "engine"), config), stage)

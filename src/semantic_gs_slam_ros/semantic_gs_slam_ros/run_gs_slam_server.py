@@ -273,8 +273,8 @@ class SlamServer(Node):
                                      classes=parse_classes(goal.semantic_classes),
                                      resume_dir=os.path.join(cfg.work_dir, "checkpoint") if resume_state else None,
                                      labels=(self.get_parameter("labels").value,
-                                             self.get_parameter("onnx_model").value,
-                                             self.get_parameter("labels_every").value))
+                                             self.get_parameter("onnx_model").value),
+                                     labels_every=self.get_parameter("labels_every").value)
             session = StreamingSession(cfg, engine, on_map=self._request_reload,
                                        log=lambda line: self.get_logger().info(line))
         except StreamingError as exc:

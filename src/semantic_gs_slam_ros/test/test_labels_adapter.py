@@ -3,13 +3,16 @@ their names reach the engine's classes; bad settings are a StreamingError."""
 
 from __future__ import annotations
 
+import types
+
 import numpy as np
 import pytest
 
+from semantic_gs_slam.config import MappingConfig, SlamConfig
 from semantic_gs_slam.labels import OBJECT_ID
 from semantic_gs_slam.slam import SLAM
 from semantic_gs_slam.synthetic import HomeRenderer, default_intrinsics, trajectory
-from semantic_gs_slam_ros.engine import EngineAdapter, make_labels
+from semantic_gs_slam_ros.engine import EngineAdapter, make_engine, make_labels
 from semantic_gs_slam_ros.errors import StreamingError
 
 
@@ -17,8 +20,11 @@ class _Recorder(SLAM):
     """The real engine class with its per-frame work replaced by a record of what it was given (the
     adapter's wiring is under test here; the engine has its own tests)."""
 
-    def __init__(self) -> None:
+    def __init__(self, keyframe_every: int = 4) -> None:
         self.classes, self.poses, self.initial_c2w, self.given = {}, [], None, []
+        self.cfg = SlamConfig(intrinsics=default_intrinsics(96, 54),
+                              mapping=MappingConfig(keyframe_every=keyframe_every))
+        self.keyframes = []  # no keyframe yet: only the index says which frame will be one
 
     def add_frame(self, rgb, depth, semantics=None, timestamp=None, gt_c2w=None):
         self.given.append(semantics)
@@ -41,11 +47,23 @@ def test_adapter_labels_label_less_frames():
     assert make_labels("auto", "", k, streamed_labels=True).mode == "dataset"
 
 
-@pytest.mark.parametrize("mode, model, every", [("magic", "", 1), ("onnx", "", 1), ("onnx", "/nonexistent.onnx", 1),
-                                               ("geometry", "", 0)])
-def test_make_labels_bad_settings(mode, model, every):
-    with pytest.raises(StreamingError, match="labels"):
+@pytest.mark.parametrize("mode, model, every, match", [("magic", "", 1, "labels"), ("onnx", "", 1, "labels"),
+                                                      ("onnx", "/nonexistent.onnx", 1, "labels"),
+                                                      ("geometry", "", 0, "labels.every must be")])
+def test_make_labels_bad_settings(mode, model, every, match):
+    with pytest.raises(StreamingError, match=match):
         make_labels(mode, model, default_intrinsics(32, 18), streamed_labels=False, every=every)
+
+
+@pytest.mark.parametrize("every", [0, -2, 1.5, True])
+def test_make_engine_refuses_a_bad_labels_every_in_any_mode(every):
+    """Checked before the engine waits for camera_info, also with streamed (dataset) labels that never use it."""
+    def no_camera():
+        raise AssertionError("must fail before waiting for camera_info")
+
+    cfg = types.SimpleNamespace(width=96, height=54, use_semantic=True)
+    with pytest.raises(StreamingError, match="labels_every must be an integer >= 1"):
+        make_engine("", no_camera, cfg, labels=("dataset", ""), labels_every=every)
 
 
 def test_adapter_labels_every_kth_engine_frame():
@@ -65,3 +83,9 @@ def test_adapter_labels_every_kth_engine_frame():
     for t in range(2):
         adapter.add_frame(rgb8, depth, None, float(t))
     assert [g is not None for g in resumed.given] == [False, True]
+    # frames the engine expects to be keyframes are labelled whatever labels_every says (here every 2nd frame)
+    kf2 = _Recorder(keyframe_every=2)
+    adapter = EngineAdapter(kf2, make_labels("geometry", "", k, streamed_labels=False, every=4))
+    for t in range(5):
+        adapter.add_frame(rgb8, depth, None, float(t))
+    assert [g is not None for g in kf2.given] == [True, False, True, False, True]

@@ -16,6 +16,7 @@ Names given by people (``"this is my mug"``) are written into a saved map's ``se
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -46,16 +47,17 @@ class LabelConfig:
     # one class column; the object-query server splits instances in space); "instance": each tracked instance
     # its own id and class column (names from people can then address it; rendering cost grows with the count)
     geometry: GeometryLabelConfig = field(default_factory=GeometryLabelConfig)
-    every: int = 1  # modes geometry and onnx: label only every k-th engine frame (the others get no labels, so they
-    # cast no label votes and seed unlabelled Gaussians). 2 or 4 keep the regular keyframes (mapping.keyframe_every
-    # 4) labelled. Measured on 120 kitchen frames, 2 cores: every frame 2.06-2.11 FPS with 93.4 % of the Gaussians
-    # labelled, every 2nd 2.43-2.46 FPS and 91.3 %, every 4th 2.58 FPS and 87.1 % (docs/slam.md)
+    every: int = 1  # modes geometry and onnx: label only every k-th engine frame and the frames the engine expects
+    # to be keyframes (SLAM.keyframe_expected); the others get no labels, so they cast no label votes and seed
+    # unlabelled Gaussians. Instances are then tracked across the gaps (map_ids "instance": larger motion between
+    # labelled frames can split one). Measured on the 250 kitchen frames, 2 cores (docs/slam.md, "Labels on every
+    # k-th frame only"): 1 -> 2.23 FPS with 87.6 % of the Gaussians labelled, 4 -> 2.77 FPS and 81.8 %
 
     def check(self) -> None:
         """Raise :class:`ConfigError` on an unknown mode, a missing model path or ``every`` < 1."""
         if self.mode not in LABEL_MODES:
             raise ConfigError(f"labels.mode must be one of {LABEL_MODES}, got {self.mode!r}")
-        if isinstance(self.every, bool) or not isinstance(self.every, int) or self.every < 1:
+        if isinstance(self.every, bool) or not isinstance(self.every, numbers.Integral) or self.every < 1:
             raise ConfigError(f"labels.every must be an integer >= 1, got {self.every!r}")
         if self.mode == "onnx" and not self.onnx_model:
             raise ConfigError("labels.mode 'onnx' needs labels.onnx_model (a local .onnx file)")
@@ -113,7 +115,7 @@ class LabelStage:
             self.geometry.next_id = max(self.geometry.next_id, max(used) + 1)
 
     def __call__(self, rgb: np.ndarray, depth: np.ndarray, dataset_labels: np.ndarray | None,
-                 c2w: np.ndarray, index: int | None = None) -> np.ndarray | None:
+                 c2w: np.ndarray, index: int | None = None, keyframe: bool = False) -> np.ndarray | None:
         """Labels of one frame.
 
         Args:
@@ -123,9 +125,11 @@ class LabelStage:
             c2w: [4, 4] pose of this frame (tracked, or :func:`predict_pose`), for stable instance ids.
             index: the engine's index of this frame (``len(SLAM.poses)`` before it is added), which
                 ``LabelConfig.every`` counts; None: the frames this stage has seen.
+            keyframe: the engine expects this frame to be a keyframe (:meth:`SLAM.keyframe_expected`): it is
+                labelled whatever ``every`` says.
 
         Returns:
-            [H, W] int64 ids (0 = unlabelled), or None in mode ``none`` and on frames that ``every`` skips
+            [H, W] int64 ids (0 = unlabelled), or None in mode ``none`` and on the frames that ``every`` skips
             (modes geometry and onnx). New ids are added to :attr:`classes`.
         """
         n = self._calls if index is None else index
@@ -134,7 +138,7 @@ class LabelStage:
             return None
         if self.mode == "dataset":
             return None if dataset_labels is None else np.asarray(dataset_labels, np.int64)
-        if n % self.cfg.every:
+        if n % self.cfg.every and not keyframe:
             return None
         assert self.geometry is not None  # modes geometry and onnx
         ids = self.geometry.label(rgb, depth, c2w).ids
