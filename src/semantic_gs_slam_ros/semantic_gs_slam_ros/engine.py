@@ -174,11 +174,14 @@ def make_engine(slam_config: str, wait_intrinsics: Callable[[], Any], cfg: Any,
     Raises:
         StreamingError: no camera intrinsics, bad settings, unusable checkpoint.
     """
-    from semantic_gs_slam.errors import SlamError
+    from semantic_gs_slam.errors import ConfigError, SlamError
+    from semantic_gs_slam.labels import LabelConfig
     from semantic_gs_slam.slam import SLAM
 
-    if isinstance(labels_every, bool) or not isinstance(labels_every, int) or labels_every < 1:
-        raise StreamingError(f"labels_every must be an integer >= 1, got {labels_every!r}")
+    try:  # the labelling stage's own check, in every mode (dataset labels never use the value)
+        LabelConfig(every=labels_every).check()
+    except ConfigError as exc:
+        raise StreamingError(f"labels_every must be an integer >= 1, got {labels_every!r}") from exc
     k = wait_intrinsics()
     if k is None:
         raise StreamingError("no camera_info received: publish sensor_msgs/CameraInfo on 'camera_info'")
