@@ -362,6 +362,46 @@ def test_name_by_place_gives_one_object_its_own_id_and_the_object_database_finds
     assert "nothing but floor" in capsys.readouterr().err
 
 
+def test_name_by_place_takes_unlabelled_gaussians_and_several_classes(tmp_path, capsys):
+    """A TV screen gives the depth camera nothing: its Gaussians (seeded at the depth around it) have no class
+    (id 0), its frame is an ``object``; both are named at once. Every id of a repeated name is taken."""
+    from semantic_gs_slam.labels.names import name_at
+
+    rng = np.random.default_rng(1)
+    screen = np.c_[rng.uniform(-0.2, 0.2, 50), rng.uniform(-0.1, 0.1, 50), np.full(50, 3.0)]
+    bezel = np.c_[rng.uniform(-0.25, 0.25, 20), np.full(20, -0.13), np.full(20, 3.0)]
+    far = rng.normal([2.0, 0.0, 3.0], 0.05, (30, 3))  # unlabelled too, 2 m away
+    wall = np.c_[rng.uniform(-1, 1, 100), rng.uniform(-1, 1, 100), np.full(100, 3.05)]
+    np.savez_compressed(tmp_path / "params.npz", means3D=np.vstack([screen, bezel, far, wall]).astype(np.float32),
+                        semantic_ids=np.r_[np.zeros(50), np.full(20, 5), np.zeros(30), np.full(100, 2)]
+                        .astype(np.uint8)[:, None])  # [N, 1], as some writers save it
+    (tmp_path / "semantic.json").write_text(json.dumps({"segmentation": [{"id": 2, "class": "wall"},
+                                                                        {"id": 5, "class": "object"}]}))
+    # the default never takes id 0: here the bezel alone
+    assert name_at(str(tmp_path), (0.0, 0.0, 3.0), "frame", radius=0.3)[1:] == (20, "object")
+    assert names_main(["--map", str(tmp_path), "--at", "0", "0", "3", "--radius", "0.3", "--of-class", "frame",
+                       "--of-class", "unlabelled", "--name", "tv"]) == 0
+    assert "70 Gaussians of 'frame, unlabelled'" in capsys.readouterr().out
+    with np.load(tmp_path / "params.npz") as z:
+        ids = z["semantic_ids"]
+        assert ids.shape == (200, 1) and list(np.bincount(ids[:, 0], minlength=8)[[0, 2, 5, 6, 7]]) == \
+            [30, 100, 0, 0, 70]  # the far unlabelled ones and the wall untouched
+    assert read_names(str(tmp_path / "semantic.json"))[7] == "tv"
+    # two ids of one name are one class to of_class
+    name_at(str(tmp_path), (2.0, 0.0, 3.0), "tv", radius=0.3, of_class="unlabelled")
+    new_id, n, was = name_at(str(tmp_path), (0.0, 0.0, 3.0), "television", radius=5.0, of_class=["tv"])
+    assert (n, was) == (100, "tv")
+    # a class the map does not have; an empty list; no such Gaussian near the point
+    with pytest.raises(MapFormatError, match="no class 'sofa'.*'unlabelled'"):
+        name_at(str(tmp_path), (0.0, 0.0, 3.0), "x", of_class=["object", "sofa"])
+    with pytest.raises(ValueError, match="at least one"):
+        name_at(str(tmp_path), (0.0, 0.0, 3.0), "x", of_class=[])
+    with pytest.raises(MapFormatError, match="no Gaussian of class 'unlabelled'"):
+        name_at(str(tmp_path), (0.0, 0.0, 3.0), "x", radius=0.3, of_class="unlabelled")
+    assert names_main(["--map", str(tmp_path), "--at", "0", "0", "3", "--of-class", "sofa", "--name", "x"]) == 2
+    assert "no class 'sofa'" in capsys.readouterr().err
+
+
 # ----------------------------------------------------------------------------- CLI on a label-less real layout
 def test_cli_runs_a_7scenes_layout_with_geometry_labels(tiny_home, tmp_path, capsys):
     from semantic_gs_slam.datasets import load_dataset

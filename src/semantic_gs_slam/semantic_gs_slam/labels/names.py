@@ -9,7 +9,13 @@ id with the given name, in ``params.npz`` and ``semantic.json``. Usage::
 
     python -m semantic_gs_slam.labels.names --map /tmp/kitchen_map --id 131 --name "my mug"
     python -m semantic_gs_slam.labels.names --map /tmp/kitchen_map --at 0.37 -0.05 1.62 --name cup
+    python -m semantic_gs_slam.labels.names --map /tmp/kitchen_map --at 0.28 -1.33 3.01 --radius 0.25 \
+        --of-class object --of-class unlabelled --name tv
     python -m semantic_gs_slam.labels.names --map /tmp/kitchen_map --list
+
+Gaussians that no labelling gave a class keep id 0; ``unlabelled`` names them as a class (a TV screen gives
+the depth camera nothing, so the geometry layer cannot cut it out, but its Gaussians are seeded at the depth
+around it and can be named by place).
 """
 
 from __future__ import annotations
@@ -18,6 +24,7 @@ import argparse
 import json
 import os
 import sys
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -69,10 +76,11 @@ def _write_names(semantic_json: str, names: dict[int, str]) -> None:
 
 
 STRUCTURE = ("floor", "wall", "ceiling")
+UNLABELLED = "unlabelled"  # the class name of id 0 (Gaussians no labelling gave a class) for ``of_class``
 
 
 def name_at(map_dir: str, point: tuple[float, float, float], name: str, radius: float = 0.12,
-            of_class: str | None = None) -> tuple[int, int, str]:
+            of_class: str | Sequence[str] | None = None) -> tuple[int, int, str]:
     """Name the thing at ``point``: Gaussians of one class within ``radius`` metres of it get a new id called
     ``name`` (``params.npz``'s ``semantic_ids`` and ``semantic.json``, each replaced atomically;
     ``semantic.json`` first, so a reader never sees an id without a name).
@@ -82,11 +90,12 @@ def name_at(map_dir: str, point: tuple[float, float, float], name: str, radius: 
         point: world coordinates (the map's frame), metres.
         name: the name people use.
         radius: metres around ``point``.
-        of_class: the class to take (e.g. ``object``); default: the most common class near the point
-            that is not floor, wall or ceiling.
+        of_class: the class to take (e.g. ``object``; every id with that name), or several; ``unlabelled``
+            (:data:`UNLABELLED`) takes the Gaussians without a class (id 0) unless the map has a class of that
+            name. Default: the most common class near the point that is not floor, wall or ceiling (never id 0).
 
     Returns:
-        (new id, Gaussians renamed, the class they had).
+        (new id, Gaussians renamed, the class or classes they had, comma-separated).
 
     Raises:
         MapFormatError: unreadable files; no Gaussian of that class near the point.
@@ -112,19 +121,28 @@ def name_at(map_dir: str, point: tuple[float, float, float], name: str, radius: 
     where = f"({p[0]:.3f}, {p[1]:.3f}, {p[2]:.3f})"
     near = np.linalg.norm(arrays["means3D"].astype(np.float64) - p, axis=1) < radius
     if of_class is not None:
-        want = [i for i, c in names.items() if c == of_class]
-        if not want:
-            raise MapFormatError(f"the map has no class {of_class!r} (classes: {sorted(set(names.values()))})")
-        cls = want[0]
+        wanted = [of_class] if isinstance(of_class, str) else list(of_class)
+        if not wanted:
+            raise ValueError("of_class: give at least one class name, or None")
+        classes: list[str] = []
+        want: list[int] = []
+        for c in wanted:
+            ids_c = [i for i, n in names.items() if n == c] or ([0] if c == UNLABELLED else [])
+            if not ids_c:
+                raise MapFormatError(f"the map has no class {c!r} (classes: {sorted(set(names.values()))}, "
+                                     f"or {UNLABELLED!r} for Gaussians without one)")
+            classes.append(c)
+            want.extend(ids_c)
     else:
         cand, counts = np.unique(ids[near], return_counts=True)
         ok = [(n, int(i)) for i, n in zip(cand, counts, strict=True) if i > 0 and names.get(int(i)) not in STRUCTURE]
         if not ok:
             raise MapFormatError(f"nothing but floor, wall or ceiling within {radius} m of {where}")
-        cls = max(ok)[1]
-    sel = near & (ids == cls)
+        want = [max(ok)[1]]
+        classes = [names.get(want[0], str(want[0]))]
+    sel = near & np.isin(ids, want)
     if not sel.any():
-        raise MapFormatError(f"no Gaussian of class {names.get(cls, cls)!r} within {radius} m of {where}")
+        raise MapFormatError(f"no Gaussian of class {', '.join(map(repr, classes))} within {radius} m of {where}")
     new_id = max([*names, int(ids.max(initial=0))]) + 1
     names[new_id] = name
     _write_names(sj, names)
@@ -134,7 +152,7 @@ def name_at(map_dir: str, point: tuple[float, float, float], name: str, radius: 
     tmp = pz + ".tmp.npz"
     np.savez_compressed(tmp, **arrays)
     os.replace(tmp, pz)
-    return new_id, int(sel.sum()), names.get(cls, str(cls))
+    return new_id, int(sel.sum()), ", ".join(classes)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -146,7 +164,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--at", type=float, nargs=3, metavar=("X", "Y", "Z"),
                     help="name the thing at this point of the map's frame instead of an id")
     ap.add_argument("--radius", type=float, default=0.12, help="metres around --at (default 0.12)")
-    ap.add_argument("--of-class", help="with --at: the class to take (default: the most common non-structure one)")
+    ap.add_argument("--of-class", action="append",
+                    help=f"with --at: the class to take, repeatable; {UNLABELLED!r} = Gaussians without a class "
+                         "(default: the most common non-structure class)")
     ap.add_argument("--list", action="store_true", help="print the ids and names")
     args = ap.parse_args(argv)
     path = os.path.join(args.map, "semantic.json")
