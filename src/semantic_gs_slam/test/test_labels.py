@@ -408,15 +408,8 @@ def test_cli_runs_a_7scenes_layout_with_geometry_labels(tiny_home, tmp_path, cap
     from semantic_gs_slam.run import main
 
     src = load_dataset(str(tiny_home))
-    seq = tmp_path / "seq-01"
-    os.makedirs(seq)
+    seq = _seven_scenes_copy(src, tmp_path / "seq-01", 3)
     k = src.intrinsics
-    np.savetxt(seq / "camera-intrinsics.txt", k.as_matrix())
-    for i in range(3):
-        f = src[i]
-        Image.fromarray((f.rgb * 255 + 0.5).astype(np.uint8)).save(seq / f"frame-{i:06d}.color.jpg")
-        Image.fromarray((f.depth * 1000).round().astype(np.uint16)).save(seq / f"frame-{i:06d}.depth.png")
-        np.savetxt(seq / f"frame-{i:06d}.pose.txt", f.gt_c2w)
     out = tmp_path / "map"
     rc = main(["--dataset", str(seq), "--out", str(out), "--size", f"{k.width // 2 * 2}x{k.height // 2 * 2}",
                "--frames", "3", "--mapping-iters", "2", "--quiet", "--eval",
@@ -430,6 +423,75 @@ def test_cli_runs_a_7scenes_layout_with_geometry_labels(tiny_home, tmp_path, cap
     with pytest.raises(SystemExit):
         main(["--dataset", str(seq), "--out", str(out), "--labels-every", "0"])
     assert "--labels-every must be >= 1" in capsys.readouterr().err
+
+
+def _seven_scenes_copy(src, seq, frames: int, hole: tuple[int, slice, slice] | None = None):
+    """The first ``frames`` frames of ``src`` written in the 7-Scenes layout (millimetre depth, no labels);
+    ``hole``: (frame, rows, columns) of depth left at 0."""
+    os.makedirs(seq)
+    np.savetxt(seq / "camera-intrinsics.txt", src.intrinsics.as_matrix())
+    for i in range(frames):
+        f = src[i]
+        depth = f.depth.copy()
+        if hole is not None and hole[0] == i:
+            depth[hole[1], hole[2]] = 0
+        Image.fromarray((f.rgb * 255 + 0.5).astype(np.uint8)).save(seq / f"frame-{i:06d}.color.jpg")
+        Image.fromarray((depth * 1000).round().astype(np.uint16)).save(seq / f"frame-{i:06d}.depth.png")
+        np.savetxt(seq / f"frame-{i:06d}.pose.txt", f.gt_c2w)
+    return seq
+
+
+def test_name_by_pixel_of_a_frame_the_map_was_built_from(tiny_home, tmp_path, capsys):
+    """``--frame N --pixel U V``: the pixel of the image file, at the map's working size (half here), back-projected
+    with the frame's depth and the map's own pose of that frame, matched by time stamp (every 2nd frame used)."""
+    from semantic_gs_slam.datasets import load_dataset
+    from semantic_gs_slam.labels.names import point_at_pixel
+    from semantic_gs_slam.run import main
+
+    src = load_dataset(str(tiny_home))
+    k = src.intrinsics  # 120 x 68
+    seq = _seven_scenes_copy(src, tmp_path / "seq-01", 5, hole=(2, slice(0, 12), slice(0, 12)))
+    out = tmp_path / "map"
+    assert main(["--dataset", str(seq), "--out", str(out), "--size", f"{k.width // 2}x{k.height // 2}", "--stride", "2",
+                 "--frames", "3", "--labels", "none", "--mapping-iters", "2", "--quiet",
+                 "--config", _write(tmp_path / "c.json", {"mapping": {"first_frame_iters": 3}})]) == 0
+    for frame, map_frame in ((0, 0), (2, 1), (4, 2)):
+        u, v = 30.0, 60.0  # a smooth surface in these frames (depth within 6.5 cm over 7 x 7 pixels)
+        truth = src[frame]
+        z_true = float(truth.depth[int(v), int(u)])
+        p, z, j = point_at_pixel(str(out), str(seq), frame, (u, v), window=1)
+        assert j == map_frame and z == pytest.approx(z_true, abs=0.04)  # a neighbouring pixel's depth at half size
+        ray = np.array([(u - k.cx) / k.fx * z, (v - k.cy) / k.fy * z, z])  # the native pixel's ray, at that depth
+        expect = truth.gt_c2w[:3, :3] @ ray + truth.gt_c2w[:3, 3]
+        assert np.linalg.norm(p - expect) < (1e-4 if frame == 0 else 0.02)  # frame 0 is anchored on its pose
+    with pytest.raises(ValueError, match="not one of the map's 3 frames"):
+        point_at_pixel(str(out), str(seq), 1, (70, 40))
+    with pytest.raises(ValueError, match="not in the dataset"):
+        point_at_pixel(str(out), str(seq), 5, (70, 40))
+    with pytest.raises(ValueError, match="outside frame 0's 120x68"):
+        point_at_pixel(str(out), str(seq), 0, (120, 40))
+    with pytest.raises(ValueError, match="no depth around pixel"):
+        point_at_pixel(str(out), str(seq), 2, (4, 4))
+    with pytest.raises(ValueError, match="odd"):
+        point_at_pixel(str(out), str(seq), 0, (70, 40), window=4)
+    # the CLI: the Gaussians there have no class (labels none), so they are named as 'unlabelled'
+    assert names_main(["--map", str(out), "--dataset", str(seq), "--frame", "2", "--pixel", "70", "40", "--radius",
+                       "0.3", "--of-class", "unlabelled", "--name", "thing"]) == 0
+    said = capsys.readouterr().out
+    assert "frame 2, pixel (70, 40)" in said and "its frame 1's pose" in said and "Gaussians of 'unlabelled'" in said
+    assert "thing" in read_names(str(out / "semantic.json")).values()
+    assert names_main(["--map", str(out), "--dataset", str(seq), "--frame", "3", "--pixel", "70", "40",
+                       "--name", "x"]) == 2
+    assert "pick a frame the run used" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        names_main(["--map", str(out), "--frame", "2", "--pixel", "70", "40", "--name", "x"])  # no --dataset
+    assert "go together" in capsys.readouterr().err
+    # a map without time stamps (an older file) cannot be matched to frames
+    with np.load(out / "params.npz") as z:
+        arrays = {n: z[n] for n in z.files if n != "timestamps"}
+    np.savez_compressed(out / "params.npz", **arrays)
+    with pytest.raises(MapFormatError, match="no time stamp"):
+        point_at_pixel(str(out), str(seq), 0, (70, 40))
 
 
 def _write(path, obj) -> str:

@@ -11,7 +11,13 @@ id with the given name, in ``params.npz`` and ``semantic.json``. Usage::
     python -m semantic_gs_slam.labels.names --map /tmp/kitchen_map --at 0.37 -0.05 1.62 --name cup
     python -m semantic_gs_slam.labels.names --map /tmp/kitchen_map --at 0.28 -1.33 3.01 --radius 0.25 \
         --of-class object --of-class unlabelled --name tv
+    python -m semantic_gs_slam.labels.names --map /tmp/kitchen_map --dataset SEQ --frame 465 --pixel 510 70 \
+        --radius 0.3 --of-class wall --name tv
     python -m semantic_gs_slam.labels.names --map /tmp/kitchen_map --list
+
+``--frame N --pixel U V`` (:func:`point_at_pixel`) is the point a person sees in one of the images the map was
+built from: pixel (U, V) of the dataset's frame N, as the image file shows it, back-projected with that frame's
+depth and the map's own pose of the frame (matched by time stamp).
 
 Gaussians that no labelling gave a class keep id 0; ``unlabelled`` names them as a class (a TV screen gives
 the depth camera nothing, so the geometry layer cannot cut it out, but its Gaussians are seeded at the depth
@@ -155,6 +161,72 @@ def name_at(map_dir: str, point: tuple[float, float, float], name: str, radius: 
     return new_id, int(sel.sum()), ", ".join(classes)
 
 
+def point_at_pixel(map_dir: str, dataset: str, frame: int, pixel: tuple[float, float], window: int = 5,
+                   layout: str = "auto") -> tuple[np.ndarray, float, int]:
+    """Where pixel ``pixel`` of the dataset's frame ``frame`` is in the map's frame.
+
+    The pixel is in the image file's own size (what a person sees when opening it); it is moved to the map's
+    working size, its depth is the median of the frame's valid depth in a ``window`` x ``window`` patch there,
+    and it is back-projected with the map's intrinsics and the map's own (estimated) pose of that frame, found
+    by time stamp (``params.npz``'s ``timestamps``).
+
+    Args:
+        map_dir: folder with ``params.npz``. dataset: the sequence the map was built from. frame: its index
+            there. pixel: (u, v), column and row. window: odd patch size. layout: as in ``load_dataset``.
+
+    Returns:
+        (point [3] float64 in the map's frame, depth in metres, the map's frame index).
+
+    Raises:
+        MapFormatError: an unreadable map, or one without time stamps or camera trajectory.
+        DatasetError: an unreadable dataset.
+        ValueError: a frame the map was not built from, a pixel outside the image, no depth around it.
+    """
+    from semantic_gs_slam.datasets import load_dataset
+    from semantic_gs_slam.gaussian_map import load_params, trajectory_from_params
+
+    if window < 1 or window % 2 == 0:
+        raise ValueError(f"window must be odd and >= 1, got {window}")
+    arrays = load_params(os.path.join(map_dir, "params.npz"))
+    poses = trajectory_from_params(arrays)
+    if "timestamps" not in arrays or len(arrays["timestamps"]) != len(poses):
+        raise MapFormatError(f"{map_dir}: the map has no time stamp per frame, so its frames cannot be matched to "
+                             "the dataset's (maps written before time stamps were saved): give --at X Y Z instead")
+    stamps = np.asarray(arrays["timestamps"], np.float64)
+    try:
+        kmat = np.asarray(arrays["intrinsics"], np.float64).reshape(3, 3)
+        width, height = int(arrays["org_width"]), int(arrays["org_height"])
+    except (KeyError, ValueError) as exc:
+        raise MapFormatError(f"{map_dir}: no camera intrinsics or size in the map ({exc})") from exc
+    ds = load_dataset(dataset, layout, colour_calib="none")  # depth only: colour is not needed
+    if not 0 <= frame < len(ds):
+        raise ValueError(f"frame {frame} is not in the dataset ({len(ds)} frames: 0..{len(ds) - 1})")
+    native = ds.native_intrinsics
+    u, v = float(pixel[0]), float(pixel[1])
+    if not (np.isfinite(u) and np.isfinite(v) and 0 <= u <= native.width - 1 and 0 <= v <= native.height - 1):
+        raise ValueError(f"pixel ({pixel[0]}, {pixel[1]}) is outside frame {frame}'s {native.width}x{native.height} "
+                         "image")
+    t = ds.timestamps[frame]
+    j = int(np.argmin(np.abs(stamps - t)))
+    if abs(stamps[j] - t) > 1e-3:
+        step = f"{stamps[1] - stamps[0]:.3f} s apart" if len(stamps) > 1 else "one frame"
+        raise ValueError(f"dataset frame {frame} (t = {t:.3f} s) is not one of the map's {len(stamps)} frames (t = "
+                         f"{stamps[0]:.3f} .. {stamps[-1]:.3f} s, {step}): pick a frame the run used")
+    f = ds.resized(width, height)[frame]
+    uw = (u + 0.5) * width / native.width - 0.5  # pixel-centre convention, as the intrinsics are scaled
+    vw = (v + 0.5) * height / native.height - 0.5
+    r, ui, vi = window // 2, int(round(uw)), int(round(vw))
+    patch = f.depth[max(vi - r, 0):vi + r + 1, max(ui - r, 0):ui + r + 1]
+    valid = patch[patch > 0]
+    if valid.size == 0:
+        raise ValueError(f"no depth around pixel ({pixel[0]}, {pixel[1]}) of frame {frame}: the sensor measured "
+                         "nothing there; pick a pixel nearby, or give --at X Y Z")
+    z = float(np.median(valid))
+    pc = np.array([(uw - kmat[0, 2]) / kmat[0, 0] * z, (vw - kmat[1, 2]) / kmat[1, 1] * z, z])
+    c2w = poses[j]
+    return c2w[:3, :3] @ pc + c2w[:3, 3], z, j
+
+
 def main(argv: list[str] | None = None) -> int:
     """Command line (see the module docstring); returns the exit code."""
     ap = argparse.ArgumentParser(description="Name an object instance of a saved map.")
@@ -163,7 +235,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--name", help="the name people use for it, e.g. 'my mug'")
     ap.add_argument("--at", type=float, nargs=3, metavar=("X", "Y", "Z"),
                     help="name the thing at this point of the map's frame instead of an id")
-    ap.add_argument("--radius", type=float, default=0.12, help="metres around --at (default 0.12)")
+    ap.add_argument("--frame", type=int, help="with --pixel and --dataset: name the thing seen at a pixel of this "
+                    "dataset frame instead of --at")
+    ap.add_argument("--pixel", type=float, nargs=2, metavar=("U", "V"),
+                    help="column and row in the frame's image file (its own size)")
+    ap.add_argument("--dataset", help="the sequence the map was built from (for --frame)")
+    ap.add_argument("--radius", type=float, default=0.12, help="metres around the point (default 0.12)")
     ap.add_argument("--of-class", action="append",
                     help=f"with --at: the class to take, repeatable; {UNLABELLED!r} = Gaussians without a class "
                          "(default: the most common non-structure class)")
@@ -175,12 +252,22 @@ def main(argv: list[str] | None = None) -> int:
             for i, c in sorted(read_names(path).items()):
                 print(f"{i:5d} {c}")
             return 0
-        if args.at is not None and args.name is not None:
-            new_id, n, was = name_at(args.map, tuple(args.at), args.name, args.radius, args.of_class)
-            print(f"{n} Gaussians of {was!r} within {args.radius} m of {tuple(args.at)} -> id {new_id} {args.name!r}")
+        by_pixel = (args.frame, args.pixel, args.dataset)
+        if any(a is not None for a in by_pixel) and (not all(a is not None for a in by_pixel) or args.at is not None):
+            ap.error("--frame, --pixel and --dataset go together, instead of --at")
+        at = tuple(args.at) if args.at is not None else None
+        if args.frame is not None and args.name is not None:
+            p, z, j = point_at_pixel(args.map, args.dataset, args.frame, tuple(args.pixel))
+            at = tuple(round(float(c), 4) for c in p)
+            print(f"frame {args.frame}, pixel ({args.pixel[0]:g}, {args.pixel[1]:g}): {z:.3f} m deep -> "
+                  f"({at[0]:.3f}, {at[1]:.3f}, {at[2]:.3f}) in the map (its frame {j}'s pose)")
+        if at is not None and args.name is not None:
+            new_id, n, was = name_at(args.map, at, args.name, args.radius, args.of_class)
+            print(f"{n} Gaussians of {was!r} within {args.radius} m of {at} -> id {new_id} {args.name!r}")
             return 0
         if args.id is None or args.name is None:
-            ap.error("give --id and --name, or --at X Y Z and --name (or --list)")
+            ap.error("give --id and --name, --at X Y Z and --name, or --frame N --pixel U V --dataset DIR and --name "
+                     "(or --list)")
         old = name_instance(path, args.id, args.name)
         print(f"id {args.id}: {old!r} -> {args.name!r}")
     except (SlamError, ValueError) as exc:
