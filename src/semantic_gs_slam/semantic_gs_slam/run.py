@@ -11,6 +11,11 @@ Usage::
 
 Prints a progress bar and one log line per frame (pose error when ground truth exists, Gaussians,
 times) on stderr, and the evaluation table on stdout.
+
+Bad frames lose nothing: a frame whose files cannot be read or whose images the engine refuses (a corrupt
+JPEG, a depth image with almost no valid depth, ...) is skipped with a warning and listed at the end; after
+:data:`MAX_BAD_IN_A_ROW` such frames in a row the run stops, saves the map of the frames before them and exits
+with 2. Ctrl-C finishes the frame in hand, saves the map so far and exits with 130 (a second Ctrl-C quits at once).
 """
 
 from __future__ import annotations
@@ -18,17 +23,73 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import signal
 import sys
+import threading
 import time
 
 import numpy as np
 
 from semantic_gs_slam.config import MappingConfig, RendererConfig, SlamConfig, TrackingConfig
 from semantic_gs_slam.datasets import LAYOUTS, frame_indices, load_dataset, parse_size
-from semantic_gs_slam.errors import SlamError
+from semantic_gs_slam.errors import DatasetError, FrameError, SlamError
 from semantic_gs_slam.geometry import pose_error
 from semantic_gs_slam.labels import LABEL_MODES, LabelConfig, LabelStage, predict_pose
 from semantic_gs_slam.slam import SLAM
+
+MAX_BAD_IN_A_ROW = 10  # frames in a row that cannot be used before the run stops (a wrong dataset, not one bad file)
+
+
+class StopOnInterrupt:
+    """While active (``with``), the first Ctrl-C (SIGINT) only sets :attr:`requested`, so the run can finish the
+    frame in hand and save; a second one raises :class:`KeyboardInterrupt` at once. Outside the main thread
+    (where Python cannot catch signals) it does nothing."""
+
+    def __init__(self) -> None:
+        self.requested = False
+        self._old = None
+
+    def __enter__(self) -> StopOnInterrupt:
+        if threading.current_thread() is threading.main_thread():
+            self._old = signal.signal(signal.SIGINT, self._on_sigint)
+        return self
+
+    def _on_sigint(self, signum, frame) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+        print("\ninterrupted: finishing this frame, then saving the map so far (Ctrl-C again to quit at once)",
+              file=sys.stderr, flush=True)
+
+    def __exit__(self, *exc) -> bool:
+        if self._old is not None:
+            signal.signal(signal.SIGINT, self._old)
+            self._old = None
+        return False
+
+
+def dataset_positions(stamps: list[float], ds_stamps: list[float], idx: list[int]) -> list[int]:
+    """The position in ``idx`` of each of an engine's frames, matched by time stamp (frames may have been skipped,
+    and a resumed engine's frames come from an earlier run over the same dataset).
+
+    Raises:
+        DatasetError: a frame of the engine that none of ``idx``'s frames has the time stamp of.
+    """
+    where = {round(float(ds_stamps[i]), 6): n for n, i in enumerate(idx)}
+    out = []
+    for t in stamps:
+        n = where.get(round(float(t), 6))
+        if n is None:
+            raise DatasetError(f"the engine has a frame at t = {t:.6f} s that the selected dataset frames do not have "
+                               "(resumed from another dataset, or with other --start/--stride?)")
+        out.append(n)
+    return out
+
+
+def _skipped_summary(skipped: list[tuple[int, str]], total: int) -> str:
+    shown = "; ".join(f"frame {i}: {why}" for i, why in skipped[:5])
+    more = f"; and {len(skipped) - 5} more" if len(skipped) > 5 else ""
+    return f"skipped {len(skipped)} of {total} frames that could not be used ({shown}{more})"
 
 
 def progress_line(done: int, total: int, width: int = 24) -> str:
@@ -130,37 +191,65 @@ def main(argv: list[str] | None = None) -> int:
             eng = SLAM(cfg, ds.classes)
         stage.reserve_ids(eng.classes)  # after a resume: new instances must not reuse the map's ids
         t0 = time.perf_counter()
-        start = len(eng.poses)
-        for n, i in enumerate(idx[start:], start):
-            f = ds[i]
-            sem = label_frame(stage, eng, f)
-            pose = eng.add_frame(f.rgb, f.depth, sem, f.timestamp, f.gt_c2w)
-            lg = eng.logs[-1]
-            err = ""
-            if f.gt_c2w is not None:
-                et, er = pose_error(pose, f.gt_c2w)
-                err = f" err {et * 100:5.2f} cm {er:4.2f} deg"
-            if not args.quiet:
-                print(f"{progress_line(n + 1, len(idx))} frame {i:5d}{' KF' if lg.keyframe else '   '} "
-                      f"gaussians {lg.n_gaussians:7d} (+{lg.added} -{lg.pruned}) "
-                      f"icp {lg.track_residual_m * 1000:5.2f} mm "
-                      f"loss {lg.map_loss:6.4f} track {lg.track_s:5.2f} s map {lg.map_s:5.2f} s{err}"
-                      f"{' TRACKING LOST' if lg.tracking_failed else ''}", file=sys.stderr, flush=True)
-        wall = time.perf_counter() - t0
-        if args.refine_iters > 0:
-            t1 = time.perf_counter()
-            eng.refine(args.refine_iters, poses=args.refine_poses)
-            print(f"refined the map{' and the keyframes poses' if args.refine_poses else ''} over "
-                  f"{len(eng.keyframes)} keyframes for {args.refine_iters} iterations in "
-                  f"{time.perf_counter() - t1:.1f} s", file=sys.stderr)
-        paths = eng.save(args.out)
-        done = len(eng.poses) - start
+        before = len(eng.poses)
+        start = dataset_positions(eng.timestamps, ds.timestamps, idx)[-1] + 1 if before else 0
+        skipped: list[tuple[int, str]] = []
+        stopped = ""  # why the frames stopped early ("" = all fed)
+        bad_in_a_row = 0
+        with StopOnInterrupt() as interrupt:
+            for n, i in enumerate(idx[start:], start):
+                if interrupt.requested:
+                    stopped = f"stopped by Ctrl-C before frame {i}"
+                    break
+                try:
+                    f = ds[i]
+                    sem = label_frame(stage, eng, f)
+                    pose = eng.add_frame(f.rgb, f.depth, sem, f.timestamp, f.gt_c2w)
+                except (DatasetError, FrameError) as exc:  # this frame's files or images: skip it, lose nothing
+                    skipped.append((i, str(exc)))
+                    bad_in_a_row += 1
+                    print(f"warning: frame {i} skipped: {exc}", file=sys.stderr, flush=True)
+                    if bad_in_a_row >= MAX_BAD_IN_A_ROW:
+                        stopped = f"{bad_in_a_row} frames in a row could not be used (the last, frame {i}: {exc})"
+                        break
+                    continue
+                bad_in_a_row = 0
+                lg = eng.logs[-1]
+                err = ""
+                if f.gt_c2w is not None:
+                    et, er = pose_error(pose, f.gt_c2w)
+                    err = f" err {et * 100:5.2f} cm {er:4.2f} deg"
+                if not args.quiet:
+                    print(f"{progress_line(n + 1, len(idx))} frame {i:5d}{' KF' if lg.keyframe else '   '} "
+                          f"gaussians {lg.n_gaussians:7d} (+{lg.added} -{lg.pruned}) "
+                          f"icp {lg.track_residual_m * 1000:5.2f} mm "
+                          f"loss {lg.map_loss:6.4f} track {lg.track_s:5.2f} s map {lg.map_s:5.2f} s{err}"
+                          f"{' TRACKING LOST' if lg.tracking_failed else ''}", file=sys.stderr, flush=True)
+            wall = time.perf_counter() - t0
+            if skipped:
+                print(_skipped_summary(skipped, len(idx) - start), file=sys.stderr)
+            if not eng.poses:
+                first = skipped[0] if skipped else (idx[start] if start < len(idx) else -1, "no frames")
+                raise DatasetError(f"no frame could be used, nothing to save (frame {first[0]}: {first[1]})")
+            if args.refine_iters > 0 and not interrupt.requested:
+                t1 = time.perf_counter()
+                eng.refine(args.refine_iters, poses=args.refine_poses)
+                print(f"refined the map{' and the keyframes poses' if args.refine_poses else ''} over "
+                      f"{len(eng.keyframes)} keyframes for {args.refine_iters} iterations in "
+                      f"{time.perf_counter() - t1:.1f} s", file=sys.stderr)
+            paths = eng.save(args.out)
+        done = len(eng.poses) - before
         print(f"saved {', '.join(paths.values())}; {len(eng.map)} Gaussians; {done} frames in {wall:.1f} s "
               f"({done / max(wall, 1e-9):.2f} FPS)", file=sys.stderr)
+        if stopped:
+            print(f"error: {stopped}; the map of the {len(eng.poses)} frames before is saved "
+                  f"(continue with --resume when --checkpoint-every is set)", file=sys.stderr)
+            return 130 if interrupt.requested else 2
         if args.eval:
             from semantic_gs_slam.evaluate import evaluate, format_table
 
-            res = evaluate(eng, ds, idx[:len(eng.poses)])
+            used = dataset_positions(eng.timestamps, ds.timestamps, idx)
+            res = evaluate(eng, ds, [idx[n] for n in used])
             res["fps"] = done / max(wall, 1e-9)
             print(format_table(res))
     except SlamError as exc:

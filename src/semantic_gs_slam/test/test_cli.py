@@ -45,3 +45,109 @@ def test_demo_map_builder_writes_a_map_object_query_reads(tmp_path):
     assert (out / "params.npz").is_file() and (out / "semantic.json").is_file() and not (out / "map.ply").exists()
     gmap, classes, arr = SLAM.load_map(str(out))
     assert len(gmap) == res["gaussians"] and classes[7] == "bottle" and arr["cam_trans"].shape == (1, 3, 8)
+
+
+def _replica_copy(src, dst):
+    """A copy of a Replica-layout sequence whose files a test may break."""
+    import shutil
+
+    shutil.copytree(src, dst)
+    return dst
+
+
+def test_a_bad_frame_is_skipped_and_nothing_is_lost(tiny_home, tmp_path, capsys):
+    """A corrupt image and a depth image with no valid depth are skipped with a warning, listed at the end; the
+    map and the evaluation cover the frames that could be used (matched by time stamp, not by count)."""
+    import glob
+
+    seq = _replica_copy(tiny_home, tmp_path / "seq")
+    rgb = sorted(glob.glob(str(seq / "results" / "frame*")))
+    depth = sorted(glob.glob(str(seq / "results" / "depth*")))
+    with open(rgb[2], "wb") as fh:
+        fh.write(b"not an image")
+    from PIL import Image
+
+    Image.new("I;16", Image.open(depth[4]).size, 0).save(depth[4])  # no valid depth at all
+    out = str(tmp_path / "map")
+    rc = main(["--dataset", str(seq), "--out", out, "--threads", "1", "--mapping-iters", "2", "--frames", "6",
+               "--quiet", "--eval", "--checkpoint-every", "2"])
+    cap = capsys.readouterr()
+    assert rc == 0, cap.err
+    assert "warning: frame 2 skipped" in cap.err and "unreadable image" in cap.err
+    assert "warning: frame 4 skipped" in cap.err and "depth pixels are valid" in cap.err
+    assert "skipped 2 of 6 frames that could not be used (frame 2: " in cap.err
+    assert "| ATE RMSE (cm, aligned) |" in cap.out
+    gmap, classes, arr = SLAM.load_map(out)
+    from semantic_gs_slam.datasets import load_dataset
+
+    stamps = load_dataset(str(seq)).timestamps
+    assert arr["cam_trans"].shape == (1, 3, 4) and list(arr["timestamps"]) == [stamps[i] for i in (0, 1, 3, 5)]
+    # resumed from the checkpoint written after the skipped frames: it goes on after the last frame it has
+    eng = SLAM.resume(os.path.join(out, "checkpoint"))
+    n_ck = len(eng.poses)
+    assert main(["--dataset", str(seq), "--out", out, "--threads", "1", "--mapping-iters", "2", "--frames", "8",
+                 "--quiet", "--resume", "--eval"]) == 0
+    cap = capsys.readouterr()
+    assert f"resumed from {os.path.join(out, 'checkpoint')} at frame {n_ck}" in cap.err
+    assert "| ATE RMSE (cm, aligned) |" in cap.out
+    assert SLAM.load_map(out)[2]["cam_trans"].shape[2] == 6  # frames 0 1 3 5 6 7
+
+
+def test_many_bad_frames_in_a_row_stop_the_run_and_keep_the_map(tiny_home, tmp_path, capsys):
+    import glob
+
+    from semantic_gs_slam import run
+
+    seq = _replica_copy(tiny_home, tmp_path / "seq")
+    for p in sorted(glob.glob(str(seq / "results" / "frame*")))[2:]:
+        with open(p, "wb") as fh:
+            fh.write(b"junk")
+    out = str(tmp_path / "map")
+    old = run.MAX_BAD_IN_A_ROW
+    run.MAX_BAD_IN_A_ROW = 3
+    try:
+        assert main(["--dataset", str(seq), "--out", out, "--threads", "1", "--mapping-iters", "2", "--quiet"]) == 2
+    finally:
+        run.MAX_BAD_IN_A_ROW = old
+    err = capsys.readouterr().err
+    assert "error: 3 frames in a row could not be used (the last, frame 4:" in err
+    assert "the map of the 2 frames before is saved" in err and "warning: frame 5" not in err
+    assert SLAM.load_map(out)[2]["cam_trans"].shape == (1, 3, 2)
+    # nothing usable at all: a clear error, no map
+    for p in sorted(glob.glob(str(seq / "results" / "frame*")))[:2]:
+        with open(p, "wb") as fh:
+            fh.write(b"junk")
+    assert main(["--dataset", str(seq), "--out", str(tmp_path / "none"), "--quiet"]) == 2
+    assert "error: no frame could be used, nothing to save (frame 0: " in capsys.readouterr().err
+    assert not os.path.exists(tmp_path / "none" / "params.npz")
+
+
+def test_ctrl_c_saves_the_map_so_far(tiny_home, tmp_path):
+    """A real process, a real SIGINT after its first frame: it finishes the frame, saves, exits with 130."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "map"
+    proc = subprocess.Popen([sys.executable, "-m", "semantic_gs_slam.run", "--dataset", str(tiny_home), "--out",
+                             str(out), "--threads", "1", "--mapping-iters", "30"],
+                            stderr=subprocess.PIPE, text=True)
+    lines = []
+    try:
+        deadline = time.monotonic() + 300
+        for line in proc.stderr:  # the first frame's log line: the run is in its loop
+            lines.append(line)
+            if "frame     0" in line or time.monotonic() > deadline:
+                break
+        proc.send_signal(signal.SIGINT)
+        _, rest = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    err = "".join(lines) + rest
+    assert proc.returncode == 130, err
+    assert "interrupted: finishing this frame, then saving the map so far" in err
+    assert "stopped by Ctrl-C before frame" in err and "is saved" in err
+    n = SLAM.load_map(str(out))[2]["cam_trans"].shape[2]
+    assert 1 <= n < 10
