@@ -442,8 +442,9 @@ def _seven_scenes_copy(src, seq, frames: int, hole: tuple[int, slice, slice] | N
 
 
 def test_name_by_pixel_of_a_frame_the_map_was_built_from(tiny_home, tmp_path, capsys):
-    """``--frame N --pixel U V``: the pixel of the image file, at the map's working size (half here), back-projected
+    """``--frame N --pixel U V``: a pixel of the frame's colour image file, at the map's working size (half here),
     with the frame's depth and the map's own pose of that frame, matched by time stamp (every 2nd frame used)."""
+    from semantic_gs_slam.colour_registration import SEVEN_SCENES_COLOUR, scaled
     from semantic_gs_slam.datasets import load_dataset
     from semantic_gs_slam.labels.names import point_at_pixel
     from semantic_gs_slam.run import main
@@ -455,25 +456,50 @@ def test_name_by_pixel_of_a_frame_the_map_was_built_from(tiny_home, tmp_path, ca
     assert main(["--dataset", str(seq), "--out", str(out), "--size", f"{k.width // 2}x{k.height // 2}", "--stride", "2",
                  "--frames", "3", "--labels", "none", "--mapping-iters", "2", "--quiet",
                  "--config", _write(tmp_path / "c.json", {"mapping": {"first_frame_iters": 3}})]) == 0
+    # colour registered to depth (colour_calib none): the colour file's pixel is the depth image's
     for frame, map_frame in ((0, 0), (2, 1), (4, 2)):
         u, v = 30.0, 60.0  # a smooth surface in these frames (depth within 6.5 cm over 7 x 7 pixels)
         truth = src[frame]
         z_true = float(truth.depth[int(v), int(u)])
-        p, z, j = point_at_pixel(str(out), str(seq), frame, (u, v), window=1)
+        p, z, j = point_at_pixel(str(out), str(seq), frame, (u, v), window=1, colour_calib="none")
         assert j == map_frame and z == pytest.approx(z_true, abs=0.04)  # a neighbouring pixel's depth at half size
         ray = np.array([(u - k.cx) / k.fx * z, (v - k.cy) / k.fy * z, z])  # the native pixel's ray, at that depth
         expect = truth.gt_c2w[:3, :3] @ ray + truth.gt_c2w[:3, 3]
         assert np.linalg.norm(p - expect) < (1e-4 if frame == 0 else 0.02)  # frame 0 is anchored on its pose
+    # the 7-Scenes default: colour from the Kinect's colour camera, 2.35 cm beside the depth camera with another
+    # focal length; the colour pixel that shows depth pixel (ud, vd) must give that depth pixel's point
+    half = load_dataset(str(seq), size=(k.width // 2, k.height // 2))
+    kw, d = half.intrinsics, half[0].depth
+    cal = scaled(SEVEN_SCENES_COLOUR, k.width / 640, k.height / 480)
+    ud, vd = 15, 29
+    zd = float(d[vd, ud])
+    x, y = (ud - kw.cx) / kw.fx * zd, (vd - kw.cy) / kw.fy * zd
+    uc, vc = cal.fx * (x + cal.tx) / zd + cal.cx, cal.fy * (y + cal.ty) / zd + cal.cy
+    assert abs(uc - (ud + 0.5) * 2 + 0.5) > 1.0  # the calibration moves it by more than a pixel here
+    p, z, j = point_at_pixel(str(out), str(seq), 0, (uc, vc), window=1)
+    c2w = src[0].gt_c2w
+    assert z == pytest.approx(zd) and np.linalg.norm(p - (c2w[:3, :3] @ [x, y, zd] + c2w[:3, 3])) < 1e-4
+    # refused with the reason: a skipped frame, a frame or pixel outside, no depth, a bad window
     with pytest.raises(ValueError, match="not one of the map's 3 frames"):
         point_at_pixel(str(out), str(seq), 1, (70, 40))
     with pytest.raises(ValueError, match="not in the dataset"):
         point_at_pixel(str(out), str(seq), 5, (70, 40))
-    with pytest.raises(ValueError, match="outside frame 0's 120x68"):
+    with pytest.raises(ValueError, match="outside frame 0's 120x68 colour image"):
         point_at_pixel(str(out), str(seq), 0, (120, 40))
-    with pytest.raises(ValueError, match="no depth around pixel"):
-        point_at_pixel(str(out), str(seq), 2, (4, 4))
+    with pytest.raises(ValueError, match="no depth"):
+        point_at_pixel(str(out), str(seq), 2, (4, 4), colour_calib="none")
     with pytest.raises(ValueError, match="odd"):
         point_at_pixel(str(out), str(seq), 0, (70, 40), window=4)
+    # another sequence (poses 10 cm off, or another camera) than the one the map was built from
+    other = _seven_scenes_copy(src, tmp_path / "seq-02", 3)
+    pose = np.loadtxt(other / "frame-000002.pose.txt")
+    pose[0, 3] += 0.1
+    np.savetxt(other / "frame-000002.pose.txt", pose)
+    with pytest.raises(ValueError, match="built from another sequence"):
+        point_at_pixel(str(out), str(other), 2, (70, 40))
+    np.savetxt(other / "camera-intrinsics.txt", [[k.fx * 1.1, 0, k.cx], [0, k.fy, k.cy], [0, 0, 1]])
+    with pytest.raises(ValueError, match="is not this dataset's"):
+        point_at_pixel(str(out), str(other), 0, (70, 40))
     # the CLI: the Gaussians there have no class (labels none), so they are named as 'unlabelled'
     assert names_main(["--map", str(out), "--dataset", str(seq), "--frame", "2", "--pixel", "70", "40", "--radius",
                        "0.3", "--of-class", "unlabelled", "--name", "thing"]) == 0
@@ -483,8 +509,11 @@ def test_name_by_pixel_of_a_frame_the_map_was_built_from(tiny_home, tmp_path, ca
     assert names_main(["--map", str(out), "--dataset", str(seq), "--frame", "3", "--pixel", "70", "40",
                        "--name", "x"]) == 2
     assert "pick a frame the run used" in capsys.readouterr().err
-    with pytest.raises(SystemExit):
-        names_main(["--map", str(out), "--frame", "2", "--pixel", "70", "40", "--name", "x"])  # no --dataset
+    for bad in (["--frame", "2", "--pixel", "70", "40", "--name", "x"],  # no --dataset
+                ["--id", "3", "--at", "0", "0", "1", "--name", "x"]):  # an id and a place
+        with pytest.raises(SystemExit) as exc:
+            names_main(["--map", str(out), *bad])
+        assert exc.value.code == 2
     assert "go together" in capsys.readouterr().err
     # a map without time stamps (an older file) cannot be matched to frames
     with np.load(out / "params.npz") as z:

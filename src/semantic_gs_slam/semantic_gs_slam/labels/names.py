@@ -11,13 +11,14 @@ id with the given name, in ``params.npz`` and ``semantic.json``. Usage::
     python -m semantic_gs_slam.labels.names --map /tmp/kitchen_map --at 0.37 -0.05 1.62 --name cup
     python -m semantic_gs_slam.labels.names --map /tmp/kitchen_map --at 0.28 -1.33 3.01 --radius 0.25 \
         --of-class object --of-class unlabelled --name tv
-    python -m semantic_gs_slam.labels.names --map /tmp/kitchen_map --dataset SEQ --frame 465 --pixel 510 70 \
-        --radius 0.3 --of-class wall --name tv
+    python -m semantic_gs_slam.labels.names --map /tmp/kitchen_map --dataset SEQ --frame 464 --pixel 494 75 \
+        --radius 0.3 --of-class wall --of-class object --of-class unlabelled --name tv
     python -m semantic_gs_slam.labels.names --map /tmp/kitchen_map --list
 
 ``--frame N --pixel U V`` (:func:`point_at_pixel`) is the point a person sees in one of the images the map was
-built from: pixel (U, V) of the dataset's frame N, as the image file shows it, back-projected with that frame's
-depth and the map's own pose of the frame (matched by time stamp).
+built from: pixel (U, V) of the colour image file of the dataset's frame N (where colour is not registered to
+depth, as on 7-Scenes, through the same colour calibration the run used), with that frame's depth and the map's
+own pose of the frame (matched by time stamp, and checked against the dataset's pose when both have one).
 
 Gaussians that no labelling gave a class keep id 0; ``unlabelled`` names them as a class (a TV screen gives
 the depth camera nothing, so the geometry layer cannot cut it out, but its Gaussians are seeded at the depth
@@ -34,7 +35,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from semantic_gs_slam.errors import MapFormatError, SlamError
+from semantic_gs_slam.errors import DatasetError, MapFormatError, SlamError
 
 MAX_NAME = 64
 
@@ -124,6 +125,8 @@ def name_at(map_dir: str, point: tuple[float, float, float], name: str, radius: 
     if "means3D" not in arrays or "semantic_ids" not in arrays:
         raise MapFormatError(f"{pz} has no means3D / semantic_ids")
     ids = np.asarray(arrays["semantic_ids"]).reshape(-1)
+    if ids.dtype.kind not in "iu":
+        raise MapFormatError(f"{pz}: semantic_ids must be integers, got {ids.dtype}")
     where = f"({p[0]:.3f}, {p[1]:.3f}, {p[2]:.3f})"
     near = np.linalg.norm(arrays["means3D"].astype(np.float64) - p, axis=1) < radius
     if of_class is not None:
@@ -162,67 +165,116 @@ def name_at(map_dir: str, point: tuple[float, float, float], name: str, radius: 
 
 
 def point_at_pixel(map_dir: str, dataset: str, frame: int, pixel: tuple[float, float], window: int = 5,
-                   layout: str = "auto") -> tuple[np.ndarray, float, int]:
-    """Where pixel ``pixel`` of the dataset's frame ``frame`` is in the map's frame.
+                   layout: str = "auto", colour_calib: str = "auto") -> tuple[np.ndarray, float, int]:
+    """Where the thing a person sees at pixel ``pixel`` of the colour image file of the dataset's frame ``frame`` is
+    in the map's frame.
 
-    The pixel is in the image file's own size (what a person sees when opening it); it is moved to the map's
-    working size, its depth is the median of the frame's valid depth in a ``window`` x ``window`` patch there,
-    and it is back-projected with the map's intrinsics and the map's own (estimated) pose of that frame, found
-    by time stamp (``params.npz``'s ``timestamps``).
+    The depth pixel that shows the same thing is found through the colour calibration (where colour is not
+    registered to depth, e.g. 7-Scenes; else the pixel is moved to the depth image's size). Its depth is the
+    median of the frame's valid depth in a ``window`` x ``window`` patch at the map's working size; the point is on
+    the colour camera's ray through the pixel at that depth, moved by the map's own (estimated) pose of that frame,
+    found by time stamp (``params.npz``'s ``timestamps``).
 
     Args:
-        map_dir: folder with ``params.npz``. dataset: the sequence the map was built from. frame: its index
-            there. pixel: (u, v), column and row. window: odd patch size. layout: as in ``load_dataset``.
+        map_dir: folder with ``params.npz``.
+        dataset: the sequence the map was built from.
+        frame: the frame's position in the dataset's frame list (0-based; what ``--start``/``--stride`` count).
+        pixel: (u, v), column and row in the frame's colour image file.
+        window: odd patch size (depth pixels at the working size).
+        layout: as in :func:`~semantic_gs_slam.datasets.load_dataset`.
+        colour_calib: as in :func:`~semantic_gs_slam.datasets.load_dataset`: the one the run used.
 
     Returns:
         (point [3] float64 in the map's frame, depth in metres, the map's frame index).
 
     Raises:
-        MapFormatError: an unreadable map, or one without time stamps or camera trajectory.
+        MapFormatError: an unreadable map, or one without time stamps, camera trajectory or intrinsics.
         DatasetError: an unreadable dataset.
-        ValueError: a frame the map was not built from, a pixel outside the image, no depth around it.
+        ValueError: a frame the map was not built from (or a dataset it was not built from), a pixel outside the
+            image, no depth there.
     """
-    from semantic_gs_slam.datasets import load_dataset
+    from PIL import Image
+
+    from semantic_gs_slam.colour_registration import colour_coords, scaled
+    from semantic_gs_slam.datasets import load_dataset, scale_intrinsics
     from semantic_gs_slam.gaussian_map import load_params, trajectory_from_params
 
     if window < 1 or window % 2 == 0:
         raise ValueError(f"window must be odd and >= 1, got {window}")
     arrays = load_params(os.path.join(map_dir, "params.npz"))
     poses = trajectory_from_params(arrays)
-    if "timestamps" not in arrays or len(arrays["timestamps"]) != len(poses):
-        raise MapFormatError(f"{map_dir}: the map has no time stamp per frame, so its frames cannot be matched to "
-                             "the dataset's (maps written before time stamps were saved): give --at X Y Z instead")
-    stamps = np.asarray(arrays["timestamps"], np.float64)
     try:
+        stamps = np.asarray(arrays["timestamps"], np.float64).reshape(-1)
         kmat = np.asarray(arrays["intrinsics"], np.float64).reshape(3, 3)
         width, height = int(arrays["org_width"]), int(arrays["org_height"])
-    except (KeyError, ValueError) as exc:
-        raise MapFormatError(f"{map_dir}: no camera intrinsics or size in the map ({exc})") from exc
-    ds = load_dataset(dataset, layout, colour_calib="none")  # depth only: colour is not needed
+    except KeyError as exc:
+        what = ("no time stamp per frame, so its frames cannot be matched to the dataset's (maps written before time "
+                "stamps were saved): give --at X Y Z instead") if exc.args[0] == "timestamps" else f"no {exc}"
+        raise MapFormatError(f"{map_dir}: the map has {what}") from exc
+    except (TypeError, ValueError) as exc:
+        raise MapFormatError(f"{map_dir}: the map's time stamps, intrinsics or size are malformed ({exc})") from exc
+    if len(stamps) != len(poses) or not len(poses):
+        raise MapFormatError(f"{map_dir}: {len(poses)} camera poses but {len(stamps)} time stamps in the map")
+    ds = load_dataset(dataset, layout, colour_calib=colour_calib)
     if not 0 <= frame < len(ds):
         raise ValueError(f"frame {frame} is not in the dataset ({len(ds)} frames: 0..{len(ds) - 1})")
-    native = ds.native_intrinsics
-    u, v = float(pixel[0]), float(pixel[1])
-    if not (np.isfinite(u) and np.isfinite(v) and 0 <= u <= native.width - 1 and 0 <= v <= native.height - 1):
-        raise ValueError(f"pixel ({pixel[0]}, {pixel[1]}) is outside frame {frame}'s {native.width}x{native.height} "
-                         "image")
     t = ds.timestamps[frame]
     j = int(np.argmin(np.abs(stamps - t)))
     if abs(stamps[j] - t) > 1e-3:
         step = f"{stamps[1] - stamps[0]:.3f} s apart" if len(stamps) > 1 else "one frame"
         raise ValueError(f"dataset frame {frame} (t = {t:.3f} s) is not one of the map's {len(stamps)} frames (t = "
                          f"{stamps[0]:.3f} .. {stamps[-1]:.3f} s, {step}): pick a frame the run used")
-    f = ds.resized(width, height)[frame]
-    uw = (u + 0.5) * width / native.width - 0.5  # pixel-centre convention, as the intrinsics are scaled
-    vw = (v + 0.5) * height / native.height - 0.5
-    r, ui, vi = window // 2, int(round(uw)), int(round(vw))
-    patch = f.depth[max(vi - r, 0):vi + r + 1, max(ui - r, 0):ui + r + 1]
-    valid = patch[patch > 0]
+    native = ds.native_intrinsics
+    k = scale_intrinsics(native, width, height)
+    if not np.allclose([k.fx, k.fy, k.cx, k.cy], [kmat[0, 0], kmat[1, 1], kmat[0, 2], kmat[1, 2]], rtol=1e-4,
+                       atol=1e-3):
+        raise ValueError(f"the map's camera (fx {kmat[0, 0]:.2f}, cx {kmat[0, 2]:.2f} at {width}x{height}) is not this "
+                         f"dataset's (fx {k.fx:.2f}, cx {k.cx:.2f}): was the map built from {dataset}?")
+    gt = arrays.get("gt_w2c_all_frames")
+    if gt is not None and ds.poses is not None and len(gt) == len(poses) and np.all(np.isfinite(gt[j])):
+        if np.abs(np.asarray(gt[j], np.float64) @ ds.poses[frame] - np.eye(4)).max() > 1e-3:
+            raise ValueError(f"dataset frame {frame}'s reference pose is not the one the map recorded for it: the map "
+                             f"was built from another sequence than {dataset}")
+    try:
+        with Image.open(ds.rgb_paths[frame]) as im:
+            cw, ch = im.size
+    except OSError as exc:
+        raise DatasetError(f"{ds.rgb_paths[frame]}: unreadable image ({exc})") from exc
+    u, v = float(pixel[0]), float(pixel[1])
+    if not (np.isfinite(u) and np.isfinite(v) and 0 <= u <= cw - 1 and 0 <= v <= ch - 1):
+        raise ValueError(f"pixel ({pixel[0]}, {pixel[1]}) is outside frame {frame}'s {cw}x{ch} colour image")
+    depth = ds.resized(width, height)[frame].depth  # [H, W] metres at the map's working size
+    c = ds.colour_calib
+    if c is None:  # colour registered to depth: the colour file's pixels are the depth camera's, at the file's size
+        fx_c, fy_c = k.fx * cw / width, k.fy * ch / height
+        cx_c, cy_c = (k.cx + 0.5) * cw / width - 0.5, (k.cy + 0.5) * ch / height - 0.5
+        tx = ty = tz = 0.0
+        ui, vi = int(round((u + 0.5) * width / cw - 0.5)), int(round((v + 0.5) * height / ch - 0.5))
+        ui, vi = min(max(ui, 0), width - 1), min(max(vi, 0), height - 1)
+    else:  # the colour camera at the colour file's own size; the depth pixel it sees nearest to the pixel (the
+        # front-most of equally near ones: the colour camera sees the nearer surface)
+        cal = scaled(c, cw / (c.width or cw), ch / (c.height or ch))
+        fx_c, fy_c, cx_c, cy_c, tx, ty, tz = cal.fx, cal.fy, cal.cx, cal.cy, cal.tx, cal.ty, cal.tz
+        cu, cv = colour_coords(depth, k.fx, k.fy, k.cx, k.cy, cal)
+        d2 = np.where(depth > 0, (cu - u) ** 2 + (cv - v) ** 2, np.inf)
+        best = float(d2.min())
+        near = d2 <= best + 1.0
+        cand = np.where(near, depth, np.inf)
+        vi, ui = np.unravel_index(int(np.argmin(cand)), depth.shape)
+        if not np.isfinite(best) or best > (2.0 * cw / width) ** 2:
+            raise ValueError(f"no depth at pixel ({pixel[0]}, {pixel[1]}) of frame {frame}'s colour image: the depth "
+                             "camera measured nothing there; pick a pixel nearby, or give --at X Y Z")
+    r = window // 2
+    patch = depth[max(vi - r, 0):vi + r + 1, max(ui - r, 0):ui + r + 1]
+    d0 = float(depth[vi, ui])
+    # the patch's depths on the pixel's own surface (a thin chair rail's, not the floor's behind it)
+    valid = patch[(patch > 0) & (np.abs(patch - d0) < 0.05 + 0.02 * d0)] if d0 > 0 else patch[patch > 0]
     if valid.size == 0:
         raise ValueError(f"no depth around pixel ({pixel[0]}, {pixel[1]}) of frame {frame}: the sensor measured "
                          "nothing there; pick a pixel nearby, or give --at X Y Z")
     z = float(np.median(valid))
-    pc = np.array([(uw - kmat[0, 2]) / kmat[0, 0] * z, (vw - kmat[1, 2]) / kmat[1, 1] * z, z])
+    zc = z + tz  # on the colour camera's ray through the pixel, at that depth (depth-camera point = colour - t)
+    pc = np.array([(u - cx_c) / fx_c * zc - tx, (v - cy_c) / fy_c * zc - ty, z])
     c2w = poses[j]
     return c2w[:3, :3] @ pc + c2w[:3, 3], z, j
 
@@ -236,14 +288,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--at", type=float, nargs=3, metavar=("X", "Y", "Z"),
                     help="name the thing at this point of the map's frame instead of an id")
     ap.add_argument("--frame", type=int, help="with --pixel and --dataset: name the thing seen at a pixel of this "
-                    "dataset frame instead of --at")
+                    "frame instead of --at (its 0-based position in the dataset's frame list, as --start counts)")
     ap.add_argument("--pixel", type=float, nargs=2, metavar=("U", "V"),
-                    help="column and row in the frame's image file (its own size)")
+                    help="column and row in the frame's colour image file (its own size)")
     ap.add_argument("--dataset", help="the sequence the map was built from (for --frame)")
+    ap.add_argument("--colour-calib", default="auto",
+                    help="for --frame: the colour calibration the run used (auto, none or a file, as the run's)")
     ap.add_argument("--radius", type=float, default=0.12, help="metres around the point (default 0.12)")
     ap.add_argument("--of-class", action="append",
-                    help=f"with --at: the class to take, repeatable; {UNLABELLED!r} = Gaussians without a class "
-                         "(default: the most common non-structure class)")
+                    help=f"with --at or --frame: the class to take, repeatable; {UNLABELLED!r} = Gaussians without a "
+                         "class (default: the most common non-structure class)")
     ap.add_argument("--list", action="store_true", help="print the ids and names")
     args = ap.parse_args(argv)
     path = os.path.join(args.map, "semantic.json")
@@ -255,9 +309,12 @@ def main(argv: list[str] | None = None) -> int:
         by_pixel = (args.frame, args.pixel, args.dataset)
         if any(a is not None for a in by_pixel) and (not all(a is not None for a in by_pixel) or args.at is not None):
             ap.error("--frame, --pixel and --dataset go together, instead of --at")
+        if args.id is not None and (args.at is not None or args.frame is not None):
+            ap.error("give --id, or a place (--at, or --frame/--pixel/--dataset), not both")
         at = tuple(args.at) if args.at is not None else None
         if args.frame is not None and args.name is not None:
-            p, z, j = point_at_pixel(args.map, args.dataset, args.frame, tuple(args.pixel))
+            p, z, j = point_at_pixel(args.map, args.dataset, args.frame, tuple(args.pixel),
+                                     colour_calib=args.colour_calib)
             at = tuple(round(float(c), 4) for c in p)
             print(f"frame {args.frame}, pixel ({args.pixel[0]:g}, {args.pixel[1]:g}): {z:.3f} m deep -> "
                   f"({at[0]:.3f}, {at[1]:.3f}, {at[2]:.3f}) in the map (its frame {j}'s pose)")
