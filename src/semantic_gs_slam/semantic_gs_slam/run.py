@@ -14,8 +14,9 @@ times) on stderr, and the evaluation table on stdout.
 
 Bad frames lose nothing: a frame whose files cannot be read or whose images the engine refuses (a corrupt
 JPEG, a depth image with almost no valid depth, ...) is skipped with a warning and listed at the end; after
-:data:`MAX_BAD_IN_A_ROW` such frames in a row the run stops, saves the map of the frames before them and exits
-with 2. Ctrl-C finishes the frame in hand, saves the map so far and exits with 130 (a second Ctrl-C quits at once).
+:data:`MAX_BAD_IN_A_ROW` such frames in a row the run stops, saves the map of the frames mapped and exits
+with 2. Ctrl-C finishes the frame in hand (or the refinement's iteration), saves the map so far (and a checkpoint
+with ``--checkpoint-every``) and exits with 130; a second Ctrl-C quits at once.
 """
 
 from __future__ import annotations
@@ -48,23 +49,25 @@ class StopOnInterrupt:
     def __init__(self) -> None:
         self.requested = False
         self._old = None
+        self._installed = False
 
     def __enter__(self) -> StopOnInterrupt:
         if threading.current_thread() is threading.main_thread():
             self._old = signal.signal(signal.SIGINT, self._on_sigint)
+            self._installed = True
         return self
 
     def _on_sigint(self, signum, frame) -> None:
         if self.requested:
             raise KeyboardInterrupt
         self.requested = True
-        print("\ninterrupted: finishing this frame, then saving the map so far (Ctrl-C again to quit at once)",
-              file=sys.stderr, flush=True)
+        # os.write, not print: a handler that prints while the interrupted code prints can fail (reentrant call)
+        os.write(2, b"\ninterrupted: finishing this step, then saving the map so far (Ctrl-C again to quit at once)\n")
 
     def __exit__(self, *exc) -> bool:
-        if self._old is not None:
-            signal.signal(signal.SIGINT, self._old)
-            self._old = None
+        if self._installed:
+            signal.signal(signal.SIGINT, self._old if self._old is not None else signal.default_int_handler)
+            self._installed = False
         return False
 
 
@@ -203,6 +206,7 @@ def main(argv: list[str] | None = None) -> int:
                     break
                 try:
                     f = ds[i]
+                    eng.check_frame(f.rgb, f.depth, f.semantics)  # before the label stage, which keeps state
                     sem = label_frame(stage, eng, f)
                     pose = eng.add_frame(f.rgb, f.depth, sem, f.timestamp, f.gt_c2w)
                 except (DatasetError, FrameError) as exc:  # this frame's files or images: skip it, lose nothing
@@ -226,24 +230,37 @@ def main(argv: list[str] | None = None) -> int:
                           f"loss {lg.map_loss:6.4f} track {lg.track_s:5.2f} s map {lg.map_s:5.2f} s{err}"
                           f"{' TRACKING LOST' if lg.tracking_failed else ''}", file=sys.stderr, flush=True)
             wall = time.perf_counter() - t0
+            if interrupt.requested and not stopped:  # during the last frame
+                stopped = "stopped by Ctrl-C"
             if skipped:
                 print(_skipped_summary(skipped, len(idx) - start), file=sys.stderr)
             if not eng.poses:
+                if interrupt.requested:
+                    print(f"error: {stopped}; no frame was mapped, nothing to save", file=sys.stderr)
+                    return 130
                 first = skipped[0] if skipped else (idx[start] if start < len(idx) else -1, "no frames")
                 raise DatasetError(f"no frame could be used, nothing to save (frame {first[0]}: {first[1]})")
-            if args.refine_iters > 0 and not interrupt.requested:
+            if args.refine_iters > 0 and not stopped:
                 t1 = time.perf_counter()
-                eng.refine(args.refine_iters, poses=args.refine_poses)
+                _, its = eng.refine(args.refine_iters, poses=args.refine_poses,
+                                    should_stop=lambda: interrupt.requested)
                 print(f"refined the map{' and the keyframes poses' if args.refine_poses else ''} over "
-                      f"{len(eng.keyframes)} keyframes for {args.refine_iters} iterations in "
+                      f"{len(eng.keyframes)} keyframes for {its} iterations in "
                       f"{time.perf_counter() - t1:.1f} s", file=sys.stderr)
+                if interrupt.requested:
+                    stopped = f"refinement stopped by Ctrl-C after {its} of {args.refine_iters} iterations"
             paths = eng.save(args.out)
+            if stopped and eng.cfg.checkpoint_dir:  # so that --resume goes on from here
+                eng.checkpoint(eng.cfg.checkpoint_dir)
         done = len(eng.poses) - before
         print(f"saved {', '.join(paths.values())}; {len(eng.map)} Gaussians; {done} frames in {wall:.1f} s "
               f"({done / max(wall, 1e-9):.2f} FPS)", file=sys.stderr)
         if stopped:
-            print(f"error: {stopped}; the map of the {len(eng.poses)} frames before is saved "
-                  f"(continue with --resume when --checkpoint-every is set)", file=sys.stderr)
+            then = ("continue with --resume" if interrupt.requested else
+                    "fix or remove those files, then continue with --resume") if eng.cfg.checkpoint_dir else \
+                "--checkpoint-every N would let --resume continue from there"
+            print(f"error: {stopped}; the map of the {len(eng.poses)} frames mapped is saved, without --eval ({then})",
+                  file=sys.stderr)
             return 130 if interrupt.requested else 2
         if args.eval:
             from semantic_gs_slam.evaluate import evaluate, format_table

@@ -240,6 +240,21 @@ class SLAM:
                     self.classes.setdefault(int(i), f"class_{int(i)}")
         return rgb_t, torch.where(valid, depth_t, torch.zeros_like(depth_t)), sem_t
 
+    def check_frame(self, rgb: np.ndarray, depth: np.ndarray, semantics: np.ndarray | None = None) -> None:
+        """Refuse what :meth:`add_frame` would refuse (shapes, non-numeric arrays, NaN, negative or almost no
+        valid depth) without changing anything, e.g. before a labelling stage that keeps state across frames.
+
+        Args:
+            rgb: [H, W, 3]. depth: [H, W] metres. semantics: [H, W] ids or None.
+
+        Raises:
+            FrameError: what is wrong with the frame.
+        """
+        if semantics is not None and np.asarray(semantics).shape != (self.k.height, self.k.width):
+            raise FrameError(f"semantics must be [{self.k.height}, {self.k.width}] ids, "
+                             f"got {list(np.asarray(semantics).shape)}")
+        self._tensors(rgb, depth, None)  # the value checks; without labels it records nothing
+
     # ------------------------------------------------------------------ main step
     def add_frame(self, rgb: np.ndarray, depth: np.ndarray, semantics: np.ndarray | None = None,
                   timestamp: float | None = None, gt_c2w: np.ndarray | None = None,

@@ -76,7 +76,7 @@ def test_a_bad_frame_is_skipped_and_nothing_is_lost(tiny_home, tmp_path, capsys)
     assert "warning: frame 2 skipped" in cap.err and "unreadable image" in cap.err
     assert "warning: frame 4 skipped" in cap.err and "depth pixels are valid" in cap.err
     assert "skipped 2 of 6 frames that could not be used (frame 2: " in cap.err
-    assert "| ATE RMSE (cm, aligned) |" in cap.out
+    assert "| ATE RMSE (cm, aligned) |" in cap.out and "| frames | 4 |" in cap.out
     gmap, classes, arr = SLAM.load_map(out)
     from semantic_gs_slam.datasets import load_dataset
 
@@ -111,7 +111,8 @@ def test_many_bad_frames_in_a_row_stop_the_run_and_keep_the_map(tiny_home, tmp_p
         run.MAX_BAD_IN_A_ROW = old
     err = capsys.readouterr().err
     assert "error: 3 frames in a row could not be used (the last, frame 4:" in err
-    assert "the map of the 2 frames before is saved" in err and "warning: frame 5" not in err
+    assert "the map of the 2 frames mapped is saved" in err and "warning: frame 5" not in err
+    assert "--checkpoint-every N would let --resume continue from there" in err
     assert SLAM.load_map(out)[2]["cam_trans"].shape == (1, 3, 2)
     # nothing usable at all: a clear error, no map
     for p in sorted(glob.glob(str(seq / "results" / "frame*")))[:2]:
@@ -122,32 +123,52 @@ def test_many_bad_frames_in_a_row_stop_the_run_and_keep_the_map(tiny_home, tmp_p
     assert not os.path.exists(tmp_path / "none" / "params.npz")
 
 
-def test_ctrl_c_saves_the_map_so_far(tiny_home, tmp_path):
-    """A real process, a real SIGINT after its first frame: it finishes the frame, saves, exits with 130."""
-    import signal
+_SIGINT_AT = """
+import os, signal, sys
+from semantic_gs_slam import run
+from semantic_gs_slam.slam import SLAM
+at = int(os.environ["SIGINT_AT_FRAMES"])
+real = SLAM.add_frame
+def add_frame(self, *a, **k):  # a real SIGINT to this process once it has mapped `at` frames
+    out = real(self, *a, **k)
+    if len(self.poses) == at:
+        os.kill(os.getpid(), signal.SIGINT)
+    return out
+SLAM.add_frame = add_frame
+sys.exit(run.main(sys.argv[1:]))
+"""
+
+
+def _run_with_sigint(at: int, args: list[str]):
     import subprocess
     import sys
-    import time
 
+    env = {**os.environ, "SIGINT_AT_FRAMES": str(at)}
+    return subprocess.run([sys.executable, "-c", _SIGINT_AT, *args], capture_output=True, text=True, env=env,
+                          timeout=600)
+
+
+def test_ctrl_c_saves_the_map_so_far_and_resume_goes_on(tiny_home, tmp_path):
+    """A real process gets a real SIGINT while it maps frame 1 (of 6): it finishes that frame, saves the two frames,
+    writes a checkpoint and exits with 130; --resume maps the rest."""
     out = tmp_path / "map"
-    proc = subprocess.Popen([sys.executable, "-m", "semantic_gs_slam.run", "--dataset", str(tiny_home), "--out",
-                             str(out), "--threads", "1", "--mapping-iters", "30"],
-                            stderr=subprocess.PIPE, text=True)
-    lines = []
-    try:
-        deadline = time.monotonic() + 300
-        for line in proc.stderr:  # the first frame's log line: the run is in its loop
-            lines.append(line)
-            if "frame     0" in line or time.monotonic() > deadline:
-                break
-        proc.send_signal(signal.SIGINT)
-        _, rest = proc.communicate(timeout=300)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    err = "".join(lines) + rest
-    assert proc.returncode == 130, err
-    assert "interrupted: finishing this frame, then saving the map so far" in err
-    assert "stopped by Ctrl-C before frame" in err and "is saved" in err
-    n = SLAM.load_map(str(out))[2]["cam_trans"].shape[2]
-    assert 1 <= n < 10
+    args = ["--dataset", str(tiny_home), "--out", str(out), "--threads", "1", "--mapping-iters", "2", "--frames", "6",
+            "--checkpoint-every", "4"]
+    res = _run_with_sigint(2, args)
+    assert res.returncode == 130, res.stderr
+    assert "interrupted: finishing this step, then saving the map so far" in res.stderr
+    assert "error: stopped by Ctrl-C before frame 2; the map of the 2 frames mapped is saved" in res.stderr
+    assert SLAM.load_map(str(out))[2]["cam_trans"].shape == (1, 3, 2)
+    assert len(SLAM.resume(str(out / "checkpoint")).poses) == 2  # written on the stop, not only every 4 frames
+    assert main(args + ["--resume", "--quiet"]) == 0
+    assert SLAM.load_map(str(out))[2]["cam_trans"].shape == (1, 3, 6)
+
+
+def test_ctrl_c_during_the_last_frame_skips_the_refinement_and_says_so(tiny_home, tmp_path):
+    out = tmp_path / "map"
+    res = _run_with_sigint(3, ["--dataset", str(tiny_home), "--out", str(out), "--threads", "1", "--mapping-iters",
+                               "2", "--frames", "3", "--refine-iters", "50", "--eval"])
+    assert res.returncode == 130, res.stderr
+    assert "error: stopped by Ctrl-C; the map of the 3 frames mapped is saved, without --eval" in res.stderr
+    assert "refined the map" not in res.stderr and "ATE" not in res.stdout
+    assert SLAM.load_map(str(out))[2]["cam_trans"].shape == (1, 3, 3)

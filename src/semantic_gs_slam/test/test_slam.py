@@ -119,6 +119,14 @@ def test_bad_frames_raise_clear_errors():
     with pytest.raises(FrameError, match="numeric"):
         eng.add_frame(np.full((12, 16, 3), "red", object), depth)
     assert len(eng.poses) == 0  # nothing was half-added
+    # check_frame refuses the same frames before anything (a labelling stage) sees them, and records nothing
+    for bad_rgb, bad_depth, sem, what in ((rgb, bad, None, "NaN"), (rgb, depth * 1000, None, "in metres"),
+                                          (rgb, depth, np.zeros((3, 3), np.int64), "semantics"),
+                                          (rgb[:, :8], depth, None, "rgb must be")):
+        with pytest.raises(FrameError, match=what):
+            eng.check_frame(bad_rgb, bad_depth, sem)
+    eng.check_frame(rgb, depth, np.full((12, 16), 7, np.int64))
+    assert len(eng.poses) == 0 and 7 not in eng.classes
 
 
 def test_frames_as_cameras_give_them():
