@@ -104,7 +104,7 @@ class SlamClient(Node):
             self._feedback = msg.feedback
 
     def run(self) -> int:
-        from semantic_gs_slam.datasets import frame_indices, load_dataset, parse_size
+        from semantic_gs_slam.datasets import MAX_BAD_IN_A_ROW, frame_indices, load_dataset, parse_size
         from semantic_gs_slam.errors import SlamError
 
         g = lambda name: self.get_parameter(name).value  # noqa: E731
@@ -160,13 +160,26 @@ class SlamClient(Node):
         period = 1.0 / g("rate") if g("rate") > 0 else 0.0
         next_t = time.monotonic()
         n = 0
+        skipped: list[int] = []
+        bad_in_a_row = 0
         try:
             for i in indices:
                 if not self._wait_subscribed(streams, g("pause_timeout")):
                     log.error("the server stopped taking images")
                     break
+                try:
+                    frame = data[i]
+                except (SlamError, OSError) as exc:  # a corrupt or missing file: skip the frame, lose nothing
+                    skipped.append(i)
+                    bad_in_a_row += 1
+                    log.warning(f"frame {i} skipped: {exc}")
+                    if bad_in_a_row >= MAX_BAD_IN_A_ROW:
+                        log.error(f"{bad_in_a_row} frames in a row could not be read: stopping; the server maps "
+                                  f"the {n} frames sent")
+                        break
+                    continue
+                bad_in_a_row = 0
                 n += 1
-                frame = data[i]
                 stamp = t0_wall + (frame.timestamp - t0_data)
                 rgb = np.clip(frame.rgb * 255.0 + 0.5, 0, 255).astype(np.uint8)
                 self._publish_info(k, stamp)
@@ -179,6 +192,9 @@ class SlamClient(Node):
                 next_t += period
                 time.sleep(max(0.0, next_t - time.monotonic()))
             self._done_pub.publish(String(data=json.dumps({"goal": self._goal_id, "frames_sent": n})))
+            if skipped:
+                shown = ", ".join(map(str, skipped[:10])) + (" ..." if len(skipped) > 10 else "")
+                log.warning(f"skipped {len(skipped)} of {len(indices)} frames that could not be read: {shown}")
             log.info(f"sent {n} frames; waiting for the map")
             while not result_future.done():
                 time.sleep(0.5)

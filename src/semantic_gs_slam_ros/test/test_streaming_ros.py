@@ -241,7 +241,8 @@ def test_out_of_order_and_missing_depth_over_ros(launch_nodes, ros_node, tmp_pat
 def test_client_streams_a_label_less_7scenes_sequence_server_labels_it(launch_nodes, ros_domain, sequence,
                                                                         tmp_path):
     """A 7-Scenes-layout sequence (no labels), resized by the client: the server's labelling stage
-    (labels:=auto -> geometry) gives the map planes and objects."""
+    (labels:=auto -> geometry) gives the map planes and objects. A corrupt colour image is skipped by the client
+    with a warning; the run goes on with the other frames."""
     import numpy as np
     from PIL import Image
 
@@ -256,10 +257,12 @@ def test_client_streams_a_label_less_7scenes_sequence_server_labels_it(launch_no
         Image.fromarray((f.rgb * 255 + 0.5).astype(np.uint8)).save(seq / f"frame-{i:06d}.color.jpg")
         Image.fromarray((f.depth * 1000).round().astype(np.uint16)).save(seq / f"frame-{i:06d}.depth.png")
         np.savetxt(seq / f"frame-{i:06d}.pose.txt", f.gt_c2w)
+    (seq / "frame-000004.color.jpg").write_bytes(b"not a JPEG")
     work = tmp_path / "run"
     launch_nodes(nodes=[server_spec(work, sequence, use_semantic=False, reload_service="")])
-    client = Client(ros_domain, seq, size="64x36", start=1, max_frames=6)
+    client = Client(ros_domain, seq, size="64x36", start=1, max_frames=7)
     assert client.wait() == 0, client.text()
+    assert "frame 4 skipped" in client.text() and "skipped 1 of 7 frames that could not be read: 4" in client.text()
     assert "6 frames processed" in client.text()
     names = {c["class"] for c in json.loads((work / "map" / "semantic.json").read_text())["segmentation"]}
     assert {"floor", "object"} <= names, names
