@@ -204,7 +204,8 @@ def main(argv: list[str] | None = None) -> int:
                     break
                 try:
                     f = ds[i]
-                    eng.check_frame(f.rgb, f.depth, f.semantics)  # before the label stage, which keeps state
+                    if stage.mode in ("geometry", "onnx"):  # these keep state across frames: check first
+                        eng.check_frame(f.rgb, f.depth, f.semantics)  # (0.6 ms at 320x240; add_frame checks too)
                     sem = label_frame(stage, eng, f)
                     pose = eng.add_frame(f.rgb, f.depth, sem, f.timestamp, f.gt_c2w)
                 except (DatasetError, FrameError) as exc:  # this frame's files or images: skip it, lose nothing

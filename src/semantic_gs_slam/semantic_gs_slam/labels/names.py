@@ -11,7 +11,7 @@ id with the given name, in ``params.npz`` and ``semantic.json``. Usage::
     python -m semantic_gs_slam.labels.names --map /tmp/kitchen_map --at 0.37 -0.05 1.62 --name cup
     python -m semantic_gs_slam.labels.names --map /tmp/kitchen_map --at 0.28 -1.33 3.01 --radius 0.25 \
         --of-class object --of-class unlabelled --name tv
-    python -m semantic_gs_slam.labels.names --map /tmp/kitchen_map --dataset SEQ --frame 464 --pixel 494 75 \
+    python -m semantic_gs_slam.labels.names --map /tmp/kitchen_map --dataset SEQ --frame 464 --pixel 484 85 \
         --radius 0.3 --of-class wall --of-class object --of-class unlabelled --name tv
     python -m semantic_gs_slam.labels.names --map /tmp/kitchen_map --list
 
