@@ -41,8 +41,6 @@ REPLICA_INTRINSICS = Intrinsics(1200, 680, 600.0, 600.0, 599.5, 339.5)
 TUM_INTRINSICS = Intrinsics(640, 480, 525.0, 525.0, 319.5, 239.5)  # TUM "ROS default"
 SEVEN_SCENES_INTRINSICS = Intrinsics(640, 480, 585.0, 585.0, 320.0, 240.0)  # the Kinect v1 depth camera
 LAYOUTS = ("replica", "sgs", "tum", "7scenes")
-# unusable frames in a row before a reader (the CLI, the streaming client) stops: a wrong dataset, not one bad file
-MAX_BAD_IN_A_ROW = 10
 
 
 @dataclass

@@ -2,6 +2,11 @@
 
 from __future__ import annotations
 
+#: a run (the dataset CLI, the streaming client, the streaming server's session) skips a frame it cannot use, and
+#: stops, keeping the map of the frames mapped, after this many such frames in a row: a wrong dataset or camera,
+#: not one bad file
+MAX_BAD_IN_A_ROW = 10
+
 
 class SlamError(Exception):
     """Base class of every error this package raises on purpose."""

@@ -32,8 +32,8 @@ import time
 import numpy as np
 
 from semantic_gs_slam.config import MappingConfig, RendererConfig, SlamConfig, TrackingConfig
-from semantic_gs_slam.datasets import LAYOUTS, MAX_BAD_IN_A_ROW, frame_indices, load_dataset, parse_size
-from semantic_gs_slam.errors import DatasetError, FrameError, SlamError
+from semantic_gs_slam.datasets import LAYOUTS, frame_indices, load_dataset, parse_size
+from semantic_gs_slam.errors import MAX_BAD_IN_A_ROW, DatasetError, FrameError, SlamError
 from semantic_gs_slam.geometry import pose_error
 from semantic_gs_slam.labels import LABEL_MODES, LabelConfig, LabelStage, predict_pose
 from semantic_gs_slam.slam import SLAM

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from semantic_gs_slam_ros.errors import StreamingError
+from semantic_gs_slam_ros.errors import FrameRefusedError, StreamingError
 
 
 class EngineAdapter:
@@ -24,9 +24,23 @@ class EngineAdapter:
 
     def add_frame(self, rgb: np.ndarray, depth: np.ndarray, semantics: np.ndarray | None,
                   timestamp: float, odom_c2w: np.ndarray | None = None) -> np.ndarray:
+        """The session's ``SlamEngine.add_frame``; a frame the engine cannot use raises
+        :class:`~semantic_gs_slam_ros.errors.FrameRefusedError` and changes nothing (not the labelling stage either).
+        Any other exception is the engine failing (a bug, out of memory), which ends the run."""
+        from semantic_gs_slam.errors import FrameError
+
+        try:
+            return self._add_frame(rgb, depth, semantics, timestamp, odom_c2w)
+        except FrameError as exc:
+            raise FrameRefusedError(str(exc)) from exc
+
+    def _add_frame(self, rgb: np.ndarray, depth: np.ndarray, semantics: np.ndarray | None,
+                   timestamp: float, odom_c2w: np.ndarray | None) -> np.ndarray:
         if self.labels is not None:
             from semantic_gs_slam.labels import predict_pose
 
+            if self.labels.mode in ("geometry", "onnx"):  # these keep state across frames: refuse a bad frame first
+                self.slam.check_frame(rgb, depth, semantics)
             guess = self.slam.odometry_guess(odom_c2w) if odom_c2w is not None and self.slam.poses else None
             if guess is None:
                 guess = odom_c2w if odom_c2w is not None and not self.slam.poses else \

@@ -11,3 +11,8 @@ class ImageFormatError(StreamingError):
 
 class OutputError(StreamingError):
     """The output directory cannot be written (missing permission, disk full, ...)."""
+
+
+class FrameRefusedError(StreamingError):
+    """The SLAM engine cannot use one frame (wrong size, NaN or almost no valid depth): the session skips it and
+    goes on; many in a row end the run with the map of the frames mapped."""

@@ -104,8 +104,8 @@ class SlamClient(Node):
             self._feedback = msg.feedback
 
     def run(self) -> int:
-        from semantic_gs_slam.datasets import MAX_BAD_IN_A_ROW, frame_indices, load_dataset, parse_size
-        from semantic_gs_slam.errors import SlamError
+        from semantic_gs_slam.datasets import frame_indices, load_dataset, parse_size
+        from semantic_gs_slam.errors import MAX_BAD_IN_A_ROW, SlamError
 
         g = lambda name: self.get_parameter(name).value  # noqa: E731
         log = self.get_logger()

@@ -19,13 +19,15 @@ import os
 import shutil
 import threading
 import time
+import traceback
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
 
-from semantic_gs_slam_ros.errors import ImageFormatError, OutputError, StreamingError
+from semantic_gs_slam.errors import MAX_BAD_IN_A_ROW
+from semantic_gs_slam_ros.errors import FrameRefusedError, ImageFormatError, OutputError, StreamingError
 from semantic_gs_slam_ros.images import depth_to_mm, resize_nearest, resize_rgb, rgb_of
 from semantic_gs_slam_ros.lag import LagAction, LagController
 from semantic_gs_slam_ros.sync import FrameMatcher
@@ -35,6 +37,9 @@ from semantic_gs_slam_ros.writer import AsyncFrameWriter, WrittenFrame, prepare_
 ODOMETRY_KEEP = 2000
 #: seconds a frame waits for an odometry pose published after its images
 ODOMETRY_WAIT = 0.5
+#: frames the engine refuses in a row before the run stops (the map of the frames mapped is still written): a wrong
+#: camera or topic, not one bad frame. The same number as the dataset CLI's and the streaming client's.
+MAX_REFUSED_IN_A_ROW = MAX_BAD_IN_A_ROW
 
 
 class SlamEngine(Protocol):
@@ -43,7 +48,12 @@ class SlamEngine(Protocol):
     def add_frame(self, rgb: np.ndarray, depth: np.ndarray, semantics: np.ndarray | None,
                   timestamp: float, odom_c2w: np.ndarray | None = None) -> np.ndarray:
         """rgb uint8 [H,W,3], depth float32 metres [H,W], semantics int [H,W] or None, the odometry's
-        camera-to-world pose [4,4] or None → c2w [4,4]."""
+        camera-to-world pose [4,4] or None → c2w [4,4].
+
+        Raises:
+            FrameRefusedError: this frame cannot be used (the session skips it). Any other exception is the engine
+                failing: the session ends the run and writes the map it has.
+        """
 
     def save_map(self, out_dir: str) -> tuple[str, str]:
         """Write ``params.npz`` + ``semantic.json`` into ``out_dir``; returns their paths."""
@@ -307,6 +317,8 @@ class StreamingSession:
     def _run(self, on_progress: Callable[[Progress], None] | None, poll: float) -> SessionResult:
         ckpt_dir = os.path.join(self.cfg.work_dir, "checkpoint")
         message = ""
+        failed = False  # the run ended early for a reason that makes it unsuccessful (the map is still written)
+        refused_in_a_row = 0
         t0 = time.monotonic()
         while True:
             with self._lock:
@@ -345,11 +357,24 @@ class StreamingSession:
             try:
                 c2w = self.engine.add_frame(f.rgb, depth_m, f.semantic, f.stamp, odom) if odom is not None \
                     else self.engine.add_frame(f.rgb, depth_m, f.semantic, f.stamp)
-            except Exception as exc:  # a frame the engine refuses (e.g. no valid depth) is skipped
+            except FrameRefusedError as exc:  # this frame cannot be used (e.g. no valid depth): skip it
+                refused_in_a_row += 1
                 self._log(f"frame {frame.index} skipped by SLAM: {exc}")
                 with self._lock:
                     self._progress.refused += 1
+                if refused_in_a_row >= MAX_REFUSED_IN_A_ROW:
+                    message = f"{refused_in_a_row} frames in a row could not be used (the last, frame {frame.index}: " \
+                              f"{exc})"
+                    failed = True
+                    break
                 continue
+            except Exception as exc:  # noqa: BLE001  the engine failed (a bug, out of memory): stop, keep the map
+                self._log(f"SLAM failed on frame {frame.index}: {type(exc).__name__}: {exc}\n"
+                          f"{traceback.format_exc()}the run stops; the map of the frames mapped so far is written")
+                message = f"SLAM failed on frame {frame.index} ({type(exc).__name__}: {exc})"
+                failed = True
+                break
+            refused_in_a_row = 0
             report = getattr(self.engine, "frame_report", None)
             lost, corrected, loop = report() if report is not None else (False, False, "")
             if lost:
@@ -400,7 +425,7 @@ class StreamingSession:
             map_path, sem_path = self._export()
         except (OSError, StreamingError) as exc:
             return SessionResult(False, "", "", n, f"cannot write the map: {exc}")
-        ok = self._writer.error is None
+        ok = self._writer.error is None and not failed
         p = self.progress()
         summary = f"{n} frames processed ({rate:.2f} frames/s), {p.gaussians} Gaussians{refined}"
         if p.lost or p.drift_corrections:

@@ -7,6 +7,7 @@ import types
 
 import numpy as np
 import pytest
+import torch
 
 from semantic_gs_slam.config import MappingConfig, SlamConfig
 from semantic_gs_slam.labels import OBJECT_ID
@@ -25,6 +26,7 @@ class _Recorder(SLAM):
         self.cfg = SlamConfig(intrinsics=default_intrinsics(96, 54),
                               mapping=MappingConfig(keyframe_every=keyframe_every))
         self.keyframes = []  # no keyframe yet: only the index says which frame will be one
+        self.k, self.device = self.cfg.intrinsics, torch.device("cpu")  # what check_frame needs
 
     def add_frame(self, rgb, depth, semantics=None, timestamp=None, gt_c2w=None):
         self.given.append(semantics)

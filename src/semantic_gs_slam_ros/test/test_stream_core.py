@@ -453,3 +453,72 @@ def test_session_refuses_bad_refinement_settings(tmp_path):
         SessionConfig(work_dir=str(tmp_path), refine_iters=-1)
     with pytest.raises(StreamingError, match="refine_poses needs refine_iters > 0"):
         SessionConfig(work_dir=str(tmp_path), refine_poses=True)
+
+
+def _labelled_engine_session(tmp_path, bad: set[int], n: int, log: list[str]):
+    """A session around the real engine with the geometry labelling stage (label-less frames, as a real camera
+    sends them), fed ``n`` frames of the synthetic home; the frames in ``bad`` have no depth at all."""
+    from semantic_gs_slam.config import SlamConfig
+    from semantic_gs_slam.slam import SLAM
+    from semantic_gs_slam.synthetic import HomeRenderer, default_intrinsics, trajectory
+    from semantic_gs_slam_ros.engine import EngineAdapter, make_labels
+    from semantic_gs_slam_ros.session import SessionConfig, StreamingSession
+
+    k = default_intrinsics(128, 72)
+    stage = make_labels("geometry", "", k, streamed_labels=False)
+    engine = EngineAdapter(SLAM(SlamConfig(intrinsics=k, threads=1)), stage)
+    session = StreamingSession(SessionConfig(work_dir=str(tmp_path / "work"), width=0, height=0,
+                                             checkpoint_every=0), engine, log=log.append)
+    r = HomeRenderer(0)
+    for i, c2w in enumerate(trajectory(n, 6.0)):
+        rgb, depth, _ = r.render(c2w, k)
+        session.on_image("depth", float(i), np.zeros_like(depth, np.float32) if i in bad else depth.astype(np.float32))
+        session.on_image("rgb", float(i), np.round(rgb * 255).astype(np.uint8))
+    session.data_transfer_done()
+    return session, engine, stage
+
+
+def test_session_skips_a_frame_the_engine_refuses_before_the_labelling_stage_sees_it(tmp_path):
+    log: list[str] = []
+    session, engine, stage = _labelled_engine_session(tmp_path, {2}, 4, log)
+    result = session.run()
+    p = session.progress()
+    assert result.success and result.frames_processed == 3 and p.refused == 1, result.message
+    assert engine.slam.timestamps == [0.0, 1.0, 3.0]
+    assert stage._calls == 3  # the stateful labelling stage never saw the refused frame
+    assert any(line.startswith("frame 2 skipped by SLAM:") and "depth" in line for line in log), log
+    assert os.path.isfile(result.map_path)
+
+
+def test_session_stops_after_refused_frames_in_a_row_and_writes_the_map(tmp_path, monkeypatch):
+    import semantic_gs_slam_ros.session as session_mod
+
+    monkeypatch.setattr(session_mod, "MAX_REFUSED_IN_A_ROW", 2)
+    log: list[str] = []
+    # frame 1 alone is skipped (the count starts again at frame 2); frames 3 and 4 in a row stop the run
+    session, engine, _ = _labelled_engine_session(tmp_path, {1, 3, 4}, 6, log)
+    result = session.run()
+    assert not result.success and result.frames_processed == 2, result.message
+    assert result.message.startswith("2 frames in a row could not be used (the last, frame 4:"), result.message
+    assert engine.slam.timestamps == [0.0, 2.0]  # frame 5 was not processed
+    from semantic_gs_slam.gaussian_map import load_params
+
+    assert len(load_params(result.map_path)["means3D"]) == engine.num_gaussians > 0  # the map of frames 0 and 2
+
+
+def test_session_ends_the_run_when_the_engine_fails_and_writes_the_map_so_far(tmp_path):
+    log: list[str] = []
+    session, engine, _ = _labelled_engine_session(tmp_path, set(), 4, log)
+    real_add = engine.slam.add_frame
+
+    def fails_on_the_third(*args, **kwargs):  # the engine failing (a bug, out of memory) on one frame
+        if len(engine.slam.poses) == 2:
+            raise RuntimeError("CUDA out of memory")
+        return real_add(*args, **kwargs)
+
+    engine.slam.add_frame = fails_on_the_third
+    result = session.run()
+    assert not result.success and result.frames_processed == 2, result.message
+    assert result.message.startswith("SLAM failed on frame 2 (RuntimeError: CUDA out of memory)"), result.message
+    assert os.path.isfile(result.map_path) and len(engine.slam.poses) == 2
+    assert any("Traceback" in line and "the map of the frames mapped so far is written" in line for line in log)

@@ -242,7 +242,8 @@ def test_client_streams_a_label_less_7scenes_sequence_server_labels_it(launch_no
                                                                         tmp_path):
     """A 7-Scenes-layout sequence (no labels), resized by the client: the server's labelling stage
     (labels:=auto -> geometry) gives the map planes and objects. A corrupt colour image is skipped by the client
-    with a warning; the run goes on with the other frames."""
+    with a warning; the run goes on with the other frames. A frame with no depth at all is sent and the server skips
+    it (before its labelling stage sees it)."""
     import numpy as np
     from PIL import Image
 
@@ -258,12 +259,16 @@ def test_client_streams_a_label_less_7scenes_sequence_server_labels_it(launch_no
         Image.fromarray((f.depth * 1000).round().astype(np.uint16)).save(seq / f"frame-{i:06d}.depth.png")
         np.savetxt(seq / f"frame-{i:06d}.pose.txt", f.gt_c2w)
     (seq / "frame-000004.color.jpg").write_bytes(b"not a JPEG")
+    Image.fromarray(np.zeros((54, 96), np.uint16)).save(seq / "frame-000006.depth.png")  # readable, no depth at all
     work = tmp_path / "run"
-    launch_nodes(nodes=[server_spec(work, sequence, use_semantic=False, reload_service="")])
+    sup = launch_nodes(nodes=[server_spec(work, sequence, use_semantic=False, reload_service="")])
     client = Client(ros_domain, seq, size="64x36", start=1, max_frames=7)
     assert client.wait() == 0, client.text()
     assert "frame 4 skipped" in client.text() and "skipped 1 of 7 frames that could not be read: 4" in client.text()
-    assert "6 frames processed" in client.text()
+    # frame 6 is sent (its files are readable) and the server's engine refuses it: skipped, the run goes on
+    log = sup.get("run_gs_slam_server").output()
+    assert "5 frames processed" in client.text(), client.text() + log
+    assert "frame 4 skipped by SLAM: only 0.0 % of depth pixels are valid" in log, log  # 5th frame written: index 4
     names = {c["class"] for c in json.loads((work / "map" / "semantic.json").read_text())["segmentation"]}
     assert {"floor", "object"} <= names, names
     saved = np.load(work / "map" / "params.npz")
