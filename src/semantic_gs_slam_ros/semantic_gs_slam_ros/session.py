@@ -318,6 +318,7 @@ class StreamingSession:
         ckpt_dir = os.path.join(self.cfg.work_dir, "checkpoint")
         message = ""
         failed = False  # the run ended early for a reason that makes it unsuccessful (the map is still written)
+        engine_failed = False  # ... because the engine raised something else than a refused frame
         refused_in_a_row = 0
         t0 = time.monotonic()
         while True:
@@ -372,7 +373,7 @@ class StreamingSession:
                 self._log(f"SLAM failed on frame {frame.index}: {type(exc).__name__}: {exc}\n"
                           f"{traceback.format_exc()}the run stops; the map of the frames mapped so far is written")
                 message = f"SLAM failed on frame {frame.index} ({type(exc).__name__}: {exc})"
-                failed = True
+                failed = engine_failed = True
                 break
             refused_in_a_row = 0
             report = getattr(self.engine, "frame_report", None)
@@ -424,7 +425,13 @@ class StreamingSession:
         try:
             map_path, sem_path = self._export()
         except (OSError, StreamingError) as exc:
-            return SessionResult(False, "", "", n, f"cannot write the map: {exc}")
+            return SessionResult(False, "", "", n, f"{message + ': ' if message else ''}cannot write the map: {exc}")
+        except Exception as exc:  # noqa: BLE001  only after the engine failed: its state may not save; say so
+            if not engine_failed:
+                raise
+            self._log(f"the map could not be written after the engine failed: {type(exc).__name__}: {exc}")
+            return SessionResult(False, "", "", n, f"{message}; the map could not be written ({type(exc).__name__}: "
+                                                   f"{exc})")
         ok = self._writer.error is None and not failed
         p = self.progress()
         summary = f"{n} frames processed ({rate:.2f} frames/s), {p.gaussians} Gaussians{refined}"

@@ -522,3 +522,25 @@ def test_session_ends_the_run_when_the_engine_fails_and_writes_the_map_so_far(tm
     assert result.message.startswith("SLAM failed on frame 2 (RuntimeError: CUDA out of memory)"), result.message
     assert os.path.isfile(result.map_path) and len(engine.slam.poses) == 2
     assert any("Traceback" in line and "the map of the frames mapped so far is written" in line for line in log)
+
+
+def test_session_reports_an_engine_failure_whose_map_cannot_be_saved(tmp_path):
+    """After the engine failed, its state may not save: the result says both, and nothing is raised."""
+    log: list[str] = []
+    session, engine, _ = _labelled_engine_session(tmp_path, set(), 3, log)
+    real_add = engine.slam.add_frame
+
+    def fails_on_the_second(*args, **kwargs):
+        if len(engine.slam.poses) == 1:
+            raise RuntimeError("CUDA error: an illegal memory access")
+        return real_add(*args, **kwargs)
+
+    def broken_save(out_dir, ply=True):
+        raise ValueError("inconsistent state")
+
+    engine.slam.add_frame = fails_on_the_second
+    engine.slam.save = broken_save
+    result = session.run()
+    assert not result.success and result.frames_processed == 1 and result.map_path == ""
+    assert result.message == ("SLAM failed on frame 1 (RuntimeError: CUDA error: an illegal memory access); the map "
+                              "could not be written (ValueError: inconsistent state)"), result.message
