@@ -69,6 +69,10 @@ class EngineAdapter:
     def num_gaussians(self) -> int:
         return len(self.slam.map)
 
+    @property
+    def num_keyframes(self) -> int:
+        return len(self.slam.keyframes)
+
     def frame_report(self) -> tuple[bool, bool, str]:
         """(tracking lost, drift corrected, loop-closure note) of the last frame: what the session reports and
         counts."""

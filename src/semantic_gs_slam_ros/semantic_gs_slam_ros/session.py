@@ -64,7 +64,8 @@ class SlamEngine(Protocol):
     @property
     def num_gaussians(self) -> int: ...
 
-    # optional: ``refine(iters, poses, should_stop) -> iterations done`` (Adam steps over all keyframes) and
+    # optional: ``refine(iters, poses, should_stop) -> iterations done`` (Adam steps over all keyframes),
+    # ``num_keyframes`` (logged with the refinement) and
     # ``frame_report() -> (lost, corrected, note)``; the session asks with getattr
 
 
@@ -447,7 +448,9 @@ class StreamingSession:
         if total <= 0 or refine is None:
             return ""
         what = "the map and the keyframes' poses" if self.cfg.refine_poses else "the map"
-        self._log(f"refining {what}: {total} iterations over all keyframes before the map is written")
+        count = getattr(self.engine, "num_keyframes", None)
+        over = f"all {count} keyframes" if count is not None else "all keyframes"
+        self._log(f"refining {what}: {total} iterations over {over} in turn before the map is written")
 
         def cancelled() -> bool:
             with self._lock:
