@@ -243,7 +243,8 @@ def main(argv: list[str] | None = None) -> int:
                 t1 = time.perf_counter()
                 _, its = eng.refine(args.refine_iters, poses=args.refine_poses,
                                     should_stop=lambda: interrupt.requested)
-                print(f"refined the map{' and the keyframes poses' if args.refine_poses else ''} over "
+                what = "the map and the keyframes' poses" if args.refine_poses else "the map"
+                print(f"refined {what} over "
                       f"{len(eng.keyframes)} keyframes for {its} iterations in "
                       f"{time.perf_counter() - t1:.1f} s", file=sys.stderr)
                 if interrupt.requested:
