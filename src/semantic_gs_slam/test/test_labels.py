@@ -287,6 +287,38 @@ def test_onnx_detector_names_the_geometry_instance(tmp_path):
     assert (ids[box] == 10 + 52).mean() > 0.9 and st.classes[62] == "banana"
 
 
+def test_onnx_model_failure_refuses_the_frame_before_the_stage_changes(tmp_path):
+    """A model that fails on a frame (here: it reshapes to the size it was exported at, so onnxruntime raises on
+    any other) refuses the frame with a FrameError before the geometry layer has seen it: no instance id is
+    taken and the frame is not counted, so a run that skips the frame goes on as if it never came."""
+    torch = pytest.importorskip("torch")
+    pytest.importorskip("onnx")
+    pytest.importorskip("onnxruntime")
+
+    class Brittle(torch.nn.Module):
+        def forward(self, image):
+            m = (image.reshape(3, 24 * 32)[0:1] > 0.5).float().reshape(1, 1, 24, 32)  # only 24x32 fits
+            return torch.tensor([[0.0, 0.0, 32.0, 24.0]]), torch.tensor([44]), torch.tensor([0.9]), m
+
+    path = str(tmp_path / "brittle.onnx")
+    torch.onnx.export(Brittle(), (torch.rand(3, 24, 32),), path, input_names=["image"],
+                      output_names=["boxes", "labels", "scores", "masks"], dynamic_axes={"image": {1: "h", 2: "w"}},
+                      dynamo=False)
+    from semantic_gs_slam.labels.geometry import GeometryLabelConfig
+
+    k = default_intrinsics(64, 48)
+    geo = GeometryLabelConfig(max_planes=0)  # the box is an instance, not a plane
+    st = LabelStage(LabelConfig(mode="onnx", onnx_model=path, geometry=geo), k)
+    rgb, depth, box = _scene(k)
+    before = (st._calls, st.geometry.next_id, dict(st.classes))
+    with pytest.raises(FrameError, match="the ONNX model failed on a 64x48 frame"):
+        st(rgb, depth, None, np.eye(4))
+    assert (st._calls, st.geometry.next_id, dict(st.classes)) == before
+    geometry_only = LabelStage(LabelConfig(mode="geometry", geometry=geo), k)  # what the geometry layer would do
+    assert (geometry_only(rgb, depth, None, np.eye(4))[box] == OBJECT_ID).mean() > 0.9  # an instance, as "object"
+    assert geometry_only.geometry.next_id > before[1]
+
+
 def test_onnx_fixed_input_size_is_resized_back(tmp_path):
     k = default_intrinsics(64, 48)
     path = _export_toy(tmp_path / "fixed.onnx", fixed=(24, 32))

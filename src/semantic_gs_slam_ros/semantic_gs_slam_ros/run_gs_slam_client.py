@@ -164,8 +164,11 @@ class SlamClient(Node):
         bad_in_a_row = 0
         try:
             for i in indices:
-                if not self._wait_subscribed(streams, g("pause_timeout")):
-                    log.error("the server stopped taking images")
+                if not self._wait_subscribed(streams, g("pause_timeout"), result_future) or result_future.done():
+                    # the run ended on the server (frames it could not use, its engine failed, a cancel): its
+                    # result says why; else the image topics stayed unsubscribed for pause_timeout
+                    log.error(f"the server ended the run after {n} frames were sent" if result_future.done()
+                              else "the server stopped taking images")
                     break
                 try:
                     frame = data[i]
@@ -220,10 +223,12 @@ class SlamClient(Node):
         info.d = [0.0] * 5
         self._info_pub.publish(info)
 
-    def _wait_subscribed(self, streams: list[str], timeout: float) -> bool:
+    def _wait_subscribed(self, streams: list[str], timeout: float, result_future=None) -> bool:
+        """Until the server subscribes to every image topic (it unsubscribes while its backlog is long); False
+        after ``timeout`` s, or as soon as ``result_future`` (the goal's result) is done."""
         deadline = time.monotonic() + timeout
         while any(self._pubs[s].get_subscription_count() == 0 for s in streams):
-            if time.monotonic() > deadline:
+            if time.monotonic() > deadline or (result_future is not None and result_future.done()):
                 return False
             time.sleep(0.02)
         return True

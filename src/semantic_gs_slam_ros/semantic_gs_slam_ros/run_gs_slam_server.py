@@ -391,7 +391,7 @@ def to_feedback(p: Progress) -> RunSlam.Feedback:
     fb.frames_received = p.received.get("rgb", 0)
     fb.frames_written = p.written
     fb.frames_processed = p.processed
-    fb.frames_dropped = sum(p.dropped.values()) + p.refused  # unmatched images, frames the writer or SLAM refused
+    fb.frames_dropped = sum(p.dropped.values()) + p.refused + p.skipped  # unmatched; refused by the writer, SLAM
     fb.lag = max(p.backlog, 0)
     fb.subscribed = p.subscribed
     fb.num_gaussians = p.gaussians

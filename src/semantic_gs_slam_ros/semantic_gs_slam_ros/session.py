@@ -136,7 +136,8 @@ class Progress:
     dropped: dict[str, int] = field(default_factory=dict)
     written: int = 0
     processed: int = 0
-    refused: int = 0  # the writer could not take them (queue full or failed)
+    refused: int = 0  # the writer could not take them (queue full or failed): never written
+    skipped: int = 0  # written, then refused by SLAM (FrameRefusedError: no valid depth, wrong size)
     backlog: int = 0
     subscribed: bool = True
     pauses: int = 0
@@ -292,7 +293,7 @@ class StreamingSession:
     def progress(self) -> Progress:
         with self._lock:
             p = Progress(**{k: (dict(v) if isinstance(v, dict) else v) for k, v in vars(self._progress).items()})
-        p.backlog = p.matched - p.refused - p.processed
+        p.backlog = p.matched - p.refused - p.processed - p.skipped - p.still  # matched, not yet done with
         return p
 
     def lag_action(self) -> LagAction:
@@ -363,7 +364,9 @@ class StreamingSession:
                 refused_in_a_row += 1
                 self._log(f"frame {frame.index} skipped by SLAM: {exc}")
                 with self._lock:
-                    self._progress.refused += 1
+                    self._progress.skipped += 1
+                if on_progress is not None:
+                    on_progress(self.progress())
                 if refused_in_a_row >= MAX_REFUSED_IN_A_ROW:
                     message = f"{refused_in_a_row} frames in a row could not be used (the last, frame {frame.index}: " \
                               f"{exc})"
@@ -409,8 +412,9 @@ class StreamingSession:
         p = self.progress()
         n = p.processed
         dropped = {k: v for k, v in p.dropped.items() if v}
-        if dropped or p.refused:
-            self._log(f"unmatched images dropped: {dropped or 0}; frames refused (writer or SLAM): {p.refused}")
+        if dropped or p.refused or p.skipped:
+            self._log(f"unmatched images dropped: {dropped or 0}; frames the writer refused: {p.refused}; frames "
+                      f"skipped by SLAM: {p.skipped}")
         if p.still or p.after_done:
             self._log(f"frames skipped while the camera stood still: {p.still}; images after "
                       f"data_transfer_done ignored: {p.after_done}")

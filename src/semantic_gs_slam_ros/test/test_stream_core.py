@@ -294,6 +294,7 @@ def test_session_pairs_odometry_by_stamp_skips_still_frames_and_ignores_images_a
         np.testing.assert_array_equal(odom, poses[t])
     p = session.progress()
     assert p.still == 1 and p.after_done == 2 and p.with_odometry == 3
+    assert p.backlog == 0  # a frame skipped as still is done with: a robot standing still never fills the backlog
 
 
 def test_session_tracks_a_frame_without_odometry_when_none_is_near_its_stamp(tmp_path, monkeypatch):
@@ -481,9 +482,12 @@ def _labelled_engine_session(tmp_path, bad: set[int], n: int, log: list[str]):
 def test_session_skips_a_frame_the_engine_refuses_before_the_labelling_stage_sees_it(tmp_path):
     log: list[str] = []
     session, engine, stage = _labelled_engine_session(tmp_path, {2}, 4, log)
-    result = session.run()
+    seen: list[tuple[int, int]] = []
+    result = session.run(on_progress=lambda p: seen.append((p.processed, p.skipped)))
+    assert seen == [(1, 0), (2, 0), (2, 1), (3, 1)]  # the skipped frame is reported when it is skipped
     p = session.progress()
-    assert result.success and result.frames_processed == 3 and p.refused == 1, result.message
+    assert result.success and result.frames_processed == 3 and p.skipped == 1 and p.refused == 0, result.message
+    assert p.backlog == 0  # the skipped frame is done with
     assert engine.slam.timestamps == [0.0, 1.0, 3.0]
     assert stage._calls == 3  # the stateful labelling stage never saw the refused frame
     assert any(line.startswith("frame 2 skipped by SLAM:") and "depth" in line for line in log), log

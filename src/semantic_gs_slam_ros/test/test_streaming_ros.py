@@ -266,13 +266,46 @@ def test_client_streams_a_label_less_7scenes_sequence_server_labels_it(launch_no
     assert client.wait() == 0, client.text()
     assert "frame 4 skipped" in client.text() and "skipped 1 of 7 frames that could not be read: 4" in client.text()
     # frame 6 is sent (its files are readable) and the server's engine refuses it: skipped, the run goes on
-    log = sup.get("run_gs_slam_server").output()
-    assert "5 frames processed" in client.text(), client.text() + log
-    assert "frame 4 skipped by SLAM: only 0.0 % of depth pixels are valid" in log, log  # 5th frame written: index 4
+    log = sup.get("run_gs_slam_server").output
+    assert "5 frames processed" in client.text(), client.text() + log()
+    skipped = "frame 4 skipped by SLAM: only 0.0 % of depth pixels are valid"  # the 5th frame written: index 4
+    assert wait_for(lambda: skipped in log(), 30), log()  # the server's log reader may lag the client's exit
     names = {c["class"] for c in json.loads((work / "map" / "semantic.json").read_text())["segmentation"]}
     assert {"floor", "object"} <= names, names
     saved = np.load(work / "map" / "params.npz")
     assert set(np.unique(saved["semantic_ids"]).tolist()) & {1, 2, 3, 5}
+
+
+def test_server_ends_the_run_after_frames_in_a_row_it_cannot_use_and_the_client_stops(launch_nodes, ros_domain,
+                                                                                      sequence, tmp_path):
+    """A camera whose depth is all zeros after two frames (a wrong topic or depth scale): the server skips what it
+    cannot use, ends the run after 10 such frames in a row with the map of the good frames, and the client, still
+    sending, stops at once and reports why (before, it waited pause_timeout for the server to take images again)."""
+    import numpy as np
+    from PIL import Image
+
+    from semantic_gs_slam.datasets import load_dataset
+
+    src = load_dataset(str(sequence / "home"))
+    seq = tmp_path / "seq-01"
+    seq.mkdir()
+    np.savetxt(seq / "camera-intrinsics.txt", src.intrinsics.as_matrix())
+    for i in range(80):
+        f = src[min(i, 1)]
+        Image.fromarray((f.rgb * 255 + 0.5).astype(np.uint8)).save(seq / f"frame-{i:06d}.color.jpg")
+        depth_mm = (f.depth * 1000).round().astype(np.uint16) if i < 2 else np.zeros(f.depth.shape, np.uint16)
+        Image.fromarray(depth_mm).save(seq / f"frame-{i:06d}.depth.png")
+        np.savetxt(seq / f"frame-{i:06d}.pose.txt", f.gt_c2w)
+    work = tmp_path / "run"
+    sup = launch_nodes(nodes=[server_spec(work, sequence, use_semantic=False, reload_service="")])
+    client = Client(ros_domain, seq, size="64x36", rate=20.0)
+    assert client.wait(120) == 1, client.text()
+    text, log = client.text(), sup.get("run_gs_slam_server").output
+    assert "run failed: 10 frames in a row could not be used (the last, frame 11: only 0.0 % of depth pixels" in text, \
+        text + log()
+    assert wait_for(lambda: "run finished: 10 frames in a row" in log(), 30), log()
+    assert "SLAM failed" not in log() and (work / "map" / "params.npz").is_file()  # the two good frames' map
+    assert sup.get("run_gs_slam_server").returncode() is None  # the server is still up for the next goal
 
 
 def test_live_view_flag_serves_the_map_as_it_is_written(launch_nodes, ros_domain, sequence, tmp_path):

@@ -133,17 +133,20 @@ class LabelStage:
             (modes geometry and onnx). New ids are added to :attr:`classes`.
         """
         n = self._calls if index is None else index
+        labelled = self.mode in ("geometry", "onnx") and (n % self.cfg.every == 0 or keyframe)
+        # the model first: when it refuses the frame (FrameError) nothing of this stage has changed yet
+        detections = self.model(rgb) if labelled and self.model is not None else []
         self._calls += 1
         if self.mode == "none":
             return None
         if self.mode == "dataset":
             return None if dataset_labels is None else np.asarray(dataset_labels, np.int64)
-        if n % self.cfg.every and not keyframe:
+        if not labelled:
             return None
         assert self.geometry is not None  # modes geometry and onnx
         ids = self.geometry.label(rgb, depth, c2w).ids
         if self.model is not None:
-            ids = self._apply_model(rgb, ids)
+            ids = self._apply_model(detections, ids)
         if self.cfg.map_ids == "class":
             ids = np.where(ids >= FIRST_INSTANCE_ID, OBJECT_ID, ids)
         for i in np.unique(ids):
@@ -151,12 +154,13 @@ class LabelStage:
                 self.classes[int(i)] = self.geometry.classes.get(int(i)) or self._coco.get(int(i), f"class_{i}")
         return ids
 
-    def _apply_model(self, rgb: np.ndarray, geo: np.ndarray) -> np.ndarray:
+    def _apply_model(self, detections: list, geo: np.ndarray) -> np.ndarray:
         """COCO names over the geometry labels: a mask's pixels take its class; without masks a detection
-        names the geometry instance that fills most of its box."""
+        names the geometry instance that fills most of its box. ``detections``: the model's output for the frame
+        (``OnnxSegmenter.__call__``: (id, score, mask or None, box), best first)."""
         out = geo.copy()
         h, w = geo.shape
-        for sem_id, _score, mask, box in reversed(self.model(rgb)):  # best last: it wins overlaps
+        for sem_id, _score, mask, box in reversed(detections):  # best last: it wins overlaps
             if mask is None:
                 x1, y1, x2, y2 = np.clip(np.round(box), 0, [w, h, w, h]).astype(int)
                 inside = geo[y1:y2, x1:x2]
