@@ -204,7 +204,7 @@ def main(argv: list[str] | None = None) -> int:
                     break
                 try:
                     f = ds[i]
-                    if stage.mode in ("geometry", "onnx"):  # these keep state across frames: check first
+                    if stage.stateful:  # it keeps state across frames: check the frame first
                         eng.check_frame(f.rgb, f.depth, f.semantics)  # (0.6 ms at 320x240; add_frame checks too)
                     sem = label_frame(stage, eng, f)
                     pose = eng.add_frame(f.rgb, f.depth, sem, f.timestamp, f.gt_c2w)

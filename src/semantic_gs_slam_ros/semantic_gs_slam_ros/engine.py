@@ -39,7 +39,7 @@ class EngineAdapter:
         if self.labels is not None:
             from semantic_gs_slam.labels import predict_pose
 
-            if self.labels.mode in ("geometry", "onnx"):  # these keep state across frames: refuse a bad frame first
+            if self.labels.stateful:  # it keeps state across frames: refuse a bad frame before it gets there
                 self.slam.check_frame(rgb, depth, semantics)
             guess = self.slam.odometry_guess(odom_c2w) if odom_c2w is not None and self.slam.poses else None
             if guess is None:

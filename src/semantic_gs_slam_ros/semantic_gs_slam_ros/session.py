@@ -37,9 +37,6 @@ from semantic_gs_slam_ros.writer import AsyncFrameWriter, WrittenFrame, prepare_
 ODOMETRY_KEEP = 2000
 #: seconds a frame waits for an odometry pose published after its images
 ODOMETRY_WAIT = 0.5
-#: frames the engine refuses in a row before the run stops (the map of the frames mapped is still written): a wrong
-#: camera or topic, not one bad frame. The same number as the dataset CLI's and the streaming client's.
-MAX_REFUSED_IN_A_ROW = MAX_BAD_IN_A_ROW
 
 
 class SlamEngine(Protocol):
@@ -367,7 +364,7 @@ class StreamingSession:
                     self._progress.skipped += 1
                 if on_progress is not None:
                     on_progress(self.progress())
-                if refused_in_a_row >= MAX_REFUSED_IN_A_ROW:
+                if refused_in_a_row >= MAX_BAD_IN_A_ROW:  # a wrong camera or topic, not one bad frame
                     message = f"{refused_in_a_row} frames in a row could not be used (the last, frame {frame.index}: " \
                               f"{exc})"
                     failed = True

@@ -497,7 +497,7 @@ def test_session_skips_a_frame_the_engine_refuses_before_the_labelling_stage_see
 def test_session_stops_after_refused_frames_in_a_row_and_writes_the_map(tmp_path, monkeypatch):
     import semantic_gs_slam_ros.session as session_mod
 
-    monkeypatch.setattr(session_mod, "MAX_REFUSED_IN_A_ROW", 2)
+    monkeypatch.setattr(session_mod, "MAX_BAD_IN_A_ROW", 2)
     log: list[str] = []
     # frame 1 alone is skipped (the count starts again at frame 2); frames 3 and 4 in a row stop the run
     session, engine, _ = _labelled_engine_session(tmp_path, {1, 3, 4}, 6, log)

@@ -109,6 +109,13 @@ class LabelStage:
             self.classes.update(PLANE_CLASSES)
             self.classes[OBJECT_ID] = OBJECT_CLASS
 
+    @property
+    def stateful(self) -> bool:
+        """Whether this stage keeps state across frames (instances tracked by the geometry layer: modes geometry and
+        onnx), so a frame the engine would refuse must be refused before it reaches the stage
+        (:meth:`semantic_gs_slam.slam.SLAM.check_frame`)."""
+        return self.geometry is not None
+
     def reserve_ids(self, used: dict[int, str]) -> None:
         """New instance ids start above every id in ``used`` (a resumed map's classes)."""
         if self.geometry is not None and used:
@@ -133,7 +140,7 @@ class LabelStage:
             (modes geometry and onnx). New ids are added to :attr:`classes`.
         """
         n = self._calls if index is None else index
-        labelled = self.mode in ("geometry", "onnx") and (n % self.cfg.every == 0 or keyframe)
+        labelled = self.stateful and (n % self.cfg.every == 0 or keyframe)
         # the model first: when it refuses the frame (FrameError) nothing of this stage has changed yet
         detections = self.model(rgb) if labelled and self.model is not None else []
         self._calls += 1
