@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# One command that proves the SLAM engine on a CUDA GPU (issue 13), all in one run (< 10 minutes on
+# One command that proves the SLAM engine on a CUDA GPU, all in one run (< 10 minutes on
 # an H100): installs gsplat from carried wheels, builds its CUDA code (torch's JIT loader), runs the
 # GPU agreement tests, prints the quality / speed table at 300x170, 600x340 and 1200x680 (frame 0
 # separately, peak GPU memory; 1200x680 again with the CPU's settings as the baseline, config.DEVICE_DEFAULTS)
@@ -108,7 +108,7 @@ log "quality / speed table ($SIZES, $FRAMES frames each) and streaming"
   --threads "$(( nproc < 8 ? nproc : 8 ))" --workers "$nproc" --data "${DATA:-/tmp/slam_gpu_data}" --baseline \
   | tee "$OUT_DIR/table.md"
 
-# --- 6. a real sequence on CUDA (issue 17 section 5), when REAL_DATA names one ---------------------
+# --- 6. a real sequence on CUDA, when REAL_DATA names one ---------------------
 if [ -n "${REAL_DATA:-}" ]; then
   real=("$PY" bench/slam_real.py "$REAL_DATA" --frames "${REAL_FRAMES:-250}" --stride "${REAL_STRIDE:-2}"
         --device cuda --no-open3d --quiet --curve-every 125)

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Where a SLAM frame's milliseconds go, on any torch device (issue 13 item 4, and the GPU speed work).
+"""Where a SLAM frame's milliseconds go, on any torch device.
 
 Usage (from the repository root)::
 

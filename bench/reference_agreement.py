@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""How far apart two reference trajectories of the same real sequence are, and ours from each (issue 17).
+"""How far apart two reference trajectories of the same real sequence are, and ours from each.
 
 Usage (from the repository root)::
 

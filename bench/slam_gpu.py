@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""SLAM quality / speed table on any torch device, and streaming at camera rate (issue 13).
+"""SLAM quality / speed table on any torch device, and streaming at camera rate.
 
 Usage (from the repository root; ``bench/gpu.sh`` runs it on a CUDA machine)::
 

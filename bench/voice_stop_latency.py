@@ -1,6 +1,6 @@
 """Spoken stop benchmark: end of speech of "stop"/"cancel" → the running nav goal CANCELED.
 
-Issue 16 §4: a spoken "stop" must cancel directly, never queued behind the task; measured from the
+A spoken "stop" must cancel directly, never queued behind the task; measured from the
 end of speech to the goal canceled. Runs, as real processes on a leased ROS domain (loopback), the
 simulated robot (``sim_robot`` node set: mock_nav_server slowed down so a goal lasts, mock_grasp_server,
 object_query_server, decision_maker) and a real ``audio_command_node`` reading raw PCM from stdin

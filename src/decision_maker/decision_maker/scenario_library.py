@@ -13,7 +13,7 @@ words, and the longest matching phrase wins ("go to the kitchen" → ``go to``, 
 ``go home``). Slots are filled from the words of the utterance against what the robot knows:
 "give me the cup please" → ``item=cup`` when ``cup`` is in ``/object_list``.
 
-The intent grammar (issue 16 §4): people do not say the registry's phrases verbatim.
+The intent grammar: people do not say the registry's phrases verbatim.
 
 * :data:`PHRASE_SYNONYMS` — other wordings of a phrase ("go back home" → ``go home``, "fetch the
   bottle please" → ``give me``, "could you bring me the cup" → ``bring me``). Fillers ("could you",

@@ -79,7 +79,7 @@ def test_place_phrase():
     assert place_phrase((-9.0, -9.0, 0.0), LOCS) == "at (-9.00, -9.00)"
 
 
-# --- intent grammar: the phrases of issue 16 §4 ------------------------------------------------------
+# --- intent grammar: the phrases people use ------------------------------------------------------
 
 
 @pytest.mark.parametrize("text, expected", [

@@ -1,4 +1,4 @@
-"""Integration (issue 16): acknowledged commands, stops that always stop, bad inputs, dead servers.
+"""Integration: acknowledged commands, stops that always stop, bad inputs, dead servers.
 
 Real processes on a leased ROS_DOMAIN_ID (node set ``sim_robot``); the test process is the
 operator / the attacker. No timing asserts: every wait has a generous deadline, and "fast" means
