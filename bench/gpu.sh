@@ -3,7 +3,7 @@
 # an H100): installs gsplat from carried wheels, builds its CUDA code (torch's JIT loader), runs the
 # GPU agreement tests, prints the quality / speed table at 300x170, 600x340 and 1200x680 (frame 0
 # separately, peak GPU memory; 1200x680 again with the CPU's settings as the baseline, config.DEVICE_DEFAULTS)
-# and the streaming-at-30-Hz figures. Paste the table into docs/slam.md.
+# and the streaming-at-30-Hz figures. Paste the table into docs/figures.md ("SLAM on a GPU").
 #
 #   bash bench/gpu.sh --download    # where a package index is reachable: fetch the wheels into .whl/
 #   bash bench/gpu.sh               # on the CUDA machine (no network needed): everything
@@ -127,5 +127,5 @@ if [ -n "${REAL_DATA:-}" ]; then
   log "real-sequence runs exit $real_rc"
   [ "$real_rc" = "0 0 0" ] || { [ "$tests_rc" -ne 0 ] || tests_rc=1; }
 fi
-log "done in $(( $(date +%s) - T0 )) s; tests exit $tests_rc; table in $OUT_DIR/table.md (paste into docs/slam.md)"
+log "done in $(( $(date +%s) - T0 )) s; tests exit $tests_rc; table in $OUT_DIR/table.md (paste into docs/figures.md)"
 exit "$tests_rc"

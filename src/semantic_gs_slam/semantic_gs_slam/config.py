@@ -90,8 +90,8 @@ class TrackingConfig:
     prior_sigma_rot: float = 0.05  # radians
     render_scale_shrink: float = 0.7  # the model is rendered for tracking with Gaussian radii x this, on frames
     # without odometry (a handheld camera): full-size footprints blended bias depth toward the camera on oblique
-    # surfaces, and on the Kinect sequence larger ones than 0.35 track better (docs/slam.md, "Tracking render
-    # size": ATE 3.51 -> 3.28 cm, RPE 1.24 -> 0.87 cm, PSNR +0.36 dB; the synthetic home keeps its targets)
+    # surfaces, and on the Kinect sequence larger ones than 0.35 track better (docs/design/slam.md,
+    # "Tracking": ATE 3.51 -> 3.28 cm, RPE 1.24 -> 0.87 cm, PSNR +0.36 dB; the synthetic home keeps its targets)
     render_scale_shrink_odometry: float = 0.35  # the same on frames tracked from an odometry guess (add_frame's
     # odom_c2w: a robot's stream): on the exploring robot's replays 0.7 put objects up to 11.5 cm off against 6.2
     normal_smoothing: int = 5  # box filter (pixels) on the model depth before vertices/normals (1: off)
@@ -198,7 +198,7 @@ class MappingConfig:
     refine_pose_prior: float = 0.001  # SLAM.refine(poses=True): weight w of a prior that holds each keyframe's pose
     # correction near zero, w * (|t|^2 / (1 cm)^2 + |q_v|^2 / 0.004^2) per rendered keyframe. Where pixels are too
     # coarse to see a pose error the poses would random-walk under Adam (2.7 cm on the synthetic home at 120x68);
-    # 0.001 halves that at the 320x240 kitchen's quality (docs/slam.md "Refined at the end"); 0 = no prior
+    # 0.001 halves that at the 320x240 kitchen's quality (docs/design/slam.md "Refinement at the end"); 0 = no prior
 
     def check(self) -> None:
         if self.ssim_backend not in ("auto", "torch", "numba"):
@@ -227,7 +227,7 @@ class LoopConfig:
     enabled: bool = True
     with_odometry: bool = False  # also on frames given odometry (a robot's stream): off, because on the exploring
     # robot's sparse 45-degree-apart frames one raw depth image is too weak a reference (a false 49.6 cm
-    # "correction" in 1 of 2 test runs with an 8-frame gap; docs/exploration.md)
+    # "correction" in 1 of 2 test runs with an 8-frame gap; docs/design/exploration.md)
     min_frame_gap: int = 30  # only keyframes at least this many frames older are loop candidates
     min_overlap: float = 0.4  # share of the new keyframe's points that must fall inside the candidate's view
     max_view_angle_deg: float = 25.0  # ... and the two cameras must look the same way within this (ICP between views
@@ -254,7 +254,7 @@ class LoopConfig:
     # only when that differs from where the previous keyframe's correction puts it by more than this many loop sigmas
     # (translation or rotation); else it moves with the previous keyframe, the difference being registration noise.
     # 0 = always its own. On 7-Scenes every correction (1-3 cm) made the new keyframe jump and the next frames jump
-    # back to the map (one-frame RPE 0.8 -> 1.65 cm); at 2: PSNR +0.2-0.3 dB, ATE the same (docs/slam.md)
+    # back to the map (one-frame RPE 0.8 -> 1.65 cm); at 2: PSNR +0.2-0.3 dB, ATE the same (docs/design/slam.md)
     candidates: int = 1  # old keyframes registered per check (the most overlapping, min_frame_gap // 2 apart)
 
     def check(self) -> None:
@@ -271,7 +271,7 @@ class LoopConfig:
 
 
 # Settings whose default depends on the device the engine runs on (a field left at None takes its device's value
-# when the engine starts: SlamConfig.resolved). Measured with bench/slam_gpu.py, docs/slam.md "GPU figures":
+# when the engine starts: SlamConfig.resolved). Measured with bench/slam_gpu.py, docs/figures.md "SLAM on a GPU":
 # on an H200 at 1200x680 (60 frames), the CUDA values take the engine from 23.5 to 33-36 FPS at ATE 0.12 cm,
 # PSNR 34.1 dB, mIoU 0.97 (CPU values: 0.11 / 34.3 / 0.967). On the CPU at 300x170 the same values cost the
 # synthetic home its mIoU target (0.897 < 0.92) and the Kinect data nothing, so the CPU keeps the thorough ones.

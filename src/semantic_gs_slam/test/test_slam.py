@@ -543,7 +543,7 @@ def test_refinement_with_poses_pulls_a_displaced_keyframe_back(mapped_on_true_po
     """Bundle adjustment through the renderer: a keyframe moved 5 cm off its true pose comes most of the way back
     (with the default pose prior); the first keyframe (the gauge) stays; without ``poses`` no pose moves. (At this
     image's 60 px focal length 5 cm is 1-2 pixels; 1.5 cm, a third of a pixel, is not found: measured,
-    docs/slam.md "Refined at the end".)"""
+    docs/design/slam.md "Refinement at the end".)"""
     from copy import deepcopy
 
     from semantic_gs_slam.geometry import pose_error

@@ -50,8 +50,8 @@ class LabelConfig:
     every: int = 1  # modes geometry and onnx: label only every k-th engine frame and the frames the engine expects
     # to be keyframes (SLAM.keyframe_expected); the others get no labels, so they cast no label votes and seed
     # unlabelled Gaussians. Instances are then tracked across the gaps (map_ids "instance": larger motion between
-    # labelled frames can split one). Measured on the 250 kitchen frames, 2 cores (docs/slam.md, "Labels on every
-    # k-th frame only"): 1 -> 2.23 FPS with 87.6 % of the Gaussians labelled, 4 -> 2.77 FPS and 81.8 %
+    # labelled frames can split one). Measured on the 250 kitchen frames, 2 cores (docs/figures.md, "SLAM on the
+    # real kitchen"): 1 -> 2.23 FPS with 87.6 % of the Gaussians labelled, 4 -> 2.77 FPS and 81.8 %
 
     def check(self) -> None:
         """Raise :class:`ConfigError` on an unknown mode, a missing model path or ``every`` < 1."""
