@@ -5,6 +5,7 @@ Usage (from the repository root)::
 
     source scripts/env.sh && python bench/labels_geometry.py                    # 300x170, 30 frames
     python bench/labels_geometry.py --width 320 --height 240 --frames 60
+    python bench/labels_geometry.py --write-figures     # also into docs/figures.md (block labels_geometry_300x170)
 
 Renders the synthetic home's orbit (ground-truth poses and labels), labels every frame with
 :class:`~semantic_gs_slam.labels.geometry.GeometryLabeller` at the true pose, and prints per-frame time,
@@ -21,6 +22,7 @@ import argparse
 import statistics
 import time
 
+import figures
 import numpy as np
 
 from semantic_gs_slam.labels.geometry import (
@@ -70,7 +72,9 @@ def main() -> int:
     ap.add_argument("--height", type=int, default=170)
     ap.add_argument("--frames", type=int, default=30)
     ap.add_argument("--span-deg", type=float, default=120.0)
+    figures.add_argument(ap)
     args = ap.parse_args()
+    provenance = figures.Provenance.start() if args.write_figures else None
     k = default_intrinsics(args.width, args.height)
     traj = trajectory(args.frames, args.span_deg)
     renderer = HomeRenderer(0)
@@ -106,18 +110,24 @@ def main() -> int:
         top_all += int(top.sum())
         top_ok += int(np.isin(sem[top], [CLASS_ID[c] for c in ("table", "counter", "chair", "sofa")]).sum())
     iou_arr = np.array(ious)
-    print(f"synthetic home {k.width}x{k.height}, {args.frames} frames, {len(ious)} ground-truth object regions "
-          f"(>= {min_px} px)")
-    print("| metric | value |\n|---|---|")
-    print(f"| labelling time per frame (median, ms) | {1000 * statistics.median(times):.0f} |")
-    print(f"| object recall, IoU >= 0.5 | {(iou_arr >= 0.5).mean():.3f} |")
-    print(f"| object recall, IoU >= 0.25 | {(iou_arr >= 0.25).mean():.3f} |")
-    print(f"| mean best IoU per object region | {iou_arr.mean():.3f} |")
-    print(f"| floor IoU | {inter[0] / max(union[0], 1):.3f} |")
-    print(f"| wall IoU | {inter[1] / max(union[1], 1):.3f} |")
-    print(f"| 'table' pixels on a table/counter/chair/sofa | {top_ok / max(top_all, 1):.3f} |")
-    print(f"| instance id kept frame to frame | {same / max(pairs, 1):.3f} ({pairs} pairs) |")
-    print(f"| instances created | {lab.next_id - FIRST_INSTANCE_ID} |")
+    lines = [
+        f"synthetic home {k.width}x{k.height}, {args.frames} frames, {len(ious)} ground-truth object regions "
+        f"(>= {min_px} px)",
+        "| metric | value |\n|---|---|",
+        f"| labelling time per frame (median, ms) | {1000 * statistics.median(times):.0f} |",
+        f"| object recall, IoU >= 0.5 | {(iou_arr >= 0.5).mean():.3f} |",
+        f"| object recall, IoU >= 0.25 | {(iou_arr >= 0.25).mean():.3f} |",
+        f"| mean best IoU per object region | {iou_arr.mean():.3f} |",
+        f"| floor IoU | {inter[0] / max(union[0], 1):.3f} |",
+        f"| wall IoU | {inter[1] / max(union[1], 1):.3f} |",
+        f"| 'table' pixels on a table/counter/chair/sofa | {top_ok / max(top_all, 1):.3f} |",
+        f"| instance id kept frame to frame | {same / max(pairs, 1):.3f} ({pairs} pairs) |",
+        f"| instances created | {lab.next_id - FIRST_INSTANCE_ID} |",
+    ]
+    print("\n".join(lines))
+    if provenance is not None:
+        figures.write_block(f"labels_geometry_{k.width}x{k.height}", "\n\n".join(
+            [lines[0] + ":", "\n".join(lines[1:])]), provenance)
     return 0
 
 
