@@ -5,6 +5,7 @@ Usage (from the repository root, after ``source scripts/env.sh``)::
 
     python bench/cpu_kernels.py                      # the bundled map (data/params.npz), 2 threads
     python bench/cpu_kernels.py --map /tmp/run/params.npz --size 320x240 --threads 2
+    python bench/cpu_kernels.py --write-figures      # also into docs/figures.md (block cpu_kernels_bundled_map)
 
 For a map (any ``params.npz`` the engine wrote) seen from one of its own camera poses, each row times the
 reference and the fast path alternately (``--reps`` each, median) and prints both, the ratio and how far the
@@ -30,6 +31,7 @@ import statistics
 import sys
 import time
 
+import figures
 import numpy as np
 import torch
 
@@ -58,7 +60,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--frame", type=int, default=-1, help="camera pose of the map to look from (default: middle)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--reps", type=int, default=7)
+    figures.add_argument(ap)
     a = ap.parse_args(argv)
+    provenance = figures.Provenance.start() if a.write_figures else None
     if not numba_available():
         print("numba is not installed: there is no fast path to compare (pip install -r requirements/python.in)",
               file=sys.stderr)
@@ -168,12 +172,18 @@ def main(argv: list[str] | None = None) -> int:
         "pose, max abs")
 
     sem = gmap.gaussians().semantic
-    print(f"map {a.map}: {len(gmap)} Gaussians, {0 if sem is None else sem.shape[1]} class columns; {w}x{h}; "
-          f"{a.threads} threads; median of {a.reps}, reference and numba alternating")
-    print("| kernel | reference (PyTorch) ms | numba ms | ratio numba / reference | results apart |")
-    print("|---|---|---|---|---|")
-    for name, r, f, d, unit in rows:
-        print(f"| {name} | {r:.1f} | {f:.1f} | {f / r:.2f} | {d:.2e} ({unit}) |")
+    lines = [f"map {a.map}: {len(gmap)} Gaussians, {0 if sem is None else sem.shape[1]} class columns; {w}x{h}; "
+             f"{a.threads} threads; median of {a.reps}, reference and numba alternating",
+             "| kernel | reference (PyTorch) ms | numba ms | ratio numba / reference | results apart |",
+             "|---|---|---|---|---|"]
+    lines += [f"| {name} | {r:.1f} | {f:.1f} | {f / r:.2f} | {d:.2e} ({unit}) |" for name, r, f, d, unit in rows]
+    print("\n".join(lines))
+    if provenance is not None:
+        bundled = os.path.realpath(a.map) == os.path.realpath(os.path.join(ROOT, "data", "params.npz"))
+        heading = (f"{os.path.relpath(a.map, ROOT) if bundled else 'map ' + os.path.basename(os.path.dirname(a.map))}: "
+                   + lines[0].split(": ", 1)[1])
+        figures.write_block("cpu_kernels_bundled_map" if bundled else "cpu_kernels_other_map",
+                            heading + ":\n\n" + "\n".join(lines[1:]), provenance)
     return 0
 
 
