@@ -140,8 +140,14 @@ class WebUiNode(Node):
         self.get_logger().info(f"map: {event['n']} points from {path}")
 
     def _log(self, level: str, text: str) -> None:
+        # one call site per severity: rclpy refuses two severities from one line
         log = self.get_logger()
-        {"info": log.info, "warn": log.warn, "error": log.error}.get(level, log.info)(text)
+        if level == "error":
+            log.error(text)
+        elif level == "warn":
+            log.warn(text)
+        else:
+            log.info(text)
 
     # --- Robot (called from the server's thread; never blocks) -------------------------------------------
 
