@@ -113,6 +113,21 @@ class Operator:
         self._ros.close()
 
 
+def _free_web_port(overrides: list[str], port: int = 8090) -> list[str]:
+    """The overrides, plus ``web_ui.port=0`` (any free port) when ``port`` is taken (another demo runs)."""
+    import socket
+
+    if any(o.startswith("web_ui.port=") for o in overrides):
+        return overrides
+    with socket.socket() as sock:
+        try:
+            sock.bind(("127.0.0.1", port))
+        except OSError:
+            print(f"demo: port {port} is taken; the web page gets a free port", flush=True)
+            return [*overrides, "web_ui.port=0"]
+    return overrides
+
+
 def _is_question(text: str) -> bool:
     return text.lower().lstrip().startswith(("where", "what", "which", "who", "how", "do you", "have you"))
 
@@ -190,7 +205,7 @@ def main(argv: list[str] | None = None) -> int:
         t0 = time.monotonic()
         sup = None
         try:
-            specs = apply_overrides(load_nodeset("demo"), opts.set)
+            specs = apply_overrides(load_nodeset("demo"), _free_web_port(opts.set))
             sup = Supervisor(specs, env, echo=sys.stdout if opts.verbose else None)
             sup.start()
             sup.wait_ready(opts.ready_timeout)
