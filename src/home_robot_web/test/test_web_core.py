@@ -7,6 +7,7 @@ import json
 import os
 import stat
 import threading
+import time
 import urllib.error
 import urllib.request
 from pathlib import Path
@@ -336,3 +337,33 @@ def test_non_finite_event_is_refused():
     server = WebServer(ServerConfig(port=0), Gate(None, AttemptLimiter(), True), RecordingRobot(), b"", print)
     with pytest.raises(ValueError):
         server.publish({"type": "robot", "x": float("nan")})
+
+
+def test_a_page_that_does_not_read_is_disconnected_not_waited_for(served):
+    start, _, logs = served
+    server = start(client_queue=4)
+    with connect(f"ws://127.0.0.1:{server.port}/ws", open_timeout=10, max_size=None) as ws:
+        _recv_until(ws, "hello")
+        big = "x" * 100_000
+        for i in range(300):  # 30 MB the page never reads: socket buffers fill, then its queue
+            server.publish({"type": "status", "id": i, "state": "running", "text": big})
+        deadline = time.monotonic() + 60
+        while not any("fell 4 events behind" in t for _, t in logs) and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert any("fell 4 events behind" in t for _, t in logs)
+        with pytest.raises(ConnectionClosedError):
+            while True:
+                ws.recv(timeout=30)
+        assert ws.close_code == 1013
+    with connect(f"ws://127.0.0.1:{server.port}/ws", open_timeout=10, max_size=None) as ws:  # the server goes on
+        assert len(_recv_until(ws, "hello")["statuses"]) == 200
+
+
+def test_more_pages_than_max_clients_get_503(served):
+    start, _, _ = served
+    server = start(max_clients=1)
+    with connect(f"ws://127.0.0.1:{server.port}/ws", open_timeout=10) as ws:
+        _recv_until(ws, "hello")
+        with pytest.raises(InvalidStatus) as refused:
+            connect(f"ws://127.0.0.1:{server.port}/ws", open_timeout=10)
+        assert refused.value.response.status_code == 503
