@@ -2,7 +2,7 @@
 # Both do the setup first when it is missing or stale; `make setup` does only the setup.
 SHELL := /bin/bash
 ENV := source scripts/env.sh >/dev/null &&
-PYTEST_ARGS ?= -n 2
+PYTEST_ARGS ?= -n 2 --dist loadgroup
 
 .PHONY: setup demo demo-explore test lint clean bench bench-object-query bench-decision-maker bench-voice bench-voice-stop bench-slam bench-web-stop \
 	bench-slam-streaming setup-gpu bench-gpu gpu-wheels

@@ -23,8 +23,9 @@ from home_robot_bringup.nodeset import load_nodeset
 from home_robot_bringup.process import Supervisor, node_environment
 from home_robot_web.cdp import Chromium, chromium_path
 
-pytestmark = [pytest.mark.ros, pytest.mark.skipif(chromium_path() is None,
-                                                  reason="needs chromium (apt-get install chromium)")]
+# one worker runs the module's tests in order on one node set (make test: pytest -n 2 --dist loadgroup)
+pytestmark = [pytest.mark.ros, pytest.mark.xdist_group("web_ui_browser"),
+              pytest.mark.skipif(chromium_path() is None, reason="needs chromium (apt-get install chromium)")]
 
 #: the page's task entry of the command with this text, and its state
 TASK = "[...document.querySelectorAll('#tasks > li')].find(li => li.querySelector('.text').textContent === {text})"
