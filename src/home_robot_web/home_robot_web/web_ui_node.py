@@ -32,6 +32,7 @@ import rclpy
 from action_msgs.msg import GoalStatus, GoalStatusArray
 from geometry_msgs.msg import PoseStamped
 from object_query_interfaces.msg import ObjectMemory
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
@@ -81,6 +82,10 @@ class WebUiNode(Node):
         for name, val in DEFAULTS.items():
             self.declare_parameter(name, val)
         v = {name: self.get_parameter(name).value for name in DEFAULTS}
+        # Read once: a later change would be silently ignored, so it is refused with the reason.
+        self.add_on_set_parameters_callback(
+            lambda params: SetParametersResult(successful=False,
+                                               reason="web_ui parameters are read at start; restart the node"))
         expose = bool(v["expose"])
         host = str(v["bind_address"]) if expose else "127.0.0.1"
         config = ServerConfig(host=host, port=int(v["port"]), max_message_bytes=int(v["max_message_bytes"]),
