@@ -114,8 +114,8 @@ class WebUiNode(Node):
                                  callback_group=group)
         url = self.server.url if not expose else f"http://{self._public_host(host)}:{self.server.port}/"
         if token is not None and told:
-            # shown once: whoever reads this log can pair a phone
-            self.get_logger().warn(f"pairing token (shown once): {token} — open {url}?token={token}")
+            # shown once, on this terminal only: not through the logger, which also writes /rosout and ~/.ros/log
+            print(f"pairing token (shown once): {token} — open {url}?token={token}", flush=True)
         where = f"exposed on {host}, pairing token required" if expose else "loopback only"
         self.get_logger().info(f"ready: web UI at {url} ({where}; commands via {self._commands.service_name})")
 

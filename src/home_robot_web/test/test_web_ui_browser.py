@@ -78,7 +78,8 @@ def test_command_shows_its_steps_and_done(robot_page):
     steps = page.evaluate(f"[...{task('give me the bottle')}.querySelectorAll('.steps li')].map(e => e.textContent)")
     assert len(steps) >= 3 and any("grasp" in s for s in steps) and any("place" in s for s in steps), steps
     assert page.evaluate("hr.acks[0].accepted && hr.acks[0].id > 0 && hr.acks[0].via === 'service'")
-    assert "done" in page.text("#answer").lower() or "here" in page.text("#answer").lower(), page.text("#answer")
+    assert page.evaluate(f"{task('give me the bottle')}.querySelector('.sentence').textContent") == "Done."
+    assert page.text("#answer") == "Done."  # the answer to the page's own command, under the box
     assert page.evaluate("document.querySelectorAll('#objects tbody tr').length") >= 3  # the object memory
     assert page.evaluate("document.querySelector('#mapinfo').textContent").endswith("map points")
 
@@ -190,3 +191,17 @@ def test_exposed_page_needs_the_token(tmp_path):
             raise
         finally:
             sup.stop()
+
+
+def test_exposed_without_a_token_file_prints_a_new_token_once(launch_nodes):
+    sup = launch_nodes(nodeset="web_ui", set=["web_ui.expose=true", "web_ui.bind_address=127.0.0.1", "web_ui.port=0"])
+    out = sup.get("web_ui").output()
+    printed = re.findall(r"pairing token \(shown once\): (\S+) — open (\S+)", out)
+    assert len(printed) == 1, out
+    token, link = printed[0]
+    with urllib.request.urlopen(link, timeout=10) as r:  # the printed link opens the page
+        assert r.status == 200 and b"Home robot" in r.read()
+    with pytest.raises(urllib.error.HTTPError) as info:
+        urllib.request.urlopen(url_of(sup), timeout=10)
+    assert info.value.code == 401
+    assert sup.get("web_ui").output().count(token) == 2  # the one printed line (token and link), nowhere else
