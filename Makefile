@@ -2,9 +2,9 @@
 # Both do the setup first when it is missing or stale; `make setup` does only the setup.
 SHELL := /bin/bash
 ENV := source scripts/env.sh >/dev/null &&
-PYTEST_ARGS ?= -n 2
+PYTEST_ARGS ?= -n 2 --dist loadgroup
 
-.PHONY: setup demo demo-explore test lint clean bench bench-object-query bench-decision-maker bench-voice bench-voice-stop bench-slam \
+.PHONY: setup demo demo-explore test lint clean bench bench-object-query bench-decision-maker bench-voice bench-voice-stop bench-slam bench-web-stop \
 	bench-slam-streaming setup-gpu bench-gpu gpu-wheels
 
 setup:
@@ -24,13 +24,16 @@ lint: setup
 
 # Benchmarks print figures (and the ratio to the seed's method where there is one); minutes each.
 # bench-voice-stop last: it exits 1 when a spoken stop was missed (a finding, reported after the others ran).
-bench: bench-object-query bench-decision-maker bench-voice bench-slam bench-slam-streaming bench-voice-stop
+bench: bench-object-query bench-decision-maker bench-web-stop bench-voice bench-slam bench-slam-streaming bench-voice-stop
 
 bench-object-query: setup
 	@$(ENV) python bench/object_query_bench.py
 
 bench-decision-maker: setup
 	@$(ENV) python bench/decision_maker_cancel.py --trials 200
+
+bench-web-stop: setup
+	@$(ENV) python bench/web_stop.py --trials 100
 
 bench-voice: setup
 	@$(ENV) python bench/voice_latency.py

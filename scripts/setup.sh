@@ -41,6 +41,8 @@ optional=()
 command -v espeak-ng >/dev/null || optional+=(espeak-ng)
 command -v sox >/dev/null || optional+=(sox)
 ldconfig -p 2>/dev/null | grep -q libportaudio.so.2 || optional+=(libportaudio2)
+# Web page: the browser tests and bench/web_stop.py drive a headless Chromium (DevTools protocol).
+command -v chromium >/dev/null || command -v chromium-browser >/dev/null || optional+=(chromium)
 if [ ${#missing[@]} -gt 0 ]; then
   [ "$(id -u)" = 0 ] || die "missing host packages: ${missing[*]} (run: sudo apt-get install ${missing[*]})"
 fi
@@ -50,7 +52,7 @@ if [ $(( ${#missing[@]} + ${#optional[@]} )) -gt 0 ]; then
     apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends \
       "${missing[@]}" "${optional[@]}" >/dev/null
   else
-    log "optional host packages missing: ${optional[*]} (voice tests are skipped; sudo apt-get install ${optional[*]})"
+    log "optional host packages missing: ${optional[*]} (voice / browser tests are skipped; sudo apt-get install ${optional[*]})"
   fi
 fi
 

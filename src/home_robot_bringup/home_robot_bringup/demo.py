@@ -1,8 +1,9 @@
 """``demo``: the main job, end to end on the bundled data (``make demo``).
 
-Brings up the whole simulated robot (node set ``sim_robot``: the object database on the bundled
-sample map, the simulated base and arm, the decision maker) on a freshly leased ROS_DOMAIN_ID
-with loopback-only discovery, then says to it, as a person would:
+Brings up the whole simulated robot and its web page (node set ``demo``: the object database on the
+bundled sample map, the simulated base and arm, the decision maker, ``web_ui_node`` on
+http://127.0.0.1:8090/) on a freshly leased ROS_DOMAIN_ID with loopback-only discovery, then says
+to it, as a person would:
 
     "give me the bottle", "go home", "clean table", "where is the bottle",
     "could you bring me the bottle"
@@ -26,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import sys
 import threading
 import time
@@ -111,6 +113,21 @@ class Operator:
         self._ros.close()
 
 
+def _free_web_port(overrides: list[str], port: int = 8090) -> list[str]:
+    """The overrides, plus ``web_ui.port=0`` (any free port) when ``port`` is taken (another demo runs)."""
+    import socket
+
+    if any(o.startswith("web_ui.port=") for o in overrides):
+        return overrides
+    with socket.socket() as sock:
+        try:
+            sock.bind(("127.0.0.1", port))
+        except OSError:
+            print(f"demo: port {port} is taken; the web page gets a free port", flush=True)
+            return [*overrides, "web_ui.port=0"]
+    return overrides
+
+
 def _is_question(text: str) -> bool:
     return text.lower().lstrip().startswith(("where", "what", "which", "who", "how", "do you", "have you"))
 
@@ -184,11 +201,11 @@ def main(argv: list[str] | None = None) -> int:
     with DomainLease() as lease:
         env = node_environment(lease.domain_id)
         print(f"demo: ROS_DOMAIN_ID={lease.domain_id}, discovery LOCALHOST; starting the simulated robot "
-              "(object database, simulated base and arm, decision maker)...", flush=True)
+              "(object database, simulated base and arm, decision maker, web page)...", flush=True)
         t0 = time.monotonic()
         sup = None
         try:
-            specs = apply_overrides(load_nodeset("sim_robot"), opts.set)
+            specs = apply_overrides(load_nodeset("demo"), _free_web_port(opts.set))
             sup = Supervisor(specs, env, echo=sys.stdout if opts.verbose else None)
             sup.start()
             sup.wait_ready(opts.ready_timeout)
@@ -210,6 +227,9 @@ def main(argv: list[str] | None = None) -> int:
                     print(f"--- {proc.name}:\n{proc.output()[-2000:]}", file=sys.stderr)
                 return 1
             print(f"demo: {len(specs)} nodes ready in {time.monotonic() - t0:.1f} s", flush=True)
+            web = re.search(r"ready: web UI at (\S+)", sup.get("web_ui").output())
+            if web:
+                print(f"demo: open {web.group(1)} in a browser to watch and command the robot", flush=True)
             print("demo: the world now:\n" + "\n".join(describe_world(op.snapshot(), locations)), flush=True)
             sent: list[str] = []
             for text, key in zip(commands, keys, strict=True):

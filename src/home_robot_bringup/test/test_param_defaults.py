@@ -42,6 +42,7 @@ NODES = {
     "sim_camera": ("home_robot_exploration", "sim_camera_node", "home_robot_exploration.sim_camera_node:SimCameraNode"),
     "explorer": ("home_robot_exploration", "explorer_node", "home_robot_exploration.explorer_node:ExplorerNode"),
     "live_view": ("home_robot_exploration", "live_view_node", "home_robot_exploration.live_view_node:LiveViewNode"),
+    "web_ui": ("home_robot_web", "web_ui_node", "home_robot_web.web_ui_node:WebUiNode"),
 }
 #: parameters every rclpy node has (not ours to document)
 BUILTIN = {"use_sim_time", "start_type_description_service"}
