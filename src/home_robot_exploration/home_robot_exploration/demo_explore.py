@@ -255,7 +255,7 @@ def main(argv: list[str] | None = None) -> int:
     if not opts.no_slam:
         import tempfile
 
-        from semantic_gs_slam.synthetic import CLASSES
+        from semantic_gs_slam.synthetic.scenes import CLASSES
 
         map_dir = os.path.abspath(opts.map_dir) if opts.map_dir else tempfile.mkdtemp(prefix="explore_map_")
         for name in ("params.npz", "semantic.json"):  # from an empty map

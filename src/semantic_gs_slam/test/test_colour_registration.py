@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from semantic_gs_slam import colour_registration as cr
-from semantic_gs_slam.datasets import load_dataset, resize_area
 from semantic_gs_slam.errors import DatasetError
+from semantic_gs_slam.io import colour_registration as cr
+from semantic_gs_slam.io.datasets import load_dataset, resize_area
 
 W, H = 160, 120
 DEPTH_K = (146.25, 146.25, 79.5, 59.5)  # a Kinect's 585 px at 640 wide, scaled to 160

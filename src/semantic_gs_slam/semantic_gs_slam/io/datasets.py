@@ -32,10 +32,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from semantic_gs_slam.colour_registration import CALIB_FILE, SEVEN_SCENES_COLOUR, ColourCalib, register, scaled
-from semantic_gs_slam.colour_registration import load as load_colour_calib
 from semantic_gs_slam.config import Intrinsics
 from semantic_gs_slam.errors import DatasetError
+from semantic_gs_slam.io.colour_registration import CALIB_FILE, SEVEN_SCENES_COLOUR, ColourCalib, register, scaled
+from semantic_gs_slam.io.colour_registration import load as load_colour_calib
 
 REPLICA_INTRINSICS = Intrinsics(1200, 680, 600.0, 600.0, 599.5, 339.5)
 TUM_INTRINSICS = Intrinsics(640, 480, 525.0, 525.0, 319.5, 239.5)  # TUM "ROS default"
@@ -77,7 +77,7 @@ class Dataset:
         self.native_intrinsics = intrinsics  # the files' camera; ``intrinsics`` is the working one
         self.invalid_depth_raw: int | None = None  # a raw depth value meaning "no depth" besides 0 (7-Scenes: 65535)
         # the colour camera relative to the depth camera (native size) when colour is not registered to depth;
-        # frames are then re-sampled into the depth camera's pixels (:mod:`semantic_gs_slam.colour_registration`)
+        # frames are then re-sampled into the depth camera's pixels (:mod:`semantic_gs_slam.io.colour_registration`)
         self.colour_calib: ColourCalib | None = None
 
     def resized(self, width: int, height: int) -> Dataset:

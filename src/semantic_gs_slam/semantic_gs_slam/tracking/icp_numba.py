@@ -1,6 +1,6 @@
 """Compiled CPU accumulation of one ICP step's normal equations (numba): the fast path of tracking on a CPU.
 
-:func:`semantic_gs_slam.tracking.icp_normal_equations` is the reference: about ninety fixed-shape tensor
+:func:`semantic_gs_slam.tracking.tracker.icp_normal_equations` is the reference: about ninety fixed-shape tensor
 operations over every live point, whose per-call overhead, not arithmetic, sets a CPU step's time (~4 ms at
 20 k points). :func:`normal_equations_numba` computes the same sums in one pass over the points (float64,
 in point order, one thread: the result does not depend on the machine's thread count):
@@ -13,7 +13,7 @@ in point order, one thread: the result does not depend on the machine's thread c
 
 It returns ``A`` [6, 6], ``b`` [6] and the four counts the step's statistics need. :func:`icp_step_numba` then
 adds the prior, solves and updates the pose in numpy (the tensor tail of
-:func:`semantic_gs_slam.tracking._icp_step`, a dozen small torch calls, cost as much as the sums themselves).
+:func:`semantic_gs_slam.tracking.tracker._icp_step`, a dozen small torch calls, cost as much as the sums themselves).
 
 numba is optional (without it, ``tracking.icp_backend: auto`` keeps the reference).
 """
@@ -33,8 +33,8 @@ __all__ = ["icp_step_numba", "normal_equations_numba"]
 
 @functools.cache
 def _kernel():
-    """The compiled kernel (:mod:`semantic_gs_slam.numba_kernels`, which imports numba: only when used)."""
-    from semantic_gs_slam import numba_kernels as nk
+    """The compiled kernel (:mod:`semantic_gs_slam.tracking.numba_kernels`, which imports numba: only when used)."""
+    from semantic_gs_slam.tracking import numba_kernels as nk
 
     return nk.icp_accumulate
 
@@ -42,7 +42,7 @@ def _kernel():
 def normal_equations_numba(est: Tensor, lp: Tensor, lvalid: Tensor, il: Tensor | None, vm: Tensor, nm: Tensor,
                            nvalid: Tensor, col: Tensor | None, w2c_g: Tensor, k: Intrinsics, cfg: TrackingConfig,
                            photometric: bool) -> tuple[Tensor, Tensor, Tensor]:
-    """The data terms of one ICP step (see :func:`semantic_gs_slam.tracking.icp_normal_equations`), CPU only.
+    """The data terms of one ICP step (see :func:`semantic_gs_slam.tracking.tracker.icp_normal_equations`), CPU only.
 
     Args:
         est: [4, 4] float64 estimate (camera to world). lp: [M, 3] live camera points. lvalid: [M] bool.
@@ -72,8 +72,8 @@ def normal_equations_numba(est: Tensor, lp: Tensor, lvalid: Tensor, il: Tensor |
 
 
 def _so3_log(r: np.ndarray) -> np.ndarray:
-    """Axis-angle [3] of a rotation [3, 3]: :func:`semantic_gs_slam.tracking._so3_log` in numpy (checked with the
-    whole step by ``test_tracking.py::test_numba_icp_step_equals_the_reference_step``)."""
+    """Axis-angle [3] of a rotation [3, 3]: :func:`semantic_gs_slam.tracking.tracker._so3_log` in numpy (checked with
+    the whole step by ``test_tracking.py::test_numba_icp_step_equals_the_reference_step``)."""
     c = min(1.0, max(-1.0, (np.trace(r) - 1) / 2))
     th = np.arccos(c)
     v = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
@@ -104,7 +104,7 @@ def icp_step_numba(est: Tensor, lp: Tensor, lvalid: Tensor, il: Tensor | None, v
 
     Returns:
         the new estimate [4, 4] and ``[correspondences, residual RMS (m), largest step component, agreement]`` [4]
-        (float64 tensors), as :func:`semantic_gs_slam.tracking._icp_step`.
+        (float64 tensors), as :func:`semantic_gs_slam.tracking.tracker._icp_step`.
     """
     a, b, sums = (x.numpy() for x in normal_equations_numba(est, lp, lvalid, il, vm, nm, nvalid, col, w2c_g, k, cfg,
                                                             photometric))

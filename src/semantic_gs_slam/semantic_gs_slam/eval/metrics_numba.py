@@ -1,6 +1,6 @@
-"""Compiled CPU SSIM with its gradient (numba): the fast path of :func:`semantic_gs_slam.metrics.ssim`.
+"""Compiled CPU SSIM with its gradient (numba): the fast path of :func:`semantic_gs_slam.eval.metrics.ssim`.
 
-The reference is four lines of grouped ``conv2d`` (:func:`semantic_gs_slam.metrics.ssim_reference`); on a CPU
+The reference is four lines of grouped ``conv2d`` (:func:`semantic_gs_slam.eval.metrics.ssim_reference`); on a CPU
 those depthwise 1x11 convolutions run at about 1 GMAC/s, so SSIM took ~30 ms of a ~110 ms keyframe-mapping
 iteration at 320x240 (forward and backward). Here the same separable Gaussian blurs (zero padding, as
 ``conv2d``'s ``padding``) are plain loops over image rows that the compiler vectorises, and the backward is
@@ -30,8 +30,8 @@ __all__ = ["ssim_numba"]
 
 @functools.cache
 def _kernels():
-    """The compiled kernels (:mod:`semantic_gs_slam.numba_kernels`, which imports numba: only when used)."""
-    from semantic_gs_slam import numba_kernels as nk
+    """The compiled kernels (:mod:`semantic_gs_slam.eval.numba_kernels`, which imports numba: only when used)."""
+    from semantic_gs_slam.eval import numba_kernels as nk
 
     return nk.ssim_forward, nk.ssim_backward
 

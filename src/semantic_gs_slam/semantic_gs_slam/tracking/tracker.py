@@ -21,7 +21,7 @@ from semantic_gs_slam.devices import numba_available, require_cpu_kernel
 from semantic_gs_slam.errors import TrackingError
 from semantic_gs_slam.geometry import backproject, quat_to_rotmat, se3_exp
 from semantic_gs_slam.render import Gaussians, RenderBackend, RenderOutput, select_backend
-from semantic_gs_slam.tracking_numba import icp_step_numba
+from semantic_gs_slam.tracking.icp_numba import icp_step_numba
 
 log = logging.getLogger(__name__)
 
@@ -171,7 +171,7 @@ def icp_normal_equations(est: Tensor, pts: _IcpPoints, model: _IcpModel, k: Intr
 
     Every point takes part with a weight (0 for missing depth, off-image, no model vertex, too far): fixed
     shapes, no boolean indexing, so no host synchronisation and one graph per image size.
-    :func:`semantic_gs_slam.tracking_numba.normal_equations_numba` is the CPU fast path of the same sums.
+    :func:`semantic_gs_slam.tracking.icp_numba.normal_equations_numba` is the CPU fast path of the same sums.
 
     Returns:
         ``A`` [6, 6], ``b`` [6] of the Gauss-Newton system ``A xi = b`` and ``[correspondences, sum of squared
@@ -236,7 +236,7 @@ def _icp_step(est: Tensor, pts: _IcpPoints, model: _IcpModel, k: Intrinsics, cfg
     """One Gauss-Newton step of :func:`icp` from ``est`` [4, 4] (float64).
 
     Args:
-        fast: the step from :func:`semantic_gs_slam.tracking_numba.icp_step_numba` (the compiled sums, then numpy)
+        fast: the step from :func:`semantic_gs_slam.tracking.icp_numba.icp_step_numba` (the compiled sums, then numpy)
             instead of this function's tensors; CPU tensors and numba needed.
 
     Returns:

@@ -11,19 +11,17 @@ the native image size, and the translation from the depth to the colour camera; 
 on a rigid RGB-D sensor is a fraction of a degree). :func:`register` re-samples a colour image into
 the depth camera's pixels using each pixel's depth. :func:`estimate` finds the calibration from the
 frames themselves, by aligning colour edges with depth discontinuities; ``python -m
-semantic_gs_slam.colour_registration DATASET`` runs it and writes the calibration file the dataset
-loaders read (``colour-calibration.json`` beside the frames, or any path a user gives).
+semantic_gs_slam.colour_registration DATASET`` (:mod:`semantic_gs_slam.io.calibrate_colour`) runs it and writes the
+calibration file the dataset loaders read (``colour-calibration.json`` beside the frames, or any path a user gives).
 
 NumPy, and torch only for the shared hole filling (no ROS).
 """
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
-import sys
 from dataclasses import asdict, dataclass
 
 import numpy as np
@@ -271,54 +269,3 @@ def estimate(frames: list[tuple[np.ndarray, np.ndarray]], fx: float, fy: float, 
     p, best = max(tried, key=lambda pb: pb[1])
     p, best = search(p, best, rounds)
     return Estimate(calib_of(p), s_ident, best, len(frames))
-
-
-def main(argv: list[str] | None = None) -> int:
-    from semantic_gs_slam.datasets import load_dataset, parse_size
-
-    ap = argparse.ArgumentParser(prog="python -m semantic_gs_slam.colour_registration",
-                                 description="Estimate where the colour camera of an RGB-D recording sits relative to "
-                                             "its depth camera (colour edges against depth discontinuities) and write "
-                                             "the calibration the dataset loaders read.")
-    ap.add_argument("dataset", help="sequence folder (7-Scenes, TUM RGB-D, ...)")
-    ap.add_argument("--frames", type=int, default=25, help="frames used, spread over the sequence (default 25)")
-    ap.add_argument("--size", default="320x240", help="working size for the search (default 320x240)")
-    ap.add_argument("--out", help=f"file to write (default: DATASET/{CALIB_FILE})")
-    ap.add_argument("--dry-run", action="store_true", help="print, write nothing")
-    args = ap.parse_args(argv)
-    try:
-        ds = load_dataset(args.dataset, colour_calib="none")
-        w, h = parse_size(args.size)
-        small = ds.resized(w, h)
-        n = max(1, min(args.frames, len(ds)))
-        picks = np.linspace(0, len(ds) - 1, n).round().astype(int)
-        frames = []
-        for i in picks:
-            f = small[int(i)]
-            frames.append((f.rgb.mean(-1).astype(np.float32), f.depth))
-        k = small.intrinsics
-        est = estimate(frames, k.fx, k.fy, k.cx, k.cy)
-        nat = ds.native_intrinsics
-        calib = scaled(est.calib, nat.width / w, nat.height / h)
-        calib = ColourCalib(round(calib.fx, 2), round(calib.fy, 2), round(calib.cx, 2), round(calib.cy, 2),
-                            round(calib.tx, 4), round(calib.ty, 4), 0.0, nat.width, nat.height)
-    except DatasetError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    print(f"edge alignment over {est.frames} frames: {est.score_identity:.4f} as recorded -> "
-          f"{est.score:.4f} registered")
-    print(f"colour camera (native {nat.width}x{nat.height}): fx {calib.fx} fy {calib.fy} cx {calib.cx} cy {calib.cy}; "
-          f"depth->colour t = ({calib.tx}, {calib.ty}, {calib.tz}) m")
-    if est.score <= est.score_identity * 1.02:
-        print("the colour already looks registered to the depth; no file written")
-        return 0
-    if not args.dry_run:
-        out = args.out or os.path.join(args.dataset, CALIB_FILE)
-        save(calib, out, note=f"estimated by semantic_gs_slam.colour_registration on {est.frames} frames "
-                              f"(edge alignment {est.score_identity:.4f} -> {est.score:.4f})")
-        print(f"wrote {out}")
-    return 0
-
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -7,7 +7,7 @@ seeded one-hot, optimised through rendering; a Gaussian's class is its largest c
 Non-optimised: ``semantic_ids`` [N] (seed label), ``votes`` [N, C] (label votes over views, one
 column per class slot: :meth:`GaussianMap.vote`), ``timestep`` [N] (frame that created the Gaussian)
 and ``normals`` [N, 3] (world-frame surface normal measured at seeding, zero when unknown; used by
-tracking to render unbiased depth, see :func:`semantic_gs_slam.tracking.plane_depth_features`).
+tracking to render unbiased depth, see :func:`semantic_gs_slam.tracking.tracker.plane_depth_features`).
 
 Why class columns and not SGS-SLAM's 3-channel semantic colour: a rendered pixel is a blend of several
 Gaussians, and a blend of two palette colours is often nearest a *third* class's colour (the palette
@@ -52,7 +52,7 @@ def palette(ids: np.ndarray | Tensor | int) -> np.ndarray:
 def _seed_normals(depth: Tensor, k: Intrinsics, smooth: int = 5) -> Tensor:
     """Camera-frame unit normals [H, W, 3] of a depth image (box-smoothed; zero where unknown or at
     depth discontinuities)."""
-    from semantic_gs_slam.tracking import normal_map, smooth_depth
+    from semantic_gs_slam.tracking.tracker import normal_map, smooth_depth
 
     d, ok = smooth_depth(depth, depth > 0, smooth)
     n, nok = normal_map(backproject(d, k.fx, k.fy, k.cx, k.cy), ok)

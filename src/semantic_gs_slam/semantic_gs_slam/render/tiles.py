@@ -4,7 +4,7 @@
 (tile, Gaussian) pairs sorted by tile and, within a tile, by depth, with each pair's exponent as a
 quadratic in the tile-local pixel coordinates (six coefficients). Both the pure-PyTorch compositor
 (:mod:`semantic_gs_slam.render`, the reference) and the compiled CPU one
-(:mod:`semantic_gs_slam.render_numba`) composite these pairs; everything here is differentiable through
+(:mod:`semantic_gs_slam.render.numba_backend`) composite these pairs; everything here is differentiable through
 torch's autograd (the pair coefficients and features), so a compositor only returns the gradients of
 its own inputs.
 """
@@ -19,7 +19,7 @@ from torch import Tensor
 
 from semantic_gs_slam.config import Intrinsics, RendererConfig
 from semantic_gs_slam.geometry import quat_to_rotmat
-from semantic_gs_slam.render_types import BLUR_PX2, FOV_MARGIN, OPACITY_CAP, Gaussians
+from semantic_gs_slam.render.types import BLUR_PX2, FOV_MARGIN, OPACITY_CAP, Gaussians
 
 __all__ = ["TilePairs", "check_inputs", "footprint", "jacobian_limits", "project", "project_rows", "tile_pairs"]
 

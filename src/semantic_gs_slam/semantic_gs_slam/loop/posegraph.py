@@ -2,7 +2,7 @@
 
 Plain NumPy (no torch, no ROS): the engine (:mod:`semantic_gs_slam.slam`) adds one *sequential*
 edge per new keyframe (its tracked motion from the previous keyframe) and one *loop* edge whenever
-a keyframe registers against a much older keyframe it overlaps (:mod:`semantic_gs_slam.loop`).
+a keyframe registers against a much older keyframe it overlaps (:mod:`semantic_gs_slam.loop.detection`).
 :func:`optimise` then spreads the loop's disagreement over the chain of keyframes.
 
 Conventions: poses are camera-to-world ``[4, 4]`` float64; an edge ``(i, j, rel)`` says

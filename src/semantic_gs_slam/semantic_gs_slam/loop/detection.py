@@ -6,7 +6,7 @@ old keyframe's own depth image is an independent reference: point-to-plane ICP o
 against it (geometry only: colour and depth are not registered on many sensors) gives the pose the
 old view implies. If that registration is verified (most overlapping points land on the old surface)
 and disagrees with the tracked pose, the difference is drift: :class:`semantic_gs_slam.slam.SLAM`
-reports it and spreads it over its keyframe pose graph (:mod:`semantic_gs_slam.posegraph`).
+reports it and spreads it over its keyframe pose graph (:mod:`semantic_gs_slam.loop.posegraph`).
 
 Torch on the engine's device, no ROS.
 """
@@ -22,7 +22,7 @@ from torch import Tensor
 from semantic_gs_slam.config import Intrinsics, LoopConfig, TrackingConfig
 from semantic_gs_slam.errors import TrackingError
 from semantic_gs_slam.geometry import backproject, pose_error
-from semantic_gs_slam.tracking import IcpGraphs, icp
+from semantic_gs_slam.tracking.tracker import IcpGraphs, icp
 
 
 @dataclass

@@ -1,6 +1,6 @@
 """Build the bundled demo map (``data/params.npz`` + ``data/semantic.json``) with our own SLAM.
 
-The synthetic home (:mod:`semantic_gs_slam.synthetic`) is rendered along a full 360-degree orbit
+The synthetic home (:mod:`semantic_gs_slam.synthetic.scenes`) is rendered along a full 360-degree orbit
 around the dining table, so every object of the room (the bottle and cup on the counter, the bin
 in the corner, the fridge, ...) is seen at least once; the engine maps it frame by frame exactly as
 the streaming server does, then refines the map offline over all keyframes (the map is built
@@ -25,10 +25,10 @@ import time
 import torch
 
 from semantic_gs_slam.config import SlamConfig
-from semantic_gs_slam.datasets import load_dataset
-from semantic_gs_slam.evaluate import evaluate, format_table
+from semantic_gs_slam.eval.evaluate import evaluate, format_table
+from semantic_gs_slam.io.datasets import load_dataset
 from semantic_gs_slam.slam import SLAM
-from semantic_gs_slam.synthetic import generate
+from semantic_gs_slam.synthetic.scenes import generate
 
 
 def build(out: str, frames: int = 180, width: int = 300, height: int = 170, refine_iters: int = 300,
@@ -45,7 +45,7 @@ def build(out: str, frames: int = 180, width: int = 300, height: int = 170, refi
         quiet: no per-frame lines.
 
     Returns:
-        The evaluation results of the final map (see :func:`semantic_gs_slam.evaluate.evaluate`).
+        The evaluation results of the final map (see :func:`semantic_gs_slam.eval.evaluate.evaluate`).
     """
     torch.set_num_threads(threads)
     with tempfile.TemporaryDirectory(prefix="demo_map_") as tmp:

@@ -1,7 +1,7 @@
 """Types and constants shared by the renderer back-ends (no back-end code here, so no import cycle).
 
 :mod:`semantic_gs_slam.render` (pure-PyTorch tiles, the reference) and
-:mod:`semantic_gs_slam.render_gsplat` (CUDA fast path) both import this module and nothing of each
+:mod:`semantic_gs_slam.render.gsplat_backend` (CUDA fast path) both import this module and nothing of each
 other's; :func:`semantic_gs_slam.render.select_backend` picks one from the config.
 
 Compositing rules both back-ends follow (those of gsplat 1.5.3's CUDA kernel

@@ -1,7 +1,7 @@
 """Compiled CPU compositor (numba): the fast path of the CPU renderer.
 
-Same pairs (:func:`semantic_gs_slam.render_tiles.tile_pairs`), same compositing rules
-(:mod:`semantic_gs_slam.render_types`) and same gradients as the pure-PyTorch compositor in
+Same pairs (:func:`semantic_gs_slam.render.tiles.tile_pairs`), same compositing rules
+(:mod:`semantic_gs_slam.render.types`) and same gradients as the pure-PyTorch compositor in
 :mod:`semantic_gs_slam.render` (the reference it is tested against), but pixel by pixel in compiled
 loops instead of dense [tiles, Gaussians, pixels] tensors:
 
@@ -18,7 +18,7 @@ the threads (as many as torch uses). Calls hold :data:`_LOCK`: numba's ``workque
 it falls back to without OpenMP or TBB) aborts when two Python threads enter it at once.
 
 numba is optional (a wheel-world dependency, as for :mod:`object_query.kernels`): without it,
-``renderer.backend: auto`` keeps the reference. The kernels live in :mod:`semantic_gs_slam.numba_kernels`;
+``renderer.backend: auto`` keeps the reference. The kernels live in :mod:`semantic_gs_slam.render.numba_kernels`;
 compiling all of them takes about 16 s once after a change of their source, then numba's on-disk cache loads
 them (about 0.8 s with numba's import).
 """
@@ -34,8 +34,9 @@ from torch import Tensor
 
 from semantic_gs_slam.config import Intrinsics, RendererConfig
 from semantic_gs_slam.devices import require_cpu_kernel
-from semantic_gs_slam.render_tiles import TilePairs, tile_pairs
-from semantic_gs_slam.render_types import Gaussians, RenderOutput
+from semantic_gs_slam.render.reference import render_torch
+from semantic_gs_slam.render.tiles import TilePairs, tile_pairs
+from semantic_gs_slam.render.types import Gaussians, RenderOutput
 
 __all__ = ["bin_pairs_numba", "composite_numba", "render_numba"]
 
@@ -44,8 +45,8 @@ _LOCK = threading.Lock()
 
 @functools.cache
 def _kernels():
-    """The compiled kernels (:mod:`semantic_gs_slam.numba_kernels`, which imports numba: only when used)."""
-    from semantic_gs_slam import numba_kernels as nk
+    """The compiled kernels (:mod:`semantic_gs_slam.render.numba_kernels`, which imports numba: only when used)."""
+    from semantic_gs_slam.render import numba_kernels as nk
 
     return nk.composite_forward, nk.composite_backward, nk.bin_pairs
 
@@ -54,7 +55,7 @@ class _CompositeNumba(torch.autograd.Function):
     """Front-to-back compositing of all tiles' pairs (compiled forward and backward, CPU tensors).
 
     Inputs: uv [M, 2], conic [M, 3], log_o [M], feat [M, C] of the projected Gaussians; pg / tstart / tcount /
-    order (int64, see :class:`~semantic_gs_slam.render_tiles.TilePairs`), ntx, tile, height, width, stop.
+    order (int64, see :class:`~semantic_gs_slam.render.tiles.TilePairs`), ntx, tile, height, width, stop.
     Each tile computes its pairs' exponent coefficients itself (as ``tile_pairs`` would), so no per-pair
     tensor enters autograd. Output: [C + 1, H, W] composited features, the last channel the silhouette.
     """
@@ -92,7 +93,7 @@ class _CompositeNumba(torch.autograd.Function):
 
 def bin_pairs_numba(x0: Tensor, x1: Tensor, y0: Tensor, y1: Tensor, kidx: Tensor, ntx: int,
                     n_tiles: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """:func:`semantic_gs_slam.render_tiles.bin_pairs_torch` as a compiled counting sort (CPU tensors; the same
+    """:func:`semantic_gs_slam.render.tiles.bin_pairs_torch` as a compiled counting sort (CPU tensors; the same
     pairs in the same order, no comparison sort of all pairs)."""
     out = _kernels()[2](x0.numpy(), x1.numpy(), y0.numpy(), y1.numpy(), kidx.numpy(), ntx, n_tiles)
     return tuple(torch.from_numpy(a) for a in out)
@@ -108,7 +109,7 @@ def render_numba(g: Gaussians, w2c: Tensor, k: Intrinsics, cfg: RendererConfig) 
     """The compiled CPU back-end. Arguments and result as :func:`semantic_gs_slam.render.render`.
 
     It composites in float32 (as gsplat does; the engine's tensors are float32). Float64 Gaussians go to the
-    reference, :func:`semantic_gs_slam.render.render_torch`, which keeps their precision.
+    reference, :func:`semantic_gs_slam.render.reference.render_torch`, which keeps their precision.
 
     Raises:
         BackendUnavailableError: numba missing, or Gaussians off the CPU.
@@ -116,8 +117,6 @@ def render_numba(g: Gaussians, w2c: Tensor, k: Intrinsics, cfg: RendererConfig) 
     """
     require_cpu_kernel("renderer.backend", g.means.device)
     if g.means.dtype != torch.float32:
-        from semantic_gs_slam.render import render_torch  # (render imports this module: no import at the top)
-
         return render_torch(g, w2c, k, cfg)
     tp = tile_pairs(g, w2c, k, cfg, bin_pairs_numba, coefficients=False)
     img = composite_numba(tp, k, cfg)

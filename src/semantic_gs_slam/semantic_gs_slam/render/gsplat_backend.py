@@ -6,7 +6,7 @@ and semantic channels are rendered as one feature stack with ``render_mode="RGB+
 ``0.99 * sigmoid(logit)``, ``eps2d=0.3`` in ``classic`` mode (no opacity compensation), the same near
 plane, and the principal point shifted by +0.5 px because gsplat samples pixel (c, r) at
 (c + 0.5, r + 0.5) while our pixel centres are at integer coordinates. gsplat's kernel rules (1/255
-skip, transmittance stop) are the torch back-end's, see :mod:`semantic_gs_slam.render_types`.
+skip, transmittance stop) are the torch back-end's, see :mod:`semantic_gs_slam.render.types`.
 
 This module imports gsplat only when it renders (gsplat compiles its CUDA code on first use), and
 imports nothing of :mod:`semantic_gs_slam.render`.
@@ -18,7 +18,7 @@ import torch
 
 from semantic_gs_slam.config import Intrinsics, RendererConfig
 from semantic_gs_slam.errors import BackendUnavailableError
-from semantic_gs_slam.render_types import BLUR_PX2, OPACITY_CAP, Gaussians, RenderOutput
+from semantic_gs_slam.render.types import BLUR_PX2, OPACITY_CAP, Gaussians, RenderOutput
 
 GSPLAT_TILE = 16  # gsplat's tile edge (pixels); only speed depends on it
 

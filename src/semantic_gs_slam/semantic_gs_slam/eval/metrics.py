@@ -11,8 +11,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from semantic_gs_slam.devices import numba_available
+from semantic_gs_slam.eval.metrics_numba import ssim_numba
 from semantic_gs_slam.geometry import umeyama_similarity
-from semantic_gs_slam.metrics_numba import ssim_numba
 
 _WINDOWS: dict[tuple, Tensor] = {}
 
@@ -30,7 +30,7 @@ def ssim(a: Tensor, b: Tensor, size: int = 11, sigma: float = 1.5, fast: bool | 
     """Mean SSIM of two images [H, W, C] in [0, 1] (Gaussian window, separable, 'same' zero padding).
 
     Args:
-        fast: True = the compiled CPU kernel (:mod:`semantic_gs_slam.metrics_numba`; float32 CPU images, ``b``
+        fast: True = the compiled CPU kernel (:mod:`semantic_gs_slam.eval.metrics_numba`; float32 CPU images, ``b``
             without gradient), False = :func:`ssim_reference`, None = the kernel where it applies and numba is
             installed.
     """

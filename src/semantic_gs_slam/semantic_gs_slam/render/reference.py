@@ -1,103 +1,21 @@
-"""Differentiable Gaussian-splatting renderer: colour, depth, silhouette and semantic images.
+"""The pure-PyTorch renderer, the reference every other back-end is tested against (``renderer.backend: torch``).
 
-Two back-ends behind one interface (:class:`~semantic_gs_slam.render_types.RenderBackend`), picked
-once from the config by :func:`select_backend`:
-
-* ``torch`` (this module, :func:`render_torch`) — the reference: pure PyTorch, any device, used on CPU
-  and in tests. Tiles of ``tile x tile`` pixels; each tile composites its depth-sorted Gaussians in
-  chunks and stops once every pixel is done. Compositing has a hand-written backward
-  (:class:`_Composite`): with the transmittance kept, the gradient of a pixel value with respect to a
-  Gaussian's alpha is ``T_i (g . f_i) - S_i / (1 - alpha_i)`` where ``S_i`` is the suffix sum of
-  ``w_k (g . f_k)`` over the Gaussians behind it, so no autograd graph of the [tiles, Gaussians,
-  pixels] tensors is kept. Each Gaussian's exponent (plus its log-opacity) over a tile is a quadratic
-  in the tile-local pixel coordinates, written as six coefficients, so a tile batch's exponents are
-  one matmul.
-* ``gsplat`` (:mod:`semantic_gs_slam.render_gsplat`) — the CUDA fast path, only when gsplat and a GPU
-  exist.
-
-Conventions (gsplat 1.5.3's, see :mod:`semantic_gs_slam.render_types`): world-to-camera pose ``w2c``
-[4, 4] (OpenCV camera); pixel (col c, row r) has its centre at (c, r) in our coordinates (gsplat puts
-it at (c + 0.5, r + 0.5), so the gsplat adapter shifts the principal point by half a pixel);
-opacity = 0.99 * sigmoid(logit); alphas below 1/255 are dropped; a pixel stops before the Gaussian
-that would take its transmittance to <= 1e-4; the 2-D covariance gets +0.3 px^2 (classic mode: no
-opacity compensation); the projection Jacobian clamps x/z, y/z to the image plus 0.15 x its size.
+:func:`render_torch` composites tiles of ``tile x tile`` pixels; each tile composites its depth-sorted Gaussians in
+chunks and stops once every pixel is done, with a hand-written backward (:class:`_Composite`, see the package
+docstring of :mod:`semantic_gs_slam.render`). :func:`render_reference` is the dense per-pixel renderer the tests
+check the tiles against.
 """
 
 from __future__ import annotations
-
-import warnings
 
 import torch
 from torch import Tensor
 
 from semantic_gs_slam.config import Intrinsics, RendererConfig
-from semantic_gs_slam.devices import numba_available, require_cpu_kernel
-from semantic_gs_slam.render_gsplat import gsplat_available, load_gsplat_extension, render_gsplat, require_gsplat
-from semantic_gs_slam.render_numba import render_numba
-from semantic_gs_slam.render_tiles import footprint, jacobian_limits, project, project_rows, tile_pairs
-from semantic_gs_slam.render_types import (
-    ALPHA_MIN,
-    OPACITY_CAP,
-    STOP_TRANSMITTANCE,
-    Gaussians,
-    RenderBackend,
-    RenderOutput,
-)
-
-__all__ = ["ALPHA_MIN", "OPACITY_CAP", "Gaussians", "RenderBackend", "RenderOutput", "footprint", "jacobian_limits",
-           "project", "project_rows", "render", "render_reference", "render_torch", "select_backend"]
+from semantic_gs_slam.render.tiles import project, tile_pairs
+from semantic_gs_slam.render.types import ALPHA_MIN, STOP_TRANSMITTANCE, Gaussians, RenderOutput
 
 EXP_FLOOR = -20.0  # exp() of smaller inputs is slow on CPU and below ALPHA_MIN anyway
-
-
-def select_backend(cfg: RendererConfig, device: torch.device | str = "cpu") -> RenderBackend:
-    """The renderer back-end ``cfg.backend`` names (chosen once; the engine keeps the result).
-
-    Args:
-        cfg: renderer settings; ``backend="auto"`` picks gsplat when ``device`` is CUDA, gsplat
-            imports and its CUDA code loads (built now if needed, see
-            :func:`~semantic_gs_slam.render_gsplat.load_gsplat_extension`; else a ``RuntimeWarning``),
-            the compiled CPU compositor (numba) when ``device`` is the CPU and numba is installed, else
-            the torch tiles (the reference).
-        device: the device the Gaussians live on.
-
-    Raises:
-        BackendUnavailableError: ``gsplat`` or ``numba`` asked for where it (or CUDA, or gsplat's built CUDA
-            code) is missing.
-    """
-    dev = torch.device(device).type
-    if cfg.backend == "gsplat":
-        require_gsplat()
-        return render_gsplat
-    if cfg.backend == "numba":
-        require_cpu_kernel("renderer.backend", device)
-        return render_numba
-    if cfg.backend == "auto" and dev == "cuda" and gsplat_available():
-        ok, why = load_gsplat_extension()
-        if ok:
-            return render_gsplat
-        warnings.warn(f"renderer backend 'auto' on CUDA: gsplat's CUDA code did not build or load ({why}); "
-                      "rendering with the PyTorch tiles instead (slower). `make setup-gpu` shows the build.",
-                      RuntimeWarning, stacklevel=2)
-    if cfg.backend == "auto" and dev == "cpu" and numba_available():
-        return render_numba
-    return render_torch
-
-
-def render(g: Gaussians, w2c: Tensor, k: Intrinsics, cfg: RendererConfig | None = None) -> RenderOutput:
-    """Render colour, depth, silhouette (and semantic) images with the back-end ``cfg`` names.
-
-    Args:
-        g: the Gaussians.
-        w2c: [4, 4] world-to-camera pose (may require grad), on the Gaussians' device.
-        k: camera intrinsics (image size included).
-        cfg: renderer settings (back-end choice included).
-
-    Returns:
-        :class:`RenderOutput`.
-    """
-    cfg = cfg or RendererConfig()
-    return select_backend(cfg, g.means.device)(g, w2c, k, cfg)
 
 
 class _Composite(torch.autograd.Function):
@@ -105,7 +23,7 @@ class _Composite(torch.autograd.Function):
 
     Inputs: coef [B, K, 6] exponent coefficients (K depth-sorted), feats [B, K, C], mono [6, P]
     monomials of the tile-local pixel coordinates, chunk (int), stop (float: gsplat's transmittance
-    stop, see :mod:`semantic_gs_slam.render_types`).
+    stop, see :mod:`semantic_gs_slam.render.types`).
     Output: [B, C + 1, P] composited features, last channel the silhouette.
 
     A Gaussian is blended at a pixel only while the transmittance behind it stays above ``stop``;

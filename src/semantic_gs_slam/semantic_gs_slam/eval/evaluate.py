@@ -6,9 +6,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from semantic_gs_slam.datasets import Dataset
-from semantic_gs_slam.exposure import to_frame
-from semantic_gs_slam.metrics import (
+from semantic_gs_slam.eval.metrics import (
     ate_rmse,
     class_iou,
     confusion,
@@ -20,6 +18,8 @@ from semantic_gs_slam.metrics import (
     rpe_rmse,
     ssim,
 )
+from semantic_gs_slam.io.datasets import Dataset
+from semantic_gs_slam.io.exposure import to_frame
 
 
 def _nanmean(xs: list[float]) -> float:
@@ -38,10 +38,10 @@ def evaluate(eng, ds: Dataset, frame_idx: list[int], every: int = 1) -> dict:
         every: render-evaluate every k-th frame.
 
     Returns:
-        dict with ate_rmse_cm, rpe_cm (:func:`~semantic_gs_slam.metrics.rpe_rmse` over one frame step), psnr (all
+        dict with ate_rmse_cm, rpe_cm (:func:`~semantic_gs_slam.eval.metrics.rpe_rmse` over one frame step), psnr (all
         pixels), psnr_masked (SplaTAM's protocol:
-        :func:`~semantic_gs_slam.metrics.psnr_depth_masked`), psnr_with_depth / psnr_without_depth (the frames'
-        mean :func:`~semantic_gs_slam.metrics.psnr_split`; NaN without such pixels), ssim, depth_l1_cm, miou,
+        :func:`~semantic_gs_slam.eval.metrics.psnr_depth_masked`), psnr_with_depth / psnr_without_depth (the frames'
+        mean :func:`~semantic_gs_slam.eval.metrics.psnr_split`; NaN without such pixels), ssim, depth_l1_cm, miou,
         class_iou (name -> IoU),
         gaussians, frames.
     """

@@ -1,7 +1,7 @@
 """Synthetic home generator: a procedural room rendered into an RGB-D + semantic sequence.
 
 The home is the robot's demo home (the bundled map ``data/`` is built from it by our SLAM, see
-:mod:`semantic_gs_slam.demo_map`): a 6 m x 5 m x 2.5 m room, z up, metres, with furniture, small
+:mod:`semantic_gs_slam.synthetic.demo_map`): a 6 m x 5 m x 2.5 m room, z up, metres, with furniture, small
 objects, class names and ids that fit the robot's named locations
 (``decision_maker/config/locations.yaml``). Surfaces carry a procedural texture (multi-scale value
 noise and stripes, with fixed Lambert shading) so tracking has something to lock onto. Colour is
