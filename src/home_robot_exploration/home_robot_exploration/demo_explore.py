@@ -159,7 +159,7 @@ def coverage_of(msg) -> tuple[float, float, float]:
 def object_errors(objects: dict) -> list[str]:
     """One line per object of the database (``{name: [x, y, z]}``): its nearest true object of the same
     class (the simulator's world) and the error (m)."""
-    from decision_maker.sim_world import SAMPLE_OBJECTS
+    from decision_maker.sim.world import SAMPLE_OBJECTS
 
     truth = json.loads(SAMPLE_OBJECTS)
 

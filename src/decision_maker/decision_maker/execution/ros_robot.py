@@ -1,4 +1,4 @@
-"""The engine's :class:`~decision_maker.execution.RobotPort` over ROS 2 actions and the object query.
+"""The engine's :class:`~decision_maker.execution.engine.RobotPort` over ROS 2 actions and the object query.
 
 Blocking methods run in the execution thread only; they wait on ``threading.Event`` objects that
 future done-callbacks (executor threads) and the batch's abort token set, always with a deadline.
@@ -44,7 +44,7 @@ from decision_maker.errors import (
     ServerLost,
     ServerUnavailable,
 )
-from decision_maker.execution import AbortToken
+from decision_maker.execution.engine import AbortToken
 from home_robot_ros.actions import ActionClient
 from object_query.object_query_client import ObjectQueryClient
 

@@ -9,7 +9,7 @@ instance is now. This module turns it into decisions for the planners:
   rest the one nearest to the robot wins, unless the second is within ``ambiguity_margin`` metres
   of it — then the person is asked which one (:class:`Clarification`).
 * :func:`fetch_plan` — primitives to fetch an instance and put it somewhere (the approach pose of
-  :mod:`decision_maker.approach`, then ``grasp`` and ``place``).
+  :mod:`decision_maker.planning.approach`, then ``grasp`` and ``place``).
 * :func:`where_answer`, :func:`inventory_answer` — sentences for "where is X" / "what do you see".
 """
 
@@ -20,9 +20,9 @@ import time
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
-from decision_maker.approach import DEFAULT_REACH, approach_pose, place_phrase
 from decision_maker.command_types import NamedLocation, Pose2D
 from decision_maker.errors import Reply
+from decision_maker.planning.approach import DEFAULT_REACH, approach_pose, place_phrase
 from object_query.memory import Belief, rank
 
 #: Confidence below which a belief is not trusted blindly (object_query.memory.MemoryConfig's default).

@@ -51,10 +51,10 @@ from decision_maker.errors import (
     PlanningError,
     Reply,
 )
+from decision_maker.execution.stage0 import Hold
 from decision_maker.nl_planner import Planner, PlanningContext
+from decision_maker.planning.stop_words import is_stop_command
 from decision_maker.scenario_library import answer_question
-from decision_maker.stage0 import Hold
-from decision_maker.stop_words import is_stop_command
 
 
 class TaskState(str, enum.Enum):
@@ -418,7 +418,7 @@ class ExecutionEngine:
         return len(dropped)
 
     def set_gate(self, gate: Callable[[], Hold | None]) -> None:
-        """Stage 0: while ``gate()`` returns a :class:`~decision_maker.stage0.Hold`, queued commands wait
+        """Stage 0: while ``gate()`` returns a :class:`~decision_maker.execution.stage0.Hold`, queued commands wait
         (or, for a rejecting hold, new ones are refused). Call :meth:`gate_changed` when it may have opened."""
         with self._cond:
             self._gate = gate

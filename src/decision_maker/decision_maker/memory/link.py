@@ -1,4 +1,4 @@
-"""The decision maker's link to the object memory (ROS shell; the logic is in world_memory / object_query.memory).
+"""The decision maker's link to the object memory (ROS shell; the logic is in memory.world / object_query.memory).
 
 * Reads the latched ``/object_memory`` topic into a local snapshot (the newest revision wins),
   which planning reads without waiting.
@@ -18,8 +18,8 @@ from object_query_interfaces.srv import MemoryReport
 from rclpy.callback_groups import CallbackGroup
 from rclpy.node import Node
 
-from decision_maker.execution import ActionOutcome
-from decision_maker.world_memory import aliases_for
+from decision_maker.execution.engine import ActionOutcome
+from decision_maker.memory.world import aliases_for
 from object_query.memory import Belief
 from object_query.memory_ros import MEMORY_QOS, msg_to_belief
 

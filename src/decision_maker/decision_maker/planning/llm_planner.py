@@ -32,10 +32,10 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from decision_maker.approach import approach_pose, place_phrase
 from decision_maker.command_types import MAX_NAME_CHARS, Plan, normalize_name, parse_plan, shorten
 from decision_maker.errors import ConfigError, InvalidPrimitive, NoMatchingScenario, PlanningError, Reply
 from decision_maker.nl_planner import Planner, PlanningContext, RegistryPlanner, register_planner
+from decision_maker.planning.approach import approach_pose, place_phrase
 from decision_maker.scenario_library import answer_question
 
 VERBS = ("goto", "grasp", "place")
