@@ -233,7 +233,9 @@ def test_compiled_kernels_come_from_numba_s_disk_cache_in_a_new_process():
 
     code = (
         "import torch\n"
-        "from semantic_gs_slam import numba_kernels as nk\n"
+        "from semantic_gs_slam.eval import numba_kernels as ek\n"
+        "from semantic_gs_slam.render import numba_kernels as rk\n"
+        "from semantic_gs_slam.tracking import numba_kernels as tk\n"
         "from semantic_gs_slam.config import Intrinsics, RendererConfig, TrackingConfig\n"
         "from semantic_gs_slam.eval.metrics import ssim\n"
         "from semantic_gs_slam.render import Gaussians\n"
@@ -247,8 +249,8 @@ def test_compiled_kernels_come_from_numba_s_disk_cache_in_a_new_process():
         "from semantic_gs_slam.tracking.icp_numba import normal_equations_numba\n"
         "e, f = torch.eye(4, dtype=torch.float64), torch.zeros(12 * 16, 3, dtype=torch.float64)\n"
         "normal_equations_numba(e, f[:4], f[:4, 0] > 0, None, f, f, f[:, 0] > 0, None, e, k, TrackingConfig(), False)\n"
-        "fns = (nk.composite_forward, nk.composite_backward, nk.bin_pairs, nk.ssim_forward, nk.ssim_backward,\n"
-        "       nk.icp_accumulate)\n"
+        "fns = (rk.composite_forward, rk.composite_backward, rk.bin_pairs, ek.ssim_forward, ek.ssim_backward,\n"
+        "       tk.icp_accumulate)\n"
         "print(sum(len(f.stats.cache_hits) for f in fns), sum(len(f.stats.cache_misses) for f in fns))\n")
     runs = [subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
             for _ in range(2)]
