@@ -37,12 +37,12 @@ import torch
 
 from semantic_gs_slam.config import Intrinsics, MappingConfig, RendererConfig, TrackingConfig
 from semantic_gs_slam.devices import numba_available
-from semantic_gs_slam.gaussian_map import GaussianMap, load_params, trajectory_from_params
+from semantic_gs_slam.eval.metrics import ssim
 from semantic_gs_slam.geometry import se3_exp
-from semantic_gs_slam.metrics import ssim
+from semantic_gs_slam.mapping.gaussian_map import GaussianMap, load_params, trajectory_from_params
+from semantic_gs_slam.mapping.loss import mapping_loss
 from semantic_gs_slam.render import Gaussians, select_backend
-from semantic_gs_slam.slam import mapping_loss
-from semantic_gs_slam.tracking import icp
+from semantic_gs_slam.tracking.tracker import icp
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 

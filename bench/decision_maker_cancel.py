@@ -34,7 +34,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
-from decision_maker.execution import TaskState, TaskStatus
+from decision_maker.execution.engine import TaskState, TaskStatus
 from decision_maker.topics import CANCEL_QOS, COMMAND_QOS
 from home_robot_bringup.domain import DomainLease
 from home_robot_bringup.launcher import apply_overrides

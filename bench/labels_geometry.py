@@ -33,7 +33,7 @@ from semantic_gs_slam.labels.geometry import (
     GeometryLabeller,
     connected_components,
 )
-from semantic_gs_slam.synthetic import CLASS_ID, HomeRenderer, default_intrinsics, trajectory
+from semantic_gs_slam.synthetic.scenes import CLASS_ID, HomeRenderer, default_intrinsics, trajectory
 
 OBJECTS = ("chair", "sofa", "bottle", "cup", "trash", "bin", "fridge")
 

@@ -37,10 +37,10 @@ from collections.abc import Callable
 import torch
 
 from semantic_gs_slam.config import RendererConfig, SlamConfig
-from semantic_gs_slam.datasets import load_dataset
 from semantic_gs_slam.devices import resolve_device
 from semantic_gs_slam.errors import ConfigError
-from semantic_gs_slam.synthetic import generate
+from semantic_gs_slam.io.datasets import load_dataset
+from semantic_gs_slam.synthetic.scenes import generate
 
 
 class StageTimer:
@@ -92,15 +92,18 @@ class StageTimer:
 
 
 def instrument(eng, timer: StageTimer) -> Callable[[], None]:
-    """Wrap the engine's stages (instance attributes and the functions ``slam.py`` calls) with ``timer``.
+    """Wrap the engine's stages (instance attributes and the functions the engine's modules call) with ``timer``.
 
     Returns:
-        a function that puts ``slam.py``'s functions back (the instance's wrappers go with the instance).
+        a function that puts the engine modules' functions back (the instance's wrappers go with the instance).
     """
-    import semantic_gs_slam.slam as slam_mod
+    import importlib
 
-    saved = {fn: getattr(slam_mod, fn) for fn in ("icp", "fit_exposure", "mapping_loss", "find_loops")
-             if hasattr(slam_mod, fn)}
+    # each function is wrapped in the module that calls it (slam.py orchestrates; the steps live in mapping/, loop/)
+    callers = {"icp": "semantic_gs_slam.slam", "fit_exposure": "semantic_gs_slam.mapping.steps",
+               "mapping_loss": "semantic_gs_slam.mapping.steps", "find_loops": "semantic_gs_slam.loop.closing"}
+    saved = {(mod, fn): getattr(mod, fn) for fn, mod in ((fn, importlib.import_module(m)) for fn, m in callers.items())
+             if hasattr(mod, fn)}
 
     for attr, name in [("add_frame", "frame (total)"), ("_tensors", "upload"), ("_track", "track"),
                        ("_densify", "densify"), ("_map_keyframe", "keyframe"), ("_close_loop", "keyframe.loop"),
@@ -111,12 +114,12 @@ def instrument(eng, timer: StageTimer) -> Callable[[], None]:
     eng.map.add_from_frame = timer.wrap("densify.add", eng.map.add_from_frame)
     eng.render_view = timer.wrap("render_view (track, densify)", eng.render_view)
     eng._render = timer.wrap("render (every render)", eng._render)
-    for fn, orig in saved.items():
-        setattr(slam_mod, fn, timer.wrap(fn, orig))
+    for (mod, fn), orig in saved.items():
+        setattr(mod, fn, timer.wrap(fn, orig))
 
     def restore() -> None:
-        for fn, orig in saved.items():
-            setattr(slam_mod, fn, orig)
+        for (mod, fn), orig in saved.items():
+            setattr(mod, fn, orig)
 
     return restore
 

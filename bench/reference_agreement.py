@@ -27,11 +27,11 @@ import sys
 
 import numpy as np
 
-from semantic_gs_slam.datasets import frame_indices, load_colmap_poses, load_dataset
 from semantic_gs_slam.errors import SlamError
-from semantic_gs_slam.gaussian_map import load_params, trajectory_from_params
+from semantic_gs_slam.eval.metrics import ate_rmse, ate_sim3, rpe_rmse
 from semantic_gs_slam.geometry import fixed_offset, pose_error
-from semantic_gs_slam.metrics import ate_rmse, ate_sim3, rpe_rmse
+from semantic_gs_slam.io.datasets import frame_indices, load_colmap_poses, load_dataset
+from semantic_gs_slam.mapping.gaussian_map import load_params, trajectory_from_params
 
 
 def row(name: str, a: list[np.ndarray], b: list[np.ndarray]) -> str:

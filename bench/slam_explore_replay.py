@@ -58,7 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     from semantic_gs_slam.config import Intrinsics, SlamConfig
     from semantic_gs_slam.geometry import pose_error
     from semantic_gs_slam.slam import SLAM
-    from semantic_gs_slam.synthetic import CLASSES
+    from semantic_gs_slam.synthetic.scenes import CLASSES
 
     frames, truth, odom = load(args.run_dir)
     with np.load(os.path.join(args.run_dir, "params.npz")) as z:

@@ -36,12 +36,12 @@ import numpy as np
 import torch
 
 from semantic_gs_slam.config import DEVICE_DEFAULTS, Intrinsics, MappingConfig, RendererConfig, SlamConfig
-from semantic_gs_slam.datasets import load_dataset
 from semantic_gs_slam.devices import resolve_device
 from semantic_gs_slam.errors import ConfigError
-from semantic_gs_slam.evaluate import evaluate
+from semantic_gs_slam.eval.evaluate import evaluate
+from semantic_gs_slam.io.datasets import load_dataset
 from semantic_gs_slam.slam import SLAM
-from semantic_gs_slam.synthetic import generate
+from semantic_gs_slam.synthetic.scenes import generate
 
 TARGETS = "target at 1200x680 on one GPU: >= 30 FPS, ATE <= 0.5 cm, PSNR >= 34 dB, mIoU >= 0.92"
 

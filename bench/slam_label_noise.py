@@ -23,11 +23,11 @@ import time
 import numpy as np
 
 from semantic_gs_slam.config import SlamConfig, TrackingConfig
-from semantic_gs_slam.datasets import load_dataset
-from semantic_gs_slam.evaluate import evaluate
+from semantic_gs_slam.eval.evaluate import evaluate
+from semantic_gs_slam.io.datasets import load_dataset
 from semantic_gs_slam.labels.geometry import connected_components
 from semantic_gs_slam.slam import SLAM
-from semantic_gs_slam.synthetic import CLASS_ID, generate
+from semantic_gs_slam.synthetic.scenes import CLASS_ID, generate
 
 OBJECT_IDS = [CLASS_ID[c] for c in ("chair", "sofa", "bottle", "cup", "trash", "bin", "fridge", "table")]
 

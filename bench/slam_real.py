@@ -27,11 +27,11 @@ import time
 import numpy as np
 
 from semantic_gs_slam.config import SlamConfig
-from semantic_gs_slam.datasets import frame_indices, load_dataset, parse_size
-from semantic_gs_slam.evaluate import evaluate
+from semantic_gs_slam.eval.evaluate import evaluate
+from semantic_gs_slam.eval.metrics import ate_rmse, rpe_rmse
 from semantic_gs_slam.geometry import pose_error, umeyama_rigid
+from semantic_gs_slam.io.datasets import frame_indices, load_dataset, parse_size
 from semantic_gs_slam.labels import LABEL_MODES, LabelConfig, LabelStage
-from semantic_gs_slam.metrics import ate_rmse, rpe_rmse
 from semantic_gs_slam.run import label_frame
 from semantic_gs_slam.slam import SLAM
 

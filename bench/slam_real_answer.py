@@ -25,7 +25,7 @@ import sys
 import numpy as np
 from PIL import Image, ImageDraw
 
-from semantic_gs_slam.datasets import load_dataset
+from semantic_gs_slam.io.datasets import load_dataset
 
 
 def main(argv: list[str] | None = None) -> int:

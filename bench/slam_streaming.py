@@ -33,8 +33,8 @@ FAST = "mapping: {first_frame_iters: 10, iters: 4, keyframe_every: 3}\ntracking:
 
 
 def part_a(frames: int, width: int, height: int, tmp: str) -> None:
-    from semantic_gs_slam.datasets import load_dataset
-    from semantic_gs_slam.synthetic import generate
+    from semantic_gs_slam.io.datasets import load_dataset
+    from semantic_gs_slam.synthetic.scenes import generate
     from semantic_gs_slam_ros.engine import EngineAdapter, load_slam_config
     from semantic_gs_slam_ros.session import SessionConfig, StreamingSession
 

@@ -26,12 +26,12 @@ import numpy as np
 import torch
 
 from semantic_gs_slam.config import MappingConfig, RendererConfig, SlamConfig
-from semantic_gs_slam.datasets import load_dataset
 from semantic_gs_slam.errors import ConfigError
-from semantic_gs_slam.evaluate import evaluate, format_table
+from semantic_gs_slam.eval.evaluate import evaluate, format_table
+from semantic_gs_slam.io.datasets import load_dataset
 from semantic_gs_slam.render import render
 from semantic_gs_slam.slam import SLAM
-from semantic_gs_slam.synthetic import generate
+from semantic_gs_slam.synthetic.scenes import generate
 
 
 def renderer_timing(eng: SLAM, c2w: np.ndarray, reps: int = 7) -> tuple[float, float]:

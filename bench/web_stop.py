@@ -37,7 +37,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from action_msgs.msg import GoalStatus  # noqa: E402
 from decision_maker_cancel import ENDED, Bench, summary  # noqa: E402
 
-from decision_maker.execution import TaskState  # noqa: E402
+from decision_maker.execution.engine import TaskState  # noqa: E402
 from decision_maker.topics import COMMAND_QOS  # noqa: E402
 from home_robot_bringup.domain import DomainLease  # noqa: E402
 from home_robot_bringup.launcher import apply_overrides  # noqa: E402

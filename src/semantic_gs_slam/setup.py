@@ -18,6 +18,6 @@ setup(
     license="Apache-2.0",
     entry_points={"console_scripts": [
         "semantic_gs_slam_run = semantic_gs_slam.run:main",
-        "semantic_gs_slam_synth = semantic_gs_slam.synthetic:main",
+        "semantic_gs_slam_synth = semantic_gs_slam.synthetic.scenes:main",
     ]},
 )

@@ -29,7 +29,7 @@ from rclpy.parameter import Parameter  # noqa: E402
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy  # noqa: E402
 from std_msgs.msg import String  # noqa: E402
 
-from decision_maker.command_client import CommandClient  # noqa: E402
+from decision_maker.client.command_client import CommandClient  # noqa: E402
 from decision_maker.speech.errors import AudioDeviceError, AudioSourceError, SpeechError  # noqa: E402
 from decision_maker.speech.filtering import FilterConfig  # noqa: E402
 from decision_maker.speech.pipeline import PipelineConfig, Result, VoicePipeline  # noqa: E402

@@ -20,7 +20,7 @@ from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 from std_msgs.msg import String
 
-from decision_maker.console import stdin_lines, wait_for_listeners
+from decision_maker.client.console import stdin_lines, wait_for_listeners
 from decision_maker.topics import CANCEL_QOS
 
 

@@ -7,14 +7,14 @@ Topics:
     /hardware_stop (std_msgs/String, out): the brain's own stop on any timeout, so the hardware
         layer stops too (the simulated servers obey it like /cancel_command).
     submit_command (decision_maker_interfaces/srv/SubmitCommand, service): the acknowledged way in:
-        answers with the command id or the rejection reason (see decision_maker.command_client).
+        answers with the command id or the rejection reason (see decision_maker.client.command_client).
         A spoken/typed "stop" / "cancel" / "stop it" / "abort" there or on /manual_command cancels at
         once, like /cancel_command.
     /object_list (std_msgs/String JSON, in, transient local): known objects, for slot filling.
     /task_status (std_msgs/String JSON, out): one update per state change (see execution.TaskStatus).
     /object_memory (object_query_interfaces/ObjectMemory, in, latched): where objects are now; plans
         and answers to questions come from it. Grasps and places are reported to the
-        ``object_memory/report`` service (see memory_link.py).
+        ``object_memory/report`` service (see memory/link.py).
 
 Actions / services used: ``navigate_to_pose`` (nav2_msgs/NavigateToPose), ``grasp`` and ``place``
 (decision_maker_interfaces), ``object_query`` (object_query_interfaces/ObjectQuery).
@@ -53,12 +53,12 @@ from std_msgs.msg import String
 
 from decision_maker.command_types import FrameTransform, load_locations, sanitize_text
 from decision_maker.errors import ConfigError
-from decision_maker.execution import EngineConfig, ExecutionEngine, TaskState, TaskStatus
-from decision_maker.memory_link import MemoryLink
+from decision_maker.execution.engine import EngineConfig, ExecutionEngine, TaskState, TaskStatus
+from decision_maker.execution.ros_robot import RosRobot
+from decision_maker.execution.stage0 import ExplorationGate
+from decision_maker.memory.link import MemoryLink
 from decision_maker.nl_planner import PlanningContext, make_planner
-from decision_maker.ros_robot import RosRobot
-from decision_maker.stage0 import ExplorationGate
-from decision_maker.stop_words import is_stop_command
+from decision_maker.planning.stop_words import is_stop_command
 from decision_maker.topics import CANCEL_QOS, COMMAND_QOS, HARDWARE_STOP, OBJECT_LIST_QOS, SERVICE_QOS, SUBMIT_COMMAND
 
 #: Longest /object_list message parsed (characters); a longer one is ignored with a warning.
@@ -98,7 +98,7 @@ class DecisionMakerNode(Node):
             "frame_id": "map", "frame_offset": [0.0, 0.0, 0.0],
             "nav_action": "navigate_to_pose", "grasp_action": "grasp", "place_action": "place",
             "query_service": "object_query",
-            "exploration_mode": "off", "exploration_timeout_s": 900.0,  # Stage 0 (decision_maker.stage0)
+            "exploration_mode": "off", "exploration_timeout_s": 900.0,  # Stage 0 (decision_maker.execution.stage0)
         }
         for name, default in p.items():
             self.declare_parameter(name, default)

@@ -49,8 +49,8 @@ from std_msgs.msg import String
 from decision_maker.command_types import Point3, Pose2D
 from decision_maker.errors import ConfigError, SimError
 from decision_maker.mock_nav_server import FAULTS, POSE_QOS, yaw_of
-from decision_maker.sim_actions import SimGoals, run_sim_node
-from decision_maker.sim_world import SAMPLE_OBJECTS, ObjectWorld, check_coordinates, check_name, check_quaternion
+from decision_maker.sim.actions import SimGoals, run_sim_node
+from decision_maker.sim.world import SAMPLE_OBJECTS, ObjectWorld, check_coordinates, check_name, check_quaternion
 from decision_maker.topics import HARDWARE_STOP
 
 WORLD_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)

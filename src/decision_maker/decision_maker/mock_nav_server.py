@@ -34,8 +34,8 @@ from std_msgs.msg import String
 
 from decision_maker.command_types import Pose2D
 from decision_maker.errors import ConfigError, SimError
-from decision_maker.sim_actions import SimGoals, run_sim_node
-from decision_maker.sim_world import BaseSim, check_coordinates, check_quaternion
+from decision_maker.sim.actions import SimGoals, run_sim_node
+from decision_maker.sim.world import BaseSim, check_coordinates, check_quaternion
 from decision_maker.topics import HARDWARE_STOP
 
 POSE_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)

@@ -27,10 +27,10 @@ from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 from std_msgs.msg import String
 
-from decision_maker.command_client import Ack, CommandClient
+from decision_maker.client.command_client import Ack, CommandClient
+from decision_maker.client.console import stdin_lines, wait_for_listeners
 from decision_maker.command_types import sanitize_text, shorten
-from decision_maker.console import stdin_lines, wait_for_listeners
-from decision_maker.execution import TaskState, TaskStatus
+from decision_maker.execution.engine import TaskState, TaskStatus
 from decision_maker.topics import COMMAND_QOS
 
 

@@ -25,6 +25,7 @@ from typing import Any, Protocol, runtime_checkable
 
 from decision_maker.command_types import NamedLocation, Plan, Pose2D, parse_plan
 from decision_maker.errors import ConfigError, InvalidPrimitive, NoMatchingScenario, PlanningError, Reply
+from decision_maker.memory.world import Clarification, answer_clarification, fetch_plan
 from decision_maker.scenario_library import (
     SCENARIO_REGISTRY,
     ScenarioFn,
@@ -32,7 +33,6 @@ from decision_maker.scenario_library import (
     match_scenario,
     normalize_utterance,
 )
-from decision_maker.world_memory import Clarification, answer_clarification, fetch_plan
 from object_query.memory import Belief
 
 _PRIMITIVE_START = re.compile(r"^\s*(goto|grasp|place)\s*:", re.IGNORECASE)
@@ -207,17 +207,20 @@ def register_planner(name: str, factory: PlannerFactory) -> None:
 def make_planner(name: str, **options: Any) -> Planner:
     """The planner registered as ``name``, built with ``options``.
 
-    A name not registered yet is looked up as module ``decision_maker.<name>_planner``, which
-    registers itself on import (e.g. ``llm_planner.py`` ending in ``register_planner("llm", LlmPlanner)``).
+    A name not registered yet is looked up as module ``decision_maker.planning.<name>_planner`` (then
+    ``decision_maker.<name>_planner``), which registers itself on import (e.g. ``planning/llm_planner.py`` ending in
+    ``register_planner("llm", LlmPlanner)``).
 
     Raises:
         ConfigError: unknown planner name, or its factory rejected the options.
     """
     if name not in _PLANNERS and re.fullmatch(r"[a-z][a-z0-9_]*", name):
-        try:
-            importlib.import_module(f"decision_maker.{name}_planner")
-        except ModuleNotFoundError:
-            pass
+        for module in (f"decision_maker.planning.{name}_planner", f"decision_maker.{name}_planner"):
+            try:
+                importlib.import_module(module)
+                break
+            except ModuleNotFoundError:
+                pass
     if name not in _PLANNERS:
         raise ConfigError(f"unknown planner {name!r}; known: {', '.join(sorted(_PLANNERS))}")
     try:

@@ -21,9 +21,9 @@ import sys
 
 from decision_maker.command_types import MAX_TEXT_CHARS, load_locations, sanitize_text
 from decision_maker.errors import ConfigError, PlanningError, Reply
-from decision_maker.llm_planner import TIERS, LLMConfig, LLMPlanner, TieredPlanner
+from decision_maker.memory.world import aliases_for
 from decision_maker.nl_planner import PlanningContext, RegistryPlanner
-from decision_maker.world_memory import aliases_for
+from decision_maker.planning.llm_planner import TIERS, LLMConfig, LLMPlanner, TieredPlanner
 from object_query.memory import Belief, MapObservation, ObjectMemory
 
 

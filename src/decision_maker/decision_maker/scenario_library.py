@@ -27,7 +27,7 @@ The intent grammar: people do not say the registry's phrases verbatim.
   ``SUGGEST_SCORE`` <= score < ``ACCEPT_SCORE`` only asks "did you mean ...?" (a "yes" next runs
   it); lower is "I don't know how to do that". Nothing below ``ACCEPT_SCORE`` ever moves the robot.
 
-Scenarios that fetch an object plan from the object memory (:mod:`decision_maker.world_memory`):
+Scenarios that fetch an object plan from the object memory (:mod:`decision_maker.memory.world`):
 "give me the trash" goes to where the trash is now, not to a fixed room.
 """
 
@@ -40,7 +40,7 @@ from dataclasses import dataclass, field
 
 from decision_maker.command_types import NamedLocation, Pose2D
 from decision_maker.errors import MissingSlot, NoMatchingScenario, Reply
-from decision_maker.world_memory import (
+from decision_maker.memory.world import (
     choose_instance,
     fetch_plan,
     holding_answer,

@@ -31,7 +31,7 @@ from decision_maker.errors import (
     ObjectNotFound,
     SimError,
 )
-from decision_maker.execution import AbortToken, EngineConfig, ExecutionEngine, TaskState, TaskStatus
+from decision_maker.execution.engine import AbortToken, EngineConfig, ExecutionEngine, TaskState, TaskStatus
 from decision_maker.nl_planner import (
     PlanningContext,
     RegistryPlanner,
@@ -40,7 +40,7 @@ from decision_maker.nl_planner import (
     split_primitives,
 )
 from decision_maker.scenario_library import match_scenario
-from decision_maker.sim_world import BaseSim, ObjectWorld
+from decision_maker.sim.world import BaseSim, ObjectWorld
 
 LOCS_FILE = os.path.join(os.path.dirname(__file__), "..", "config", "locations.yaml")
 LOCS = load_locations(LOCS_FILE)
@@ -399,7 +399,7 @@ def test_planner_seam_custom_planner_and_cancel_while_planning():
 def test_worker_survives_a_port_bug_and_stdin_lines():
     import io
 
-    from decision_maker.console import stdin_lines
+    from decision_maker.client.console import stdin_lines
 
     robot = FakeRobot()
     robot.behaviour["nav"] = RuntimeError("bug")
@@ -445,7 +445,7 @@ def wait(predicate, timeout):
 @pytest.mark.parametrize("text", ["stop", "Stop it!", "STOP STOP", "cancel", "cancel that", "abort", "please stop",
                                   "halt now", "robot, stop!"])
 def test_stop_phrases(text):
-    from decision_maker.stop_words import is_stop_command
+    from decision_maker.planning.stop_words import is_stop_command
 
     assert is_stop_command(text)
 
@@ -453,7 +453,7 @@ def test_stop_phrases(text):
 @pytest.mark.parametrize("text", ["", "stop at the kitchen", "don't stop", "give me the bottle", "go home",
                                   "clean table", "stopwatch"])
 def test_not_stop_phrases(text):
-    from decision_maker.stop_words import is_stop_command
+    from decision_maker.planning.stop_words import is_stop_command
 
     assert not is_stop_command(text)
 
@@ -483,7 +483,7 @@ def test_spoken_stop_cancels_at_once_never_queued():
 
 def test_sim_validation_of_goals_and_objects():
     from decision_maker.errors import ConfigError, SimError
-    from decision_maker.sim_world import ObjectWorld, check_coordinates, check_name, check_quaternion
+    from decision_maker.sim.world import ObjectWorld, check_coordinates, check_name, check_quaternion
 
     check_coordinates("goal", (1.0, 2.0, 0.0), 100.0)
     for bad in ((float("nan"), 0.0), (float("inf"), 0.0), (1.7e308, 0.0), (0.0, -101.0)):
@@ -505,7 +505,7 @@ def test_sim_validation_of_goals_and_objects():
 
 def test_server_watch_fails_only_after_the_server_stays_gone():
     from decision_maker.errors import ServerLost, ServerUnavailable
-    from decision_maker.ros_robot import LOST_AFTER_S, _Watch
+    from decision_maker.execution.ros_robot import LOST_AFTER_S, _Watch
 
     present = [True]
     watch = _Watch(lambda: present[0], "navigation server /navigate_to_pose")

@@ -17,7 +17,7 @@ import pytest
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
-from decision_maker.execution import TaskState, TaskStatus
+from decision_maker.execution.engine import TaskState, TaskStatus
 from home_robot_bringup.nodeset import find_executable, load_nodeset
 from home_robot_bringup.process import node_environment
 from home_robot_bringup.testing import wait_for

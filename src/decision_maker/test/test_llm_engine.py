@@ -5,7 +5,7 @@ from __future__ import annotations
 import threading
 
 from decision_maker.command_types import Plan, Point3, load_locations, parse_plan
-from decision_maker.execution import AbortToken, EngineConfig, ExecutionEngine, TaskState
+from decision_maker.execution.engine import AbortToken, EngineConfig, ExecutionEngine, TaskState
 from decision_maker.nl_planner import PlanningContext
 
 from .test_llm_planner import LOCATIONS_FILE, OBJECTS

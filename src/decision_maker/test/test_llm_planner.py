@@ -19,7 +19,8 @@ from hypothesis import strategies as st
 
 from decision_maker.command_types import GoTo, Grasp, Place, load_locations
 from decision_maker.errors import NoMatchingScenario, PlanningError
-from decision_maker.llm_planner import (
+from decision_maker.nl_planner import PlanningContext
+from decision_maker.planning.llm_planner import (
     LLMBadReply,
     LLMConfig,
     LLMPlanner,
@@ -30,7 +31,6 @@ from decision_maker.llm_planner import (
     map_bounds,
     validate_reply,
 )
-from decision_maker.nl_planner import PlanningContext
 
 from .llm_testing import ScriptedEndpoint, completion
 
@@ -327,3 +327,19 @@ def test_dry_run_command_line(endpoint):
     assert out.returncode == 1 and out.stdout.startswith("refused:")
     out = run_plan_command("go", "--locations", "/nonexistent.yaml")
     assert out.returncode == 2 and "locations file not found" in out.stderr
+
+
+def test_make_planner_finds_a_planner_module_in_planning_by_its_name(monkeypatch):
+    import sys
+
+    from decision_maker import nl_planner
+    from decision_maker.errors import ConfigError
+
+    monkeypatch.delitem(nl_planner._PLANNERS, "llm", raising=False)
+    monkeypatch.delitem(sys.modules, "decision_maker.planning.llm_planner", raising=False)
+    with pytest.raises(ConfigError) as exc:  # found and registered; then its factory refuses the option
+        nl_planner.make_planner("llm", no_such_option=1)
+    assert "unknown planner" not in str(exc.value) and "no_such_option" in str(exc.value)
+    assert "llm" in nl_planner._PLANNERS
+    with pytest.raises(ConfigError, match="unknown planner 'nothing'"):
+        nl_planner.make_planner("nothing")

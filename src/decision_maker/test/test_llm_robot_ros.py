@@ -12,7 +12,7 @@ import json
 
 import pytest
 
-from decision_maker.execution import TaskState
+from decision_maker.execution.engine import TaskState
 
 from .llm_testing import ScriptedEndpoint, completion
 from .test_decision_maker_ros import FAST, USER_DROP, Robot, near, robot_specs

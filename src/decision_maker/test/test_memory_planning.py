@@ -8,13 +8,13 @@ import os
 
 import pytest
 
-from decision_maker.approach import approach_pose, place_phrase
 from decision_maker.command_types import GoTo, Grasp, Place, Pose2D, load_locations
 from decision_maker.errors import ActionFailed, NoMatchingScenario, Reply
-from decision_maker.execution import ActionOutcome, EngineConfig, ExecutionEngine, TaskState
+from decision_maker.execution.engine import ActionOutcome, EngineConfig, ExecutionEngine, TaskState
+from decision_maker.memory.world import AMBIGUITY_MARGIN, Clarification
 from decision_maker.nl_planner import PlanningContext, RegistryPlanner
+from decision_maker.planning.approach import approach_pose, place_phrase
 from decision_maker.scenario_library import match_scenario
-from decision_maker.world_memory import AMBIGUITY_MARGIN, Clarification
 from object_query.memory import MapObservation, ObjectMemory
 
 LOCS = load_locations(os.path.join(os.path.dirname(__file__), "..", "config", "locations.yaml"))
@@ -257,7 +257,7 @@ def run(text: str, robot: Robot, mem: ObjectMemory):
     statuses, outcomes = [], []
     eng = ExecutionEngine(RegistryPlanner(), robot, EngineConfig(), statuses.append, lambda: ctx(mem),
                           on_outcome=outcomes.append)
-    from decision_maker.execution import AbortToken
+    from decision_maker.execution.engine import AbortToken
     state = eng.run_command(1, text, AbortToken())
     return state, statuses, outcomes
 
@@ -289,7 +289,7 @@ def test_engine_reports_a_clarification_as_rejected():
     statuses = []
     eng = ExecutionEngine(RegistryPlanner(), Robot(), EngineConfig(), statuses.append, lambda: eng_ctx)
     eng._pose = Pose2D(3.7, 1.5, 0.0)  # where the robot stopped last
-    from decision_maker.execution import AbortToken
+    from decision_maker.execution.engine import AbortToken
     assert eng.run_command(1, "give me the cup", AbortToken()) == TaskState.REJECTED
     assert statuses[-1].message.startswith("clarify: Which cup")
 
@@ -316,7 +316,7 @@ def test_engine_reports_a_failed_grasp_as_negative_evidence():
 def test_sim_world_move_by_hand():
     from decision_maker.command_types import Point3
     from decision_maker.errors import SimError
-    from decision_maker.sim_world import ObjectWorld
+    from decision_maker.sim.world import ObjectWorld
 
     world = ObjectWorld.from_mapping({"cup_2": [2.8, 2.6, 0.8], "bottle": [5.2, 0.3, 1.02]})
     assert world.move("CUP_2", Point3(1.0, 4.5, 0.45)).position == Point3(1.0, 4.5, 0.45)
@@ -330,7 +330,7 @@ def test_sim_world_move_by_hand():
 
 
 def test_synonyms_of_known_objects_fill_the_slot():
-    from decision_maker.world_memory import aliases_for
+    from decision_maker.memory.world import aliases_for
 
     aliases = aliases_for({"cup", "bottle"}, [("cup", "mug"), ("sofa", "couch"), ("bottle", "flask", "cup")])
     assert aliases == {"mug": "cup", "flask": "bottle"}  # couch: no sofa known; cup is its own class
@@ -344,7 +344,7 @@ def test_synonyms_of_known_objects_fill_the_slot():
 def test_the_llm_planner_gets_the_same_memory():
     import json
 
-    from decision_maker.llm_planner import build_messages
+    from decision_maker.planning.llm_planner import build_messages
 
     mem = memory()
     mem.grasped("bottle", (4.9, 1.1, 0.0))
@@ -359,7 +359,7 @@ def test_the_llm_planner_gets_the_same_memory():
 
 
 def test_llm_only_tier_answers_questions_without_the_model():
-    from decision_maker.llm_planner import TieredPlanner
+    from decision_maker.planning.llm_planner import TieredPlanner
 
     class NoModel:
         name = "llm"

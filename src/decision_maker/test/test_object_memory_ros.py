@@ -25,7 +25,7 @@ from object_query_interfaces.msg import ObjectMemory as ObjectMemoryMsg
 from object_query_interfaces.srv import MemoryQuery
 from std_msgs.msg import String
 
-from decision_maker.execution import TaskState, TaskStatus
+from decision_maker.execution.engine import TaskState, TaskStatus
 from home_robot_bringup.nodeset import load_nodeset
 from home_robot_bringup.testing import wait_for
 from object_query.object_query_server import bundled_map_paths

@@ -20,8 +20,8 @@ from nav2_msgs.action import NavigateToPose
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
-from decision_maker.command_client import Ack, CommandClient
-from decision_maker.execution import TaskState, TaskStatus
+from decision_maker.client.command_client import Ack, CommandClient
+from decision_maker.execution.engine import TaskState, TaskStatus
 from home_robot_bringup.testing import wait_for
 from home_robot_ros.actions import ActionClient
 

@@ -10,9 +10,9 @@ import pytest
 
 from decision_maker.command_types import Point3, load_locations
 from decision_maker.errors import ConfigError
-from decision_maker.execution import EngineConfig, ExecutionEngine, TaskState
+from decision_maker.execution.engine import EngineConfig, ExecutionEngine, TaskState
+from decision_maker.execution.stage0 import ExplorationGate
 from decision_maker.nl_planner import PlanningContext, RegistryPlanner
-from decision_maker.stage0 import ExplorationGate
 
 LOCS = load_locations(os.path.join(os.path.dirname(__file__), "..", "config", "locations.yaml"))
 CTX = PlanningContext(frozenset({"bottle", "cup"}), LOCS)

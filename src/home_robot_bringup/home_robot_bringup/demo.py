@@ -65,7 +65,7 @@ class Operator:
         node.create_subscription(String, "sim/world_state", self._on_world, OBJECT_LIST_QOS)
 
     def _on_status(self, msg) -> None:
-        from decision_maker.execution import TaskStatus
+        from decision_maker.execution.engine import TaskStatus
 
         try:
             st = TaskStatus.from_json(msg.data)

@@ -159,7 +159,7 @@ def coverage_of(msg) -> tuple[float, float, float]:
 def object_errors(objects: dict) -> list[str]:
     """One line per object of the database (``{name: [x, y, z]}``): its nearest true object of the same
     class (the simulator's world) and the error (m)."""
-    from decision_maker.sim_world import SAMPLE_OBJECTS
+    from decision_maker.sim.world import SAMPLE_OBJECTS
 
     truth = json.loads(SAMPLE_OBJECTS)
 
@@ -255,7 +255,7 @@ def main(argv: list[str] | None = None) -> int:
     if not opts.no_slam:
         import tempfile
 
-        from semantic_gs_slam.synthetic import CLASSES
+        from semantic_gs_slam.synthetic.scenes import CLASSES
 
         map_dir = os.path.abspath(opts.map_dir) if opts.map_dir else tempfile.mkdtemp(prefix="explore_map_")
         for name in ("params.npz", "semantic.json"):  # from an empty map

@@ -1,13 +1,13 @@
 """``sim_camera_node``: the simulated robot's RGB-D camera (renders the synthetic home at the robot's pose).
 
 Subscribes ``robot_pose`` (``geometry_msgs/PoseStamped``, what ``mock_nav_server`` publishes) and,
-at ``rate_hz``, renders :mod:`semantic_gs_slam.synthetic`'s home from the camera on the base
+at ``rate_hz``, renders :mod:`semantic_gs_slam.synthetic.scenes`'s home from the camera on the base
 (:class:`~home_robot_exploration.simcam.CameraConfig`: ``mount_height``, ``tilt_deg``,
 ``hfov_deg``, ``forward_offset``, ``width`` x ``height``). Publishes, all with the same stamp (the
 time the pose was taken) and ``frame_id``:
 
 * ``rgb`` (rgb8), ``depth`` (32FC1, metres along the optical axis), ``semantic`` (mono8 class ids
-  of :data:`semantic_gs_slam.synthetic.CLASSES`), ``camera_info`` — the names the streaming SLAM
+  of :data:`semantic_gs_slam.synthetic.scenes.CLASSES`), ``camera_info`` — the names the streaming SLAM
   server subscribes, so it maps what this camera sees with no remapping;
 * ``camera_pose`` (``PoseStamped`` in ``map_frame``): the camera-to-map pose (OpenCV camera axes),
   the ground truth the explorer builds its grid with and SLAM is scored against;
@@ -86,7 +86,7 @@ class SimCameraNode(Node):
             raise ConfigError(f"supersample must be an odd integer >= 1, got {self._supersample}")
         self._frame_id, self._map_frame = str(v["frame_id"]), str(v["map_frame"])
         from semantic_gs_slam.config import Intrinsics
-        from semantic_gs_slam.synthetic import HomeRenderer
+        from semantic_gs_slam.synthetic.scenes import HomeRenderer
 
         k = self.cam.k()
         self._k = k

@@ -2,7 +2,7 @@
 
 The camera rides on the base: ``height`` metres above the floor at the base's centre (plus
 ``forward_offset`` along its heading), looking along the heading, pitched down by ``tilt_deg``.
-It renders :mod:`semantic_gs_slam.synthetic`'s home (the same scene the simulated world's objects
+It renders :mod:`semantic_gs_slam.synthetic.scenes`'s home (the same scene the simulated world's objects
 come from) with a pinhole of horizontal field of view ``hfov_deg``.
 """
 
@@ -66,7 +66,7 @@ class CameraConfig:
 def true_free_mask(grid: OccupancyGrid) -> np.ndarray:
     """[ny, nx] bool: cells of the simulated home whose centre is inside the room and under no
     furniture that reaches into the grid's obstacle band (the area exploration should see)."""
-    from semantic_gs_slam.synthetic import ROOM, Box, home_layout
+    from semantic_gs_slam.synthetic.scenes import ROOM, Box, home_layout
 
     cfg = grid.cfg
     cx, cy = grid.centre_of(*np.meshgrid(np.arange(grid.nx), np.arange(grid.ny), indexing="xy"))

@@ -13,7 +13,7 @@ from home_robot_exploration.simcam import CameraConfig, coverage
 @pytest.mark.slow
 def test_explores_the_simulated_home_to_high_coverage() -> None:
     from semantic_gs_slam.config import Intrinsics
-    from semantic_gs_slam.synthetic import HomeRenderer
+    from semantic_gs_slam.synthetic.scenes import HomeRenderer
 
     cam = CameraConfig(width=100, height=57)
     k = cam.k()

@@ -27,8 +27,8 @@ LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, relia
 
 
 def test_explores_maps_and_the_object_database_serves_the_self_built_map(launch_nodes, ros_node, tmp_path):
-    from decision_maker.sim_world import SAMPLE_OBJECTS
-    from semantic_gs_slam.synthetic import CLASSES
+    from decision_maker.sim.world import SAMPLE_OBJECTS
+    from semantic_gs_slam.synthetic.scenes import CLASSES
 
     got: dict[str, object] = {"lists": []}
     lock = threading.Lock()

@@ -39,7 +39,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
-from decision_maker.command_client import Ack, CommandClient
+from decision_maker.client.command_client import Ack, CommandClient
 from decision_maker.topics import CANCEL_COMMAND, CANCEL_QOS, COMMAND_QOS, TASK_STATUS
 from home_robot_web.auth import AttemptLimiter, Gate, generate_token, read_token_file
 from home_robot_web.errors import ConfigError, ServerError

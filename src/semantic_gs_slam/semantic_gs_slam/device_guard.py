@@ -61,7 +61,7 @@ def _engine_caller() -> str | None:
             continue
         if fn.startswith(_TORCH_DIR):
             return None
-        return f"{os.path.basename(fn)}:{f.f_lineno}" if fn.startswith(PACKAGE_DIR) else None
+        return f"{os.path.relpath(fn, PACKAGE_DIR)}:{f.f_lineno}" if fn.startswith(PACKAGE_DIR) else None
     return None
 
 

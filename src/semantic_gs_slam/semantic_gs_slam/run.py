@@ -32,9 +32,9 @@ import time
 import numpy as np
 
 from semantic_gs_slam.config import MappingConfig, RendererConfig, SlamConfig, TrackingConfig
-from semantic_gs_slam.datasets import LAYOUTS, frame_indices, load_dataset, parse_size
 from semantic_gs_slam.errors import MAX_BAD_IN_A_ROW, DatasetError, FrameError, SlamError
 from semantic_gs_slam.geometry import pose_error
+from semantic_gs_slam.io.datasets import LAYOUTS, frame_indices, load_dataset, parse_size
 from semantic_gs_slam.labels import LABEL_MODES, LabelConfig, LabelStage, predict_pose
 from semantic_gs_slam.slam import SLAM
 
@@ -124,7 +124,7 @@ def build_config(args: argparse.Namespace, intrinsics) -> SlamConfig:
 
 
 def label_frame(stage: LabelStage, eng: SLAM, f) -> np.ndarray | None:
-    """The labels ``stage`` gives frame ``f`` (a :class:`~semantic_gs_slam.datasets.Frame`) at the engine's
+    """The labels ``stage`` gives frame ``f`` (a :class:`~semantic_gs_slam.io.datasets.Frame`) at the engine's
     constant-velocity pose guess; their names go into ``eng.classes`` before the frame is added."""
     first = eng.initial_c2w if eng.initial_c2w is not None else f.gt_c2w
     guess = predict_pose(eng.poses, first)
@@ -263,7 +263,7 @@ def main(argv: list[str] | None = None) -> int:
                   file=sys.stderr)
             return 130 if interrupt.requested else 2
         if args.eval:
-            from semantic_gs_slam.evaluate import evaluate, format_table
+            from semantic_gs_slam.eval.evaluate import evaluate, format_table
 
             used = dataset_positions(eng.timestamps, ds.timestamps, idx)
             res = evaluate(eng, ds, [idx[n] for n in used])

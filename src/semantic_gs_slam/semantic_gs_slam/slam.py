@@ -3,6 +3,10 @@
 Per frame: tracking (constant-velocity guess, point-to-plane ICP against the depth rendered from
 the map, optional photometric refinement), then on keyframes mapping (densify where the map is
 empty or behind the measured depth, optimise a window of overlapping keyframes, prune).
+
+This module orchestrates; the steps live with their concept: tracking in :mod:`semantic_gs_slam.tracking`,
+densification and optimisation in :mod:`semantic_gs_slam.mapping.steps`, loop closure in
+:mod:`semantic_gs_slam.loop.closing`, rendering in :mod:`semantic_gs_slam.render`.
 """
 
 from __future__ import annotations
@@ -13,20 +17,21 @@ import math
 import os
 import shutil
 import time
-from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 import torch
 from torch import Tensor
 
-from semantic_gs_slam.config import Intrinsics, MappingConfig, SlamConfig
+from semantic_gs_slam.config import Intrinsics, SlamConfig
 from semantic_gs_slam.devices import require_cpu_kernel, resolve_device
 from semantic_gs_slam.errors import FrameError, MapFormatError, TrackingError
-from semantic_gs_slam.exposure import fit as fit_exposure
-from semantic_gs_slam.exposure import identity as exposure_identity
-from semantic_gs_slam.exposure import to_map
-from semantic_gs_slam.gaussian_map import (
+from semantic_gs_slam.geometry import pose_error
+from semantic_gs_slam.io.exposure import identity as exposure_identity
+from semantic_gs_slam.io.exposure import to_map
+from semantic_gs_slam.loop.closing import LoopClosing
+from semantic_gs_slam.loop.posegraph import Edge
+from semantic_gs_slam.mapping.gaussian_map import (
     GaussianMap,
     export_ply,
     load_params,
@@ -34,34 +39,18 @@ from semantic_gs_slam.gaussian_map import (
     save_params,
     save_semantic_json,
 )
-from semantic_gs_slam.geometry import fill_depth_holes, pose_error
-from semantic_gs_slam.loop import LoopMatch, find_loops
-from semantic_gs_slam.metrics import ssim
-from semantic_gs_slam.posegraph import Edge
-from semantic_gs_slam.posegraph import optimise as optimise_graph
+from semantic_gs_slam.mapping.steps import Keyframe, MappingSteps
 from semantic_gs_slam.render import Gaussians, RenderOutput, select_backend
-from semantic_gs_slam.tracking import (
+from semantic_gs_slam.tracking.tracker import (
     IcpGraphs,
     icp,
     icp_uses_numba,
     photometric_refine,
     plane_depth_features,
     plane_depth_image,
-    w2c_from_quat_trans,
 )
 
 log = logging.getLogger("semantic_gs_slam")
-
-
-@dataclass
-class Keyframe:
-    """A mapped frame kept for window optimisation."""
-
-    index: int
-    c2w: Tensor  # [4, 4] float64
-    rgb: Tensor  # [H, W, 3]
-    depth: Tensor  # [H, W]
-    sem: Tensor | None  # [H, W] int64
 
 
 def check_pose(c2w: np.ndarray, name: str) -> np.ndarray:
@@ -74,55 +63,6 @@ def check_pose(c2w: np.ndarray, name: str) -> np.ndarray:
             np.abs(m[3] - [0, 0, 0, 1]).max() > 1e-9:
         raise FrameError(f"{name} is not a rigid transform (rotation not orthonormal or last row not 0 0 0 1)")
     return m
-
-
-def _class_balance(sem: Tensor, power: float, cap: float = 20.0) -> Tensor:
-    """Per-pixel weights [H, W] proportional to (class pixel frequency)^-power, mean 1, capped."""
-    counts = torch.bincount(sem.reshape(-1).clamp_min(0)).double()
-    w = (counts.clamp_min(1) / sem.numel()) ** (-power)
-    pix = w[sem.clamp_min(0)]
-    pix = (pix / pix.mean()).clamp(max=cap)
-    return (pix / pix.mean()).float()
-
-
-def mapping_loss(out: RenderOutput, rgb: Tensor, depth: Tensor, sem_img: Tensor | None, labelled: Tensor | None,
-                 sem_w: Tensor | None, mc: MappingConfig) -> Tensor:
-    """Keyframe mapping loss: depth L1 over valid depth + colour (L1 and SSIM) + class-balanced semantic L1.
-
-    Fixed-shape (masks multiply; no boolean indexing), so it runs without host synchronisation.
-
-    Args:
-        out: the rendered view.
-        rgb: [H, W, 3] keyframe colour. depth: [H, W] metres (0: missing).
-        sem_img: [H, W, C] one-hot labels or None. labelled: [H, W] 1 where a label is known, or None.
-        sem_w: [H, W] class-balance weights or None.
-        mc: mapping settings (weights).
-
-    Returns:
-        Scalar loss.
-    """
-    valid = (depth > 0).to(depth.dtype)
-    l_depth = ((out.depth - depth).abs() * valid).sum() / valid.sum().clamp_min(1.0)
-    l1 = (out.rgb - rgb).abs().mean()
-    fast = {"auto": None, "torch": False, "numba": True}[mc.ssim_backend]
-    l_col = (1 - mc.w_ssim) * l1 + mc.w_ssim * (1 - ssim(out.rgb, rgb, fast=fast)) if mc.w_ssim > 0 else l1
-    loss = mc.w_depth * l_depth + mc.w_colour * l_col
-    if sem_img is not None and out.semantic is not None and mc.w_semantic > 0:
-        err = (out.semantic - sem_img).abs().sum(-1) * labelled  # [H, W]; label 0 = unknown
-        if sem_w is not None:
-            err = err * sem_w
-        loss = loss + mc.w_semantic * err.mean() / 2
-    return loss
-
-
-POSE_PRIOR_TRANS_M = 0.01  # scale of a keyframe's translation correction in pose_prior (1 cm)
-POSE_PRIOR_ROT_QV = 0.004  # scale of its rotation correction, as a quaternion's vector part (~0.46 degrees)
-
-
-def pose_prior(dq: Tensor, dt: Tensor, weight: float) -> Tensor:
-    """``weight * (|dt|^2 / (1 cm)^2 + |dq|^2 / 0.004^2)``: the refinement's pull of a keyframe's pose correction
-    (``dq`` [3], the vector part of a quaternion whose real part is 1; ``dt`` [3], metres) toward none. Scalar."""
-    return weight * ((dt * dt).sum() / POSE_PRIOR_TRANS_M ** 2 + (dq * dq).sum() / POSE_PRIOR_ROT_QV ** 2)
 
 
 @dataclass
@@ -149,7 +89,7 @@ class FrameLog:
     loop: str = ""  # keyframes: what loop detection found ("" = not checked; see SLAM._close_loop)
 
 
-class SLAM:
+class SLAM(MappingSteps, LoopClosing):
     """Semantic Gaussian-splatting RGB-D SLAM, fed frame by frame.
 
     The map frame is the first frame's pose: ``initial_c2w`` if given, else the ``odom_c2w`` passed
@@ -425,7 +365,7 @@ class SLAM:
 
     def _render(self, g: Gaussians, w2c: Tensor, plane: bool = True) -> RenderOutput:
         """Render ``g``; with ``plane`` and ``plane_depth`` the depth output blends each Gaussian's surface
-        plane (:func:`~semantic_gs_slam.tracking.plane_depth_features`) instead of its centre depth."""
+        plane (:func:`~semantic_gs_slam.tracking.tracker.plane_depth_features`) instead of its centre depth."""
         if not (plane and self._plane_depth_on()):
             return self.backend(g, w2c, self.k, self.cfg.renderer)
         means_c = g.means @ w2c[:3, :3].T + w2c[:3, 3]
@@ -448,132 +388,7 @@ class SLAM:
                           None if g.semantic is None or not semantic else g.semantic.detach())
             return self._render(g, w2c)
 
-    # ------------------------------------------------------------------ mapping
-    def _densify(self, idx: int, rgb: Tensor, depth: Tensor, sem: Tensor | None, c2w: np.ndarray,
-                 keyframe: bool = False) -> int:
-        mc = self.cfg.mapping
-        valid = depth > 0
-        fine = None
-        if sem is not None and mc.rare_label_fraction > 0:
-            # small objects: labels on few of this frame's valid pixels are seeded at every pixel
-            counts = torch.bincount(sem[valid].clamp_min(0), minlength=1)
-            rare = torch.nonzero((counts > 0) & (counts < mc.rare_label_fraction * max(int(valid.sum()), 1)))[:, 0]
-            rare = rare[rare > 0]
-            fine = torch.isin(sem, rare) & valid if rare.numel() else None
-        seed_depth, holes = depth, None
-        if mc.seed_holes:
-            seed_depth = fill_depth_holes(depth)
-            holes = ~valid & (seed_depth > 0)
-        if len(self.map) == 0:
-            mask = valid if holes is None else valid | holes
-        else:
-            want_sem = keyframe and fine is not None and mc.semantic_densify
-            out = self.render_view(c2w, semantic=want_sem)
-            err = (out.depth - depth).abs() * valid
-            med = float(err[valid].median()) if bool(valid.any()) else 0.0
-            behind = (out.depth > depth) & (err > mc.densify_depth_factor * med)
-            empty = out.silhouette < mc.densify_silhouette
-            mask = valid & (empty | behind)
-            if holes is not None:
-                mask = mask | (holes & empty)
-            if mc.exposure_compensation and (self.odom_poses[-1] is None or mc.exposure_with_odometry):
-                # the frame's exposure against the map rendered at its pose; the new
-                # Gaussians (and a keyframe's stored colour, _map_keyframe) take the map's exposure
-                self._exposure = fit_exposure(out.rgb, out.silhouette, rgb, depth)
-                rgb = to_map(rgb, self._exposure)
-            if want_sem and out.semantic is not None:
-                # where the map renders a small object's pixels with another label, add Gaussians there
-                pred = self.map.labels_from_features(out.semantic / out.silhouette.clamp_min(1e-6)[..., None])
-                mask = mask | (fine & (pred != sem))
-        stride = mc.keyframe_pixel_stride if keyframe and mc.keyframe_pixel_stride > 0 else mc.pixel_stride
-        pose = torch.as_tensor(c2w, dtype=torch.float32, device=self.device)
-        return self.map.add_from_frame(rgb, seed_depth, sem, pose, self.k, mask, stride, idx, mc.radius_factor,
-                                       mc.init_logit_opacity, fine)
-
-    def _window(self, current: Keyframe) -> list[Keyframe]:
-        n = self.cfg.mapping.window - 1
-        if n <= 0 or len(self.keyframes) <= 1:
-            return [current]
-        from semantic_gs_slam.geometry import backproject
-
-        k = self.k
-        pts = backproject(current.depth, k.fx, k.fy, k.cx, k.cy)[::8, ::8].reshape(-1, 3)
-        pts = pts[pts[:, 2] > 0].double()
-        world = pts @ current.c2w[:3, :3].T + current.c2w[:3, 3]
-        scores = []
-        for kf in self.keyframes[:-1]:
-            w2c = torch.linalg.inv(kf.c2w)
-            pc = world @ w2c[:3, :3].T + w2c[:3, 3]
-            z = pc[:, 2]
-            u = k.fx * pc[:, 0] / z + k.cx
-            v = k.fy * pc[:, 1] / z + k.cy
-            inside = (z > 0) & (u >= 0) & (u < k.width) & (v >= 0) & (v < k.height)
-            scores.append(float(inside.double().mean()))
-        order = [i for i in np.argsort(scores)[::-1] if scores[i] > 0]
-        r = min(self.cfg.mapping.window_random, n, max(len(order) - n, 0))
-        # `r` slots go to other overlapping keyframes drawn at random, so areas first seen long ago keep
-        # being optimised against their own views, not only against the latest (most overlapping) ones
-        rest = order[n - r:]
-        drawn = np.random.default_rng(current.index).choice(len(rest), r, replace=False) if r else []
-        pick = order[:n - r] + [rest[int(i)] for i in drawn]
-        return [current] + [self.keyframes[i] for i in pick]
-
-    def _close_loop(self, idx: int, depth: Tensor) -> str:
-        """Loop closure at a new keyframe (before it is added): register it against its most overlapping old
-        keyframes (``loop.candidates``); verified drift is logged, added to the pose graph as loop edges and
-        spread over the keyframes (poses, keyframe poses and the Gaussians they created move together).
-        Returns a note for the frame's log."""
-        lc = self.cfg.loop
-        n_kf = len(self.keyframes)
-        if not lc.enabled or n_kf < 2 or n_kf % lc.check_every or \
-                (self.odom_poses[-1] is not None and not lc.with_odometry):
-            return ""
-        matches = find_loops(depth, self.poses[-1], idx, self.keyframes, self.k, lc, self.cfg.tracking,
-                             [self.poses[kf.index] for kf in self.keyframes], self._icp_graphs)
-        notes, correct, usable = [], [], []
-        for m in matches:
-            verdict = m.verdict(lc)
-            notes.append(f"loop with frame {m.frame}: {verdict} ({m.correction_m * 100:.1f} cm, "
-                         f"{m.correction_deg:.2f} deg, agreement {m.agreement_before:.0%} -> {m.agreement_after:.0%})")
-            correct += [m] if verdict == "correct" else []
-            usable += [m] if verdict in ("correct", "consistent") else []
-        if correct:
-            m = correct[0]
-            log.warning("frame %d: drift found against the keyframe of frame %d: %.1f cm, %.2f deg; correcting the "
-                        "trajectory and the map", idx, m.frame, m.correction_m * 100, m.correction_deg)
-            self._apply_loop(idx, usable)  # verified registrations that agree with the tracking constrain too
-        return "; ".join(notes)
-
-    def _apply_loop(self, idx: int, matches: list[LoopMatch]) -> None:
-        """Add the current keyframe and the loop edges to the pose graph, optimise it, move poses and Gaussians."""
-        lc = self.cfg.loop
-        old = [self.poses[kf.index] for kf in self.keyframes] + [self.poses[-1]]  # host copies of the kf poses
-        cur = len(old) - 1
-        loops = [Edge(m.candidate, cur, np.linalg.inv(old[m.candidate]) @ m.c2w, lc.loop_sigma_rot,
-                      lc.loop_sigma_trans, "loop") for m in matches]
-        seq = Edge(cur - 1, cur, np.linalg.inv(old[cur - 1]) @ old[cur], lc.sigma_rot, lc.sigma_trans)
-        new, cost0, cost1 = optimise_graph(old, self.edges + [seq] + loops, fixed=0, iters=5)
-        self.edges.extend(loops)  # the loop edges stay; the sequential one is added with the keyframe
-        corr = [n @ np.linalg.inv(o) for n, o in zip(new, old, strict=True)]
-        if lc.own_correction_sigmas > 0 and cur > 0:  # a difference within the loop edges' noise is noise
-            extra_m, extra_deg = pose_error(corr[cur - 1] @ old[cur], new[cur])
-            if extra_m < lc.own_correction_sigmas * lc.loop_sigma_trans and \
-                    np.radians(extra_deg) < lc.own_correction_sigmas * lc.loop_sigma_rot:
-                corr[cur] = corr[cur - 1]
-                new[cur] = corr[cur] @ old[cur]
-        starts = [kf.index for kf in self.keyframes] + [idx]
-        self._move_frames(starts, corr)
-        for kf, n in zip(self.keyframes, new[:-1], strict=False):
-            kf.c2w = torch.as_tensor(n, device=self.device)
-        self.map.move_by_frame(torch.as_tensor(starts, dtype=torch.int64, device=self.device),
-                               torch.as_tensor(np.stack(corr), dtype=torch.float32, device=self.device))
-        et, er = pose_error(np.eye(4), corr[-1])
-        m = max(matches, key=lambda x: x.correction_m)
-        self.loops.append({"frame": idx, "with_frame": m.frame, "found_cm": m.correction_m * 100,
-                           "found_deg": m.correction_deg, "moved_cm": et * 100, "moved_deg": er,
-                           "agreement_before": m.agreement_before, "agreement_after": m.agreement_after,
-                           "edges": len(matches), "graph_cost_before": cost0, "graph_cost_after": cost1})
-
+    # ------------------------------------------------------------------ mapping (the steps: mapping/, loop/)
     def _map_keyframe(self, idx: int, rgb: Tensor, depth: Tensor, sem: Tensor | None) -> tuple[int, int, float]:
         mc = self.cfg.mapping
         self._loop_note = self._close_loop(idx, depth)
@@ -599,117 +414,6 @@ class SLAM:
             pruned = self.map.prune(mc.prune_opacity, mc.prune_max_scale)
             self._since_prune = 0
         return added, pruned, loss_v
-
-    def optimise(self, window: list[Keyframe], iters: int) -> float:
-        """Adam over all Gaussian parameters on the keyframes of ``window`` (cycled). Returns the last loss."""
-        return self._optimise(window, iters)[0]
-
-    def _optimise(self, window: list[Keyframe], iters: int, pose_deltas: list[tuple[Tensor, Tensor]] | None = None,
-                  should_stop: Callable[[], bool] | None = None) -> tuple[float, int]:
-        """:meth:`optimise`, returning (last loss, iterations done).
-
-        Args:
-            pose_deltas: per keyframe of ``window``, a rotation [3] (the vector part of a quaternion whose real
-                part is 1) and a translation [3], leaf tensors that require grad: keyframe ``j`` is rendered
-                at ``delta_j @ w2c_j`` and every delta but the first (the gauge) is optimised too, with the
-                tracking's photometric learning rates and :func:`pose_prior` (``mapping.refine_pose_prior``).
-                None: poses fixed.
-            should_stop: asked before each iteration (cheap next to a render); True ends the loop there.
-        """
-        if iters <= 0 or len(self.map) == 0:
-            return float("nan"), 0
-        mc = self.cfg.mapping
-        p = self.map.params
-        groups = [
-            {"params": [p["means3D"]], "lr": mc.lr_means}, {"params": [p["rgb_colors"]], "lr": mc.lr_rgb},
-            {"params": [p["unnorm_rotations"]], "lr": mc.lr_rotations},
-            {"params": [p["logit_opacities"]], "lr": mc.lr_opacity},
-            {"params": [p["log_scales"]], "lr": mc.lr_scales},
-            {"params": [p["semantic_features"]], "lr": mc.lr_semantic}]
-        if pose_deltas is not None and len(pose_deltas) > 1:
-            tc = self.cfg.tracking
-            groups += [{"params": [d[0] for d in pose_deltas[1:]], "lr": tc.photometric_lr_rot},
-                       {"params": [d[1] for d in pose_deltas[1:]], "lr": tc.photometric_lr_trans}]
-        opt = torch.optim.Adam(groups, fused=self.device.type == "cuda")  # on CUDA one kernel per step instead
-        # of ~50 (measured: 2.2 ms of host time per step at 1200x680, H200); the CPU keeps the default implementation
-        w2cs = [torch.linalg.inv(kf.c2w).float() for kf in window]
-        one = torch.ones(1, device=self.device)
-        sem_imgs = [None if kf.sem is None else self.map.one_hot(kf.sem) for kf in window]  # [H, W, C]
-        labelled = [None if kf.sem is None else (kf.sem > 0).float() for kf in window]
-        sem_w = [None if (kf.sem is None or mc.semantic_balance <= 0) else _class_balance(kf.sem, mc.semantic_balance)
-                 for kf in window]
-        loss = None
-        done = 0
-        for it in range(iters):
-            if should_stop is not None and should_stop():
-                break
-            j = it % len(window)
-            kf = window[j]
-            w2c = w2cs[j] if pose_deltas is None else \
-                w2c_from_quat_trans(torch.cat([one, pose_deltas[j][0]]), pose_deltas[j][1]) @ w2cs[j]
-            out = self._render(self.map.gaussians(), w2c, plane=mc.plane_depth_loss)
-            loss = mapping_loss(out, kf.rgb, kf.depth, sem_imgs[j], labelled[j], sem_w[j], mc)
-            if pose_deltas is not None and j > 0 and mc.refine_pose_prior > 0:
-                loss = loss + pose_prior(pose_deltas[j][0], pose_deltas[j][1], mc.refine_pose_prior)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            with torch.device(self.device):  # some torch versions (2.11) make Adam's step counter on the default device
-                opt.step()
-            done += 1
-        return (float(loss.detach()) if loss is not None else float("nan")), done  # one host copy per keyframe
-
-    def refine(self, iters: int, poses: bool = False,
-               should_stop: Callable[[], bool] | None = None) -> tuple[float, int]:
-        """Offline map refinement after the run: ``iters`` Adam steps cycling over all keyframes.
-
-        Args:
-            poses: also optimise the keyframes' poses (a bundle adjustment through the renderer; the first
-                keyframe stays where it is). Each keyframe's correction then moves the frames it starts, as a
-                loop closure moves them. False: poses fixed.
-            should_stop: asked before each iteration (a cancel request); True ends the refinement there,
-                and what is done is kept.
-
-        Returns:
-            (the last loss, iterations done); (NaN, 0) when there is nothing to do. With ``poses`` the loss
-            includes the pose prior (``mapping.refine_pose_prior``).
-        """
-        if not self.keyframes:
-            return float("nan"), 0
-        deltas = None
-        if poses:
-            deltas = [(torch.zeros(3, device=self.device, requires_grad=True),
-                       torch.zeros(3, device=self.device, requires_grad=True)) for _ in self.keyframes]
-        try:
-            loss, done = self._optimise(self.keyframes, iters, deltas, should_stop)
-        finally:  # the map was fitted at the moved poses: they go with it, also when an iteration raised
-            if deltas is not None:
-                self._apply_keyframe_deltas(deltas)
-        self.map.prune(self.cfg.mapping.prune_opacity, self.cfg.mapping.prune_max_scale)
-        return loss, done
-
-    def _apply_keyframe_deltas(self, deltas: list[tuple[Tensor, Tensor]]) -> None:
-        """Keyframe ``j`` moves to ``inv(delta_j @ w2c_j)``; every frame from it to the next keyframe takes the same
-        world correction (``new @ inv(old)``). A delta still at zero (the gauge, a keyframe never visited, no
-        iteration done) moves nothing, exactly."""
-        old = [self.poses[kf.index] for kf in self.keyframes]
-        corr = []
-        one = torch.ones(1, dtype=torch.float64, device=self.device)
-        with torch.no_grad():
-            for j, (kf, (dq, dt), o) in enumerate(zip(self.keyframes, deltas, old, strict=True)):
-                if j == 0 or not (bool(dq.any()) or bool(dt.any())):
-                    corr.append(np.eye(4))
-                    continue
-                d = w2c_from_quat_trans(torch.cat([one, dq.double()]), dt.double())
-                kf.c2w = torch.linalg.inv(d @ torch.linalg.inv(kf.c2w.double()))
-                corr.append(kf.c2w.cpu().numpy() @ np.linalg.inv(o))
-        self._move_frames([kf.index for kf in self.keyframes], corr)
-
-    def _move_frames(self, starts: list[int], corr: list[np.ndarray]) -> None:
-        """Frame ``f`` takes the world correction ``corr[k]`` ([4, 4]) of the last segment start ``starts[k] <= f``
-        (frames before the first start take the first)."""
-        for f in range(len(self.poses)):
-            slot = int(np.searchsorted(starts, f, side="right")) - 1
-            self.poses[f] = corr[max(slot, 0)] @ self.poses[f]
 
     # ------------------------------------------------------------------ output
     def semantic_ids(self) -> np.ndarray:

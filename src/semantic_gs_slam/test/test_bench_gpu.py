@@ -77,10 +77,12 @@ def test_frame_profiler_prints_stages_and_operators_on_cpu(tmp_path, capsys):
     out = capsys.readouterr().out
     assert rc == 0
     assert "torch.profiler over 2 frames" in out and "aten::" in out
+    import semantic_gs_slam.io.exposure as exposure
+    import semantic_gs_slam.mapping.steps as steps_mod
     import semantic_gs_slam.slam as slam_mod
-    import semantic_gs_slam.tracking as tracking
+    import semantic_gs_slam.tracking.tracker as tracking
 
-    assert slam_mod.icp is tracking.icp  # the engine's functions are put back
+    assert slam_mod.icp is tracking.icp and steps_mod.fit_exposure is exposure.fit  # the functions are put back
     rows = {line.split("|")[1].strip(): line for line in out.splitlines() if line.startswith("| ")}
     for stage in ("upload", "track", "icp", "densify", "keyframe.optimise", "frame (total)"):
         assert stage in rows, (stage, out)

@@ -37,7 +37,7 @@ def test_refine_poses_without_refinement_is_a_usage_error(tmp_path, capsys):
 
 
 def test_demo_map_builder_writes_a_map_object_query_reads(tmp_path):
-    from semantic_gs_slam.demo_map import build
+    from semantic_gs_slam.synthetic.demo_map import build
 
     out = tmp_path / "map"
     res = build(str(out), frames=8, width=80, height=45, refine_iters=5, threads=1, quiet=True)
@@ -78,7 +78,7 @@ def test_a_bad_frame_is_skipped_and_nothing_is_lost(tiny_home, tmp_path, capsys)
     assert "skipped 2 of 6 frames that could not be used (frame 2: " in cap.err
     assert "| ATE RMSE (cm, aligned) |" in cap.out and "| frames | 4 |" in cap.out
     gmap, classes, arr = SLAM.load_map(out)
-    from semantic_gs_slam.datasets import load_dataset
+    from semantic_gs_slam.io.datasets import load_dataset
 
     stamps = load_dataset(str(seq)).timestamps
     assert arr["cam_trans"].shape == (1, 3, 4) and list(arr["timestamps"]) == [stamps[i] for i in (0, 1, 3, 5)]

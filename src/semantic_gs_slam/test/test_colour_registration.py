@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from semantic_gs_slam import colour_registration as cr
-from semantic_gs_slam.datasets import load_dataset, resize_area
 from semantic_gs_slam.errors import DatasetError
+from semantic_gs_slam.io import calibrate_colour
+from semantic_gs_slam.io import colour_registration as cr
+from semantic_gs_slam.io.datasets import load_dataset, resize_area
 
 W, H = 160, 120
 DEPTH_K = (146.25, 146.25, 79.5, 59.5)  # a Kinect's 585 px at 640 wide, scaled to 160
@@ -164,13 +165,13 @@ def test_bad_calibration_files_are_reported(tmp_path, text, message):
 
 def test_cli_writes_the_file_the_loader_then_reads(tmp_path, capsys):
     _write_7scenes(tmp_path, n=4)
-    assert cr.main([str(tmp_path), "--frames", "4", "--size", "160x120"]) == 0
+    assert calibrate_colour.main([str(tmp_path), "--frames", "4", "--size", "160x120"]) == 0
     out = capsys.readouterr().out
     assert "wrote" in out and "registered" in out
     saved = cr.load(str(tmp_path / cr.CALIB_FILE))
     assert abs(saved.fx - TRUE.fx) < 4.0
     assert load_dataset(str(tmp_path)).colour_calib == saved
-    assert cr.main([str(tmp_path / "nope")]) == 2
+    assert calibrate_colour.main([str(tmp_path / "nope")]) == 2
 
 
 SHARED_7SCENES = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", "..", "..", "..", "shared", "data",

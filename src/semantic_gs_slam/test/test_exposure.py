@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 import torch
 
-from semantic_gs_slam import exposure
 from semantic_gs_slam.config import MappingConfig, SlamConfig, TrackingConfig
-from semantic_gs_slam.evaluate import evaluate
+from semantic_gs_slam.eval.evaluate import evaluate
+from semantic_gs_slam.io import exposure as exposure
 from semantic_gs_slam.slam import SLAM
 
 
@@ -58,7 +58,7 @@ def test_fit_returns_the_identity_when_it_cannot_judge_and_clamps_wild_gains():
 def _run(auto_exposure: bool, compensate: bool, odometry: bool = False, with_odometry: bool = False
          ) -> tuple[SLAM, list]:
     """The synthetic home (orbit), the camera's auto-exposure brightening frames 6.. by 30 % in red."""
-    from semantic_gs_slam.synthetic import HomeRenderer, default_intrinsics, trajectory
+    from semantic_gs_slam.synthetic.scenes import HomeRenderer, default_intrinsics, trajectory
 
     k = default_intrinsics(96, 54)
     ren = HomeRenderer(0)
@@ -83,7 +83,7 @@ class _Frames:
     """The minimal dataset evaluate() reads: indexable frames with rgb, depth, semantics, gt_c2w."""
 
     def __init__(self, frames):
-        from semantic_gs_slam.datasets import Frame
+        from semantic_gs_slam.io.datasets import Frame
 
         self.f = [Frame(i, float(i), rgb, depth, None, p) for i, (rgb, depth, p) in enumerate(frames)]
 

@@ -21,8 +21,8 @@ import torch
 
 from semantic_gs_slam.config import Intrinsics, RendererConfig
 from semantic_gs_slam.render import footprint, project, render_torch
-from semantic_gs_slam.render_gsplat import GSPLAT_TILE, gsplat_inputs, gsplat_intrinsics
-from semantic_gs_slam.render_types import Gaussians
+from semantic_gs_slam.render.gsplat_backend import GSPLAT_TILE, gsplat_inputs, gsplat_intrinsics
+from semantic_gs_slam.render.types import Gaussians
 
 torch_impl = pytest.importorskip("gsplat.cuda._torch_impl", reason="gsplat (CPU test dependency) not installed")
 

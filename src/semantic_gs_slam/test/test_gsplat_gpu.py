@@ -24,9 +24,9 @@ import torch
 
 from semantic_gs_slam.config import Intrinsics, RendererConfig
 from semantic_gs_slam.render import render_torch
-from semantic_gs_slam.render_gsplat import gsplat_available, render_gsplat
-from semantic_gs_slam.render_types import Gaussians
-from semantic_gs_slam.tracking import w2c_from_quat_trans
+from semantic_gs_slam.render.gsplat_backend import gsplat_available, render_gsplat
+from semantic_gs_slam.render.types import Gaussians
+from semantic_gs_slam.tracking.tracker import w2c_from_quat_trans
 
 pytestmark = pytest.mark.skipif(not gsplat_available(), reason="needs gsplat and a CUDA GPU")
 
@@ -112,7 +112,7 @@ def test_engine_runs_on_cuda_with_both_backends(tiny_home):
     import numpy as np
 
     from semantic_gs_slam.config import MappingConfig, SlamConfig
-    from semantic_gs_slam.datasets import load_dataset
+    from semantic_gs_slam.io.datasets import load_dataset
     from semantic_gs_slam.slam import SLAM
 
     ds = load_dataset(str(tiny_home))
@@ -136,8 +136,8 @@ def test_refinement_with_poses_runs_on_cuda(tiny_home):
     import numpy as np
 
     from semantic_gs_slam.config import MappingConfig, SlamConfig, TrackingConfig
-    from semantic_gs_slam.datasets import load_dataset
     from semantic_gs_slam.geometry import pose_error
+    from semantic_gs_slam.io.datasets import load_dataset
     from semantic_gs_slam.slam import SLAM
 
     ds = load_dataset(str(tiny_home))

@@ -25,7 +25,7 @@ from semantic_gs_slam.labels.geometry import (
 )
 from semantic_gs_slam.labels.names import main as names_main
 from semantic_gs_slam.labels.names import name_instance, read_names
-from semantic_gs_slam.synthetic import CLASS_ID, HomeRenderer, default_intrinsics, trajectory
+from semantic_gs_slam.synthetic.scenes import CLASS_ID, HomeRenderer, default_intrinsics, trajectory
 
 
 def _bfs_components(mask, join_h, join_v):
@@ -436,7 +436,7 @@ def test_name_by_place_takes_unlabelled_gaussians_and_several_classes(tmp_path, 
 
 # ----------------------------------------------------------------------------- CLI on a label-less real layout
 def test_cli_runs_a_7scenes_layout_with_geometry_labels(tiny_home, tmp_path, capsys):
-    from semantic_gs_slam.datasets import load_dataset
+    from semantic_gs_slam.io.datasets import load_dataset
     from semantic_gs_slam.run import main
 
     src = load_dataset(str(tiny_home))
@@ -476,8 +476,8 @@ def _seven_scenes_copy(src, seq, frames: int, hole: tuple[int, slice, slice] | N
 def test_name_by_pixel_of_a_frame_the_map_was_built_from(tiny_home, tmp_path, capsys):
     """``--frame N --pixel U V``: a pixel of the frame's colour image file, at the map's working size (half here),
     with the frame's depth and the map's own pose of that frame, matched by time stamp (every 2nd frame used)."""
-    from semantic_gs_slam.colour_registration import SEVEN_SCENES_COLOUR, scaled
-    from semantic_gs_slam.datasets import load_dataset
+    from semantic_gs_slam.io.colour_registration import SEVEN_SCENES_COLOUR, scaled
+    from semantic_gs_slam.io.datasets import load_dataset
     from semantic_gs_slam.labels.names import point_at_pixel
     from semantic_gs_slam.run import main
 

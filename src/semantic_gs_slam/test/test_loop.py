@@ -10,11 +10,11 @@ import torch
 
 from semantic_gs_slam.config import LoopConfig, MappingConfig, SlamConfig, TrackingConfig
 from semantic_gs_slam.errors import ConfigError
-from semantic_gs_slam.gaussian_map import GaussianMap
 from semantic_gs_slam.geometry import pose_error, quat_to_rotmat
-from semantic_gs_slam.posegraph import Edge, optimise, pose_exp, pose_log, so3_exp, so3_log
+from semantic_gs_slam.loop.posegraph import Edge, optimise, pose_exp, pose_log, so3_exp, so3_log
+from semantic_gs_slam.mapping.gaussian_map import GaussianMap
 from semantic_gs_slam.slam import SLAM
-from semantic_gs_slam.synthetic import HomeRenderer, default_intrinsics, trajectory
+from semantic_gs_slam.synthetic.scenes import HomeRenderer, default_intrinsics, trajectory
 
 
 def test_so3_log_inverts_exp_near_zero_and_near_pi():
@@ -57,7 +57,7 @@ def test_a_loop_edge_spreads_the_drift_of_biased_sequential_edges():
 
 
 def test_batched_residuals_equal_the_scalar_definition():
-    from semantic_gs_slam.posegraph import _residuals, _rigid_inv, edge_residual
+    from semantic_gs_slam.loop.posegraph import _residuals, _rigid_inv, edge_residual
 
     rng = np.random.default_rng(3)
     ti, tj, rel = (np.stack([pose_exp(np.r_[rng.normal(0, 1, 3), rng.normal(0, 2, 3)]) for _ in range(8)])

@@ -9,9 +9,9 @@ import pytest
 
 from semantic_gs_slam.config import MappingConfig, SlamConfig, TrackingConfig
 from semantic_gs_slam.geometry import pose_error
-from semantic_gs_slam.posegraph import pose_exp
+from semantic_gs_slam.loop.posegraph import pose_exp
 from semantic_gs_slam.slam import SLAM
-from semantic_gs_slam.synthetic import HomeRenderer, default_intrinsics, trajectory
+from semantic_gs_slam.synthetic.scenes import HomeRenderer, default_intrinsics, trajectory
 
 
 @pytest.fixture(scope="module")

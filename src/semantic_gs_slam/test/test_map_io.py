@@ -10,7 +10,7 @@ import torch
 
 from semantic_gs_slam.config import Intrinsics
 from semantic_gs_slam.errors import MapFormatError
-from semantic_gs_slam.gaussian_map import (
+from semantic_gs_slam.mapping.gaussian_map import (
     GaussianMap,
     export_ply,
     load_params,
@@ -175,7 +175,7 @@ def test_label_votes_follow_the_majority_over_views_and_skip_occluded_gaussians(
     import torch
 
     from semantic_gs_slam.config import Intrinsics
-    from semantic_gs_slam.gaussian_map import GaussianMap
+    from semantic_gs_slam.mapping.gaussian_map import GaussianMap
 
     k = Intrinsics(8, 8, 8.0, 8.0, 3.5, 3.5)
     m = GaussianMap()

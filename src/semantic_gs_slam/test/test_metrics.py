@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from semantic_gs_slam.metrics import ate_rmse, ate_sim3, class_iou, confusion, miou, rpe_rmse
+from semantic_gs_slam.eval.metrics import ate_rmse, ate_sim3, class_iou, confusion, miou, rpe_rmse
 
 
 def test_class_iou_and_miou_by_hand():
@@ -28,7 +28,7 @@ def test_depth_masked_psnr_is_splatams_definition_by_hand():
 
     import torch
 
-    from semantic_gs_slam.metrics import psnr, psnr_depth_masked
+    from semantic_gs_slam.eval.metrics import psnr, psnr_depth_masked
 
     gt = torch.zeros(2, 2, 3)
     img = torch.zeros(2, 2, 3)
@@ -47,7 +47,7 @@ def test_psnr_split_by_depth_by_hand():
     """PSNR over the pixels with depth and over those without, each its own MSE; NaN for an empty part."""
     import torch
 
-    from semantic_gs_slam.metrics import psnr_split
+    from semantic_gs_slam.eval.metrics import psnr_split
 
     gt = torch.zeros(2, 2, 3)
     img = gt.clone()

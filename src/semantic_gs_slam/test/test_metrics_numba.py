@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from semantic_gs_slam.devices import numba_available
-from semantic_gs_slam.metrics import ssim, ssim_reference
-from semantic_gs_slam.metrics_numba import ssim_numba
+from semantic_gs_slam.eval.metrics import ssim, ssim_reference
+from semantic_gs_slam.eval.metrics_numba import ssim_numba
 
 pytestmark = pytest.mark.skipif(not numba_available(), reason="numba not installed (the reference is used)")
 
@@ -33,7 +33,7 @@ def test_numba_ssim_of_an_image_with_itself_is_one():
 
 
 def test_ssim_picks_the_kernel_only_where_it_applies(monkeypatch):
-    import semantic_gs_slam.metrics as metrics
+    import semantic_gs_slam.eval.metrics as metrics
 
     calls = []
     monkeypatch.setattr(metrics, "ssim_numba", lambda *a: calls.append(1) or ssim_numba(*a))
@@ -59,8 +59,8 @@ def test_numba_ssim_refuses_what_it_cannot_do():
 
 def test_mapping_loss_follows_the_ssim_backend_setting():
     from semantic_gs_slam.config import ConfigError, MappingConfig
-    from semantic_gs_slam.render_types import RenderOutput
-    from semantic_gs_slam.slam import mapping_loss
+    from semantic_gs_slam.mapping.loss import mapping_loss
+    from semantic_gs_slam.render.types import RenderOutput
 
     gen = torch.Generator().manual_seed(3)
     out = RenderOutput(torch.rand(20, 24, 3, generator=gen), torch.rand(20, 24, generator=gen),

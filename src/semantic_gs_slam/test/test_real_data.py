@@ -9,7 +9,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from semantic_gs_slam.datasets import (
+from semantic_gs_slam.errors import DatasetError
+from semantic_gs_slam.geometry import quat_to_rotmat
+from semantic_gs_slam.io.datasets import (
     detect_layout,
     frame_indices,
     load_7scenes,
@@ -18,8 +20,6 @@ from semantic_gs_slam.datasets import (
     parse_size,
     resize_nearest,
 )
-from semantic_gs_slam.errors import DatasetError
-from semantic_gs_slam.geometry import quat_to_rotmat
 
 SHARED_7SCENES = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", "..", "..", "..", "shared", "data",
                                               "7scenes-redkitchen-0-499"))
@@ -247,7 +247,7 @@ def test_reference_agreement_bench_fits_the_camera_offset_and_removes_the_scale(
     assert "not in" in capsys.readouterr().err
     # a run's params.npz (here: the dataset's own poses, 5 cm off at one frame) adds its two rows
     from semantic_gs_slam.config import Intrinsics
-    from semantic_gs_slam.gaussian_map import GaussianMap, save_params
+    from semantic_gs_slam.mapping.gaussian_map import GaussianMap, save_params
 
     ours = [_pose(i) for i in range(8)]
     ours[3] = ours[3].copy()

@@ -9,7 +9,7 @@ from semantic_gs_slam.config import ConfigError, Intrinsics, RendererConfig
 from semantic_gs_slam.devices import numba_available
 from semantic_gs_slam.errors import BackendUnavailableError
 from semantic_gs_slam.render import Gaussians, render_torch, select_backend
-from semantic_gs_slam.render_numba import render_numba
+from semantic_gs_slam.render.numba_backend import render_numba
 
 pytestmark = pytest.mark.skipif(not numba_available(), reason="numba not installed (the reference is used)")
 
@@ -128,7 +128,7 @@ def test_numba_renders_from_three_python_threads_at_once():
         "import numba\n"
         "from semantic_gs_slam.config import Intrinsics, RendererConfig\n"
         "from semantic_gs_slam.render import Gaussians\n"
-        "from semantic_gs_slam.render_numba import render_numba\n"
+        "from semantic_gs_slam.render.numba_backend import render_numba\n"
         "torch.set_num_threads(2)\n"
         "gen = torch.Generator().manual_seed(6)\n"
         "n = 400\n"
@@ -190,8 +190,8 @@ def test_numba_missing_is_a_typed_error(monkeypatch):
 
 
 def test_compiled_binning_gives_the_reference_pairs_in_the_reference_order():
-    from semantic_gs_slam.render_numba import bin_pairs_numba
-    from semantic_gs_slam.render_tiles import bin_pairs_torch, tile_pairs
+    from semantic_gs_slam.render.numba_backend import bin_pairs_numba
+    from semantic_gs_slam.render.tiles import bin_pairs_torch, tile_pairs
 
     g = scene(n=500, seed=9, aniso=True)
     k = Intrinsics(61, 47, 50.0, 50.0, 30.0, 23.0)
@@ -233,22 +233,24 @@ def test_compiled_kernels_come_from_numba_s_disk_cache_in_a_new_process():
 
     code = (
         "import torch\n"
-        "from semantic_gs_slam import numba_kernels as nk\n"
+        "from semantic_gs_slam.eval import numba_kernels as ek\n"
+        "from semantic_gs_slam.render import numba_kernels as rk\n"
+        "from semantic_gs_slam.tracking import numba_kernels as tk\n"
         "from semantic_gs_slam.config import Intrinsics, RendererConfig, TrackingConfig\n"
-        "from semantic_gs_slam.metrics import ssim\n"
+        "from semantic_gs_slam.eval.metrics import ssim\n"
         "from semantic_gs_slam.render import Gaussians\n"
-        "from semantic_gs_slam.render_numba import render_numba\n"
+        "from semantic_gs_slam.render.numba_backend import render_numba\n"
         "g = Gaussians(torch.randn(30, 3) * 0.3 + torch.tensor([0, 0, 2.0]), torch.randn(30, 4),\n"
         "              torch.full((30, 1), -3.0), torch.zeros(30, 1), torch.rand(30, 3))\n"
         "g.means.requires_grad_(True)\n"
         "k = Intrinsics(16, 12, 15.0, 15.0, 7.5, 5.5)\n"
         "render_numba(g, torch.eye(4), k, RendererConfig()).rgb.sum().backward()\n"
         "ssim(torch.rand(12, 12, 3, requires_grad=True), torch.rand(12, 12, 3)).backward()\n"
-        "from semantic_gs_slam.tracking_numba import normal_equations_numba\n"
+        "from semantic_gs_slam.tracking.icp_numba import normal_equations_numba\n"
         "e, f = torch.eye(4, dtype=torch.float64), torch.zeros(12 * 16, 3, dtype=torch.float64)\n"
         "normal_equations_numba(e, f[:4], f[:4, 0] > 0, None, f, f, f[:, 0] > 0, None, e, k, TrackingConfig(), False)\n"
-        "fns = (nk.composite_forward, nk.composite_backward, nk.bin_pairs, nk.ssim_forward, nk.ssim_backward,\n"
-        "       nk.icp_accumulate)\n"
+        "fns = (rk.composite_forward, rk.composite_backward, rk.bin_pairs, ek.ssim_forward, ek.ssim_backward,\n"
+        "       tk.icp_accumulate)\n"
         "print(sum(len(f.stats.cache_hits) for f in fns), sum(len(f.stats.cache_misses) for f in fns))\n")
     runs = [subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
             for _ in range(2)]

@@ -9,8 +9,9 @@ import torch
 
 from semantic_gs_slam.config import Intrinsics, RendererConfig
 from semantic_gs_slam.errors import BackendUnavailableError
-from semantic_gs_slam.render import Gaussians, _Composite, render_reference
+from semantic_gs_slam.render import Gaussians, render_reference
 from semantic_gs_slam.render import render as _render
+from semantic_gs_slam.render.reference import _Composite
 
 K = Intrinsics(40, 30, 30.0, 30.0, 19.5, 14.5)
 

@@ -11,9 +11,9 @@ import pytest
 import torch
 
 from semantic_gs_slam.config import Intrinsics, MappingConfig, SlamConfig, TrackingConfig
-from semantic_gs_slam.datasets import load_dataset
 from semantic_gs_slam.errors import ConfigError, FrameError, MapFormatError
-from semantic_gs_slam.evaluate import evaluate
+from semantic_gs_slam.eval.evaluate import evaluate
+from semantic_gs_slam.io.datasets import load_dataset
 from semantic_gs_slam.slam import SLAM
 
 
@@ -210,7 +210,7 @@ def test_config_overrides_parse_each_fields_type():
 def test_window_keeps_the_most_overlapping_and_draws_older_ones(tiny_home):
     import torch
 
-    from semantic_gs_slam.slam import Keyframe
+    from semantic_gs_slam.mapping.steps import Keyframe
 
     ds = load_dataset(str(tiny_home))
     f = ds[0]
@@ -455,7 +455,7 @@ def test_a_new_view_is_a_keyframe_whatever_its_index(tiny_home):
 def test_keyframes_can_seed_denser_than_other_frames():
     """``mapping.keyframe_pixel_stride`` 1 seeds a keyframe (frame 0 is one) at every pixel: about 4x the
     Gaussians of the default every-2nd-pixel seeding; other frames keep ``pixel_stride``; negative is refused."""
-    from semantic_gs_slam.synthetic import HomeRenderer, default_intrinsics, trajectory
+    from semantic_gs_slam.synthetic.scenes import HomeRenderer, default_intrinsics, trajectory
 
     k = default_intrinsics(80, 45)
     pose = trajectory(10, 20.0)[0]
@@ -495,7 +495,7 @@ def test_fill_depth_holes_takes_the_surroundings_depth():
 def test_pixels_without_depth_are_mapped(seed_holes):
     """A band without depth (a real sensor's near limit) is seeded at the depth around it and so gets its colour
     in the map; without ``mapping.seed_holes`` nothing covers it."""
-    from semantic_gs_slam.synthetic import HomeRenderer, default_intrinsics, trajectory
+    from semantic_gs_slam.synthetic.scenes import HomeRenderer, default_intrinsics, trajectory
 
     k = default_intrinsics(80, 45)
     pose = trajectory(10, 20.0)[0]
@@ -591,7 +591,7 @@ def test_pose_prior_holds_keyframes_the_image_cannot_place(mapped_on_true_poses)
 
 
 def test_pose_prior_value_and_bad_weights():
-    from semantic_gs_slam.slam import pose_prior
+    from semantic_gs_slam.mapping.loss import pose_prior
 
     dq = torch.tensor([0.004, 0.0, 0.0])
     dt = torch.tensor([0.0, 0.01, 0.01])

@@ -11,8 +11,8 @@ from semantic_gs_slam.devices import numba_available
 from semantic_gs_slam.errors import TrackingError
 from semantic_gs_slam.geometry import pose_error, se3_exp
 from semantic_gs_slam.slam import SLAM
-from semantic_gs_slam.synthetic import HomeRenderer, default_intrinsics, trajectory
-from semantic_gs_slam.tracking import icp
+from semantic_gs_slam.synthetic.scenes import HomeRenderer, default_intrinsics, trajectory
+from semantic_gs_slam.tracking.tracker import icp
 
 
 @pytest.fixture(scope="module")
@@ -71,7 +71,7 @@ def test_photometric_refinement_lowers_its_loss(scene):
     """The Adam refinement (SplaTAM-style, optional) lowers its colour + depth loss from a perturbed pose.
     (On this map its minimum is not closer to the true pose than ICP's; it is off by default.)"""
     from semantic_gs_slam.config import RendererConfig
-    from semantic_gs_slam.tracking import photometric_loss, photometric_refine
+    from semantic_gs_slam.tracking.tracker import photometric_loss, photometric_refine
 
     eng, k, poses, frames = scene
     gt = torch.as_tensor(poses[0])
@@ -93,7 +93,7 @@ def test_plane_depth_is_unbiased_where_centre_depth_is_not():
     planes gives the true depth per pixel; blending their centre depths does not."""
     from semantic_gs_slam.config import Intrinsics, RendererConfig
     from semantic_gs_slam.render import Gaussians, render
-    from semantic_gs_slam.tracking import plane_depth_features, plane_depth_image
+    from semantic_gs_slam.tracking.tracker import plane_depth_features, plane_depth_image
 
     k = Intrinsics(64, 48, 40.0, 40.0, 31.5, 23.5)
     # camera 1 m above the floor y = 1 (camera y points down), looking along +z
@@ -121,7 +121,7 @@ def test_plane_depth_is_unbiased_where_centre_depth_is_not():
 def test_graph_solver_matches_lapack():
     """The capture-safe 6x6 solver (Gauss-Jordan, no pivoting) equals torch.linalg.solve on SPD systems as
     ill-conditioned as ICP's (prior 400 against data weights up to 1e8)."""
-    from semantic_gs_slam.tracking import _solve_spd6
+    from semantic_gs_slam.tracking.tracker import _solve_spd6
 
     gen = torch.Generator().manual_seed(0)
     for scale in (1.0, 1e4, 1e8):
@@ -137,7 +137,7 @@ def _problem(eng, k, pose, live):
     """An ICP problem as :func:`icp` builds it: the model rendered at ``pose``, the live frame ``live``'s points
     at pixel stride 2, intensity gradients of the rendered colour."""
     from semantic_gs_slam.geometry import backproject
-    from semantic_gs_slam.tracking import _IcpModel, _IcpPoints, normal_map
+    from semantic_gs_slam.tracking.tracker import _IcpModel, _IcpPoints, normal_map
 
     md, valid, out = model(eng, pose)
     g = torch.as_tensor(pose)
@@ -158,7 +158,7 @@ def _problem(eng, k, pose, live):
 def test_icp_step_is_the_same_with_either_solver(scene):
     """The step the CUDA graph captures (with the graph's solver) gives the eager step's pose and statistics,
     with and without the photometric term (which changes the step: the gradients are real)."""
-    from semantic_gs_slam.tracking import _icp_step, _solve_spd6
+    from semantic_gs_slam.tracking.tracker import _icp_step, _solve_spd6
 
     eng, k, poses, frames = scene
     pts, mdl = _problem(eng, k, poses[0], frames[1])
@@ -178,7 +178,7 @@ def test_chunk_of_steps_keeps_the_loop_rules_on_the_device(monkeypatch):
     """:func:`_icp_steps` with scripted steps: it accepts steps while steps are left, stops after a step below
     ``icp_min_step`` (that step still accepted), refuses a step with too few correspondences (not applied, its count
     reported), counts the steps left, and reports the last accepted step's statistics."""
-    from semantic_gs_slam import tracking
+    from semantic_gs_slam.tracking import tracker as tracking
 
     script = []
 
@@ -211,7 +211,7 @@ def test_icp_in_chunks_of_steps_equals_the_step_loop(scene, monkeypatch, case):
     """The CUDA graph's chunks of steps (run eagerly here: the capture itself needs a GPU) give the step loop's
     pose, residual and correspondences when the iterations run out, when a step gets below ``icp_min_step``
     mid-chunk, and the same TrackingError when the correspondences run out."""
-    from semantic_gs_slam import tracking
+    from semantic_gs_slam.tracking import tracker as tracking
 
     eng, k, poses, frames = scene
     md, valid, out = model(eng, poses[0])
@@ -271,7 +271,7 @@ def test_icp_in_chunks_of_steps_equals_the_step_loop(scene, monkeypatch, case):
 def test_icp_cuda_graph_matches_the_eager_step(scene):
     """On CUDA, ICP with each chunk of steps replayed from a captured graph gives the eager reference's pose, also
     on a second problem of the same shape (another model and live frame: the graph is reused with new inputs)."""
-    from semantic_gs_slam import tracking
+    from semantic_gs_slam.tracking import tracker as tracking
 
     eng, k, poses, frames = scene
     cuda = torch.device("cuda")
@@ -301,8 +301,8 @@ def test_icp_cuda_graph_matches_the_eager_step(scene):
 def test_icp_step_count_follows_its_settings(scene, monkeypatch):
     """``icp_min_step`` ends a level early, ``icp_row_points`` sets how many live points a step uses, and both
     are checked."""
-    from semantic_gs_slam import tracking
     from semantic_gs_slam.errors import ConfigError
+    from semantic_gs_slam.tracking import tracker as tracking
 
     eng, k, poses, frames = scene
     md, valid, out = model(eng, poses[0])
@@ -336,8 +336,8 @@ def test_icp_step_count_follows_its_settings(scene, monkeypatch):
 def test_numba_normal_equations_match_the_reference(scene):
     """The compiled CPU sums of an ICP step equal the tensor reference's, with and without the photometric term,
     from a start off the model's pose (so the geometric residuals, Huber weights and rejections all take part)."""
-    from semantic_gs_slam.tracking import icp_normal_equations
-    from semantic_gs_slam.tracking_numba import normal_equations_numba
+    from semantic_gs_slam.tracking.icp_numba import normal_equations_numba
+    from semantic_gs_slam.tracking.tracker import icp_normal_equations
 
     eng, k, poses, frames = scene
     pts, mdl = _problem(eng, k, poses[0], frames[1])
@@ -374,8 +374,8 @@ def test_icp_with_the_numba_sums_equals_the_reference(scene):
 
 def test_icp_backend_is_checked_and_a_missing_numba_is_a_typed_error(monkeypatch):
     import semantic_gs_slam.devices as devices
-    from semantic_gs_slam import tracking
     from semantic_gs_slam.errors import BackendUnavailableError, ConfigError
+    from semantic_gs_slam.tracking import tracker as tracking
 
     with pytest.raises(ConfigError, match="icp_backend"):
         TrackingConfig(icp_backend="fast").check()
@@ -395,7 +395,7 @@ def test_icp_backend_is_checked_and_a_missing_numba_is_a_typed_error(monkeypatch
 @pytest.mark.skipif(not numba_available(), reason="numba not installed (the reference is used)")
 def test_numba_icp_step_equals_the_reference_step(scene):
     """The whole fast step (compiled sums, prior, solve and pose update in numpy) against the tensor step."""
-    from semantic_gs_slam.tracking import _icp_step
+    from semantic_gs_slam.tracking.tracker import _icp_step
 
     eng, k, poses, frames = scene
     pts, mdl = _problem(eng, k, poses[0], frames[1])

@@ -155,7 +155,7 @@ def prepare_renderer(device: str, log: Callable[[str], None]) -> None:
         return
     from semantic_gs_slam.devices import resolve_device
     from semantic_gs_slam.errors import ConfigError
-    from semantic_gs_slam.render_gsplat import gsplat_available, load_gsplat_extension
+    from semantic_gs_slam.render.gsplat_backend import gsplat_available, load_gsplat_extension
 
     try:
         dev = resolve_device(device)

@@ -8,7 +8,7 @@ Any layout the SLAM core reads (Replica / NICE-SLAM, SGS-SLAM with semantics, TU
 
 ``size`` (``WIDTHxHEIGHT``, "" = the files' size) resizes every frame and scales the camera_info.
 ``colour_calib`` (``auto``, ``none`` or a file) re-samples colour into the depth camera's pixels where
-the recording did not register them (7-Scenes; see ``semantic_gs_slam.colour_registration``).
+the recording did not register them (7-Scenes; see ``semantic_gs_slam.io.colour_registration``).
 
 It publishes ``rgb`` (rgb8), ``depth`` (32FC1, metres), ``semantic`` (16UC1 ids, when the
 dataset has them) and ``camera_info`` with the dataset's timestamps, starting on
@@ -104,8 +104,8 @@ class SlamClient(Node):
             self._feedback = msg.feedback
 
     def run(self) -> int:
-        from semantic_gs_slam.datasets import frame_indices, load_dataset, parse_size
         from semantic_gs_slam.errors import MAX_BAD_IN_A_ROW, SlamError
+        from semantic_gs_slam.io.datasets import frame_indices, load_dataset, parse_size
 
         g = lambda name: self.get_parameter(name).value  # noqa: E731
         log = self.get_logger()

@@ -43,7 +43,7 @@ def test_prepare_renderer_loads_gsplat_before_the_server_is_ready(monkeypatch):
     pytest.importorskip("gsplat")
     import sys
 
-    import semantic_gs_slam.render_gsplat as rgm
+    import semantic_gs_slam.render.gsplat_backend as rgm
     from semantic_gs_slam_ros.engine import prepare_renderer
 
     lines: list[str] = []

@@ -12,7 +12,7 @@ import torch
 from semantic_gs_slam.config import MappingConfig, SlamConfig
 from semantic_gs_slam.labels import OBJECT_ID
 from semantic_gs_slam.slam import SLAM
-from semantic_gs_slam.synthetic import HomeRenderer, default_intrinsics, trajectory
+from semantic_gs_slam.synthetic.scenes import HomeRenderer, default_intrinsics, trajectory
 from semantic_gs_slam_ros.engine import EngineAdapter, make_engine, make_labels
 from semantic_gs_slam_ros.errors import StreamingError
 

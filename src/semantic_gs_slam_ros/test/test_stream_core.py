@@ -344,7 +344,7 @@ def test_session_counts_and_reports_lost_tracks_and_drift_corrections(tmp_path):
 def test_engine_adapter_reports_the_engines_last_frame():
     from semantic_gs_slam.config import SlamConfig
     from semantic_gs_slam.slam import SLAM
-    from semantic_gs_slam.synthetic import default_intrinsics
+    from semantic_gs_slam.synthetic.scenes import default_intrinsics
     from semantic_gs_slam_ros.engine import EngineAdapter
 
     k = default_intrinsics(32, 18)
@@ -360,7 +360,7 @@ def _engine_session(tmp_path, refine_iters: int, log: list[str], refine_poses: b
     """A session around the real engine (EngineAdapter + SLAM) fed four frames of the synthetic home."""
     from semantic_gs_slam.config import SlamConfig
     from semantic_gs_slam.slam import SLAM
-    from semantic_gs_slam.synthetic import HomeRenderer, default_intrinsics, trajectory
+    from semantic_gs_slam.synthetic.scenes import HomeRenderer, default_intrinsics, trajectory
     from semantic_gs_slam_ros.engine import EngineAdapter
     from semantic_gs_slam_ros.session import SessionConfig, StreamingSession
 
@@ -382,7 +382,7 @@ def _engine_session(tmp_path, refine_iters: int, log: list[str], refine_poses: b
 
 @pytest.mark.parametrize("poses", [False, True])
 def test_session_refines_the_map_before_writing_it(tmp_path, poses):
-    from semantic_gs_slam.gaussian_map import load_params
+    from semantic_gs_slam.mapping.gaussian_map import load_params
 
     log: list[str] = []
     session, engine = _engine_session(tmp_path, 25, log, refine_poses=poses)
@@ -461,7 +461,7 @@ def _labelled_engine_session(tmp_path, bad: set[int], n: int, log: list[str]):
     sends them), fed ``n`` frames of the synthetic home; the frames in ``bad`` have no depth at all."""
     from semantic_gs_slam.config import SlamConfig
     from semantic_gs_slam.slam import SLAM
-    from semantic_gs_slam.synthetic import HomeRenderer, default_intrinsics, trajectory
+    from semantic_gs_slam.synthetic.scenes import HomeRenderer, default_intrinsics, trajectory
     from semantic_gs_slam_ros.engine import EngineAdapter, make_labels
     from semantic_gs_slam_ros.session import SessionConfig, StreamingSession
 
@@ -505,7 +505,7 @@ def test_session_stops_after_refused_frames_in_a_row_and_writes_the_map(tmp_path
     assert not result.success and result.frames_processed == 2, result.message
     assert result.message.startswith("2 frames in a row could not be used (the last, frame 4:"), result.message
     assert engine.slam.timestamps == [0.0, 2.0]  # frame 5 was not processed
-    from semantic_gs_slam.gaussian_map import load_params
+    from semantic_gs_slam.mapping.gaussian_map import load_params
 
     assert len(load_params(result.map_path)["means3D"]) == engine.num_gaussians > 0  # the map of frames 0 and 2
 

@@ -30,7 +30,7 @@ tracking: {icp_iters: 6}
 @pytest.fixture(scope="module")
 def sequence(tmp_path_factory):
     """A synthetic home sequence in the Replica layout with semantic images (96×54, 8 frames)."""
-    from semantic_gs_slam.synthetic import generate
+    from semantic_gs_slam.synthetic.scenes import generate
 
     root = tmp_path_factory.mktemp("seq")
     generate(str(root / "home"), frames=8, width=96, height=54)
@@ -247,7 +247,7 @@ def test_client_streams_a_label_less_7scenes_sequence_server_labels_it(launch_no
     import numpy as np
     from PIL import Image
 
-    from semantic_gs_slam.datasets import load_dataset
+    from semantic_gs_slam.io.datasets import load_dataset
 
     src = load_dataset(str(sequence / "home"))
     seq = tmp_path / "seq-01"
@@ -284,7 +284,7 @@ def test_server_ends_the_run_after_frames_in_a_row_it_cannot_use_and_the_client_
     import numpy as np
     from PIL import Image
 
-    from semantic_gs_slam.datasets import load_dataset
+    from semantic_gs_slam.io.datasets import load_dataset
 
     src = load_dataset(str(sequence / "home"))
     seq = tmp_path / "seq-01"

@@ -5,9 +5,9 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 
+from decision_maker.planning.stop_words import is_stop_command
 from decision_maker.speech.errors import ConfigError
 from decision_maker.speech.text import normalise
-from decision_maker.stop_words import is_stop_command
 
 #: Phrases Whisper is known to produce from silence or noise (training-data artefacts).
 DEFAULT_BLOCKLIST: tuple[str, ...] = (

@@ -195,9 +195,9 @@ def point_at_pixel(map_dir: str, dataset: str, frame: int, pixel: tuple[float, f
     """
     from PIL import Image
 
-    from semantic_gs_slam.colour_registration import colour_coords, scaled
-    from semantic_gs_slam.datasets import load_dataset, scale_intrinsics
-    from semantic_gs_slam.gaussian_map import load_params, trajectory_from_params
+    from semantic_gs_slam.io.colour_registration import colour_coords, scaled
+    from semantic_gs_slam.io.datasets import load_dataset, scale_intrinsics
+    from semantic_gs_slam.mapping.gaussian_map import load_params, trajectory_from_params
 
     if window < 1 or window % 2 == 0:
         raise ValueError(f"window must be odd and >= 1, got {window}")

@@ -1,0 +1,7 @@
+"""Frames in: dataset loaders, colour registered to depth, exposure.
+
+* :mod:`.datasets` — the recording layouts the engine reads (Replica, TUM RGB-D, 7-Scenes ...).
+* :mod:`.colour_registration` — a second colour camera registered to the depth camera.
+* :mod:`.calibrate_colour` — its command (``python -m semantic_gs_slam.colour_registration DATASET``).
+* :mod:`.exposure` — per-frame exposure (gain and offset) against the map.
+"""

@@ -1,0 +1,518 @@
+"""RGB-D (+ semantic) dataset readers.
+
+Layouts:
+
+* ``replica`` — Replica as NICE-SLAM ships it: ``results/frame%06d.jpg``, ``results/depth%06d.png``
+  (16-bit, metres x 6553.5), ``traj.txt`` (one 4x4 camera-to-world matrix per line), 1200x680,
+  fx = fy = 600, cx = 599.5, cy = 339.5. Optional (our synthetic home adds them):
+  ``semantic/semantic%06d.png`` ids, ``cam.json`` intrinsics, ``semantic.json`` classes.
+* ``sgs`` — the Semantic-NeRF Replica renders SGS-SLAM uses: ``rgb/rgb_%d.png``,
+  ``depth/depth_%d.png`` (16-bit, depth_scale default 1000), ``semantic_class/semantic_class_%d.png``,
+  ``traj_w_c.txt`` (4x4 camera-to-world per line).
+* ``tum`` — TUM RGB-D: ``rgb.txt``, ``depth.txt``, ``groundtruth.txt`` (t tx ty tz qx qy qz qw),
+  depth scale 5000, rgb/depth/pose associated within 0.08 s.
+* ``7scenes`` — Microsoft 7-Scenes (one ``seq-XX`` folder): ``frame-XXXXXX.color.jpg``,
+  ``frame-XXXXXX.depth.png`` (16-bit millimetres, 0 or 65535 = invalid), ``frame-XXXXXX.pose.txt``
+  (4x4 camera-to-world), optional ``camera-intrinsics.txt`` (3x3 K; default fx = fy = 585,
+  cx = 320, cy = 240), 30 Hz. Colour and depth come from two unregistered cameras: expect the
+  colour a few pixels off the depth.
+
+Any layout can be read at a working size (:meth:`Dataset.resized`: colour area-averaged, depth and
+labels nearest-neighbour so no invalid zero is blended into a valid depth, intrinsics scaled).
+"""
+
+from __future__ import annotations
+
+import copy
+import glob
+import json
+import os
+import re
+from dataclasses import dataclass
+
+import numpy as np
+
+from semantic_gs_slam.config import Intrinsics
+from semantic_gs_slam.errors import DatasetError
+from semantic_gs_slam.io.colour_registration import CALIB_FILE, SEVEN_SCENES_COLOUR, ColourCalib, register, scaled
+from semantic_gs_slam.io.colour_registration import load as load_colour_calib
+
+REPLICA_INTRINSICS = Intrinsics(1200, 680, 600.0, 600.0, 599.5, 339.5)
+TUM_INTRINSICS = Intrinsics(640, 480, 525.0, 525.0, 319.5, 239.5)  # TUM "ROS default"
+SEVEN_SCENES_INTRINSICS = Intrinsics(640, 480, 585.0, 585.0, 320.0, 240.0)  # the Kinect v1 depth camera
+LAYOUTS = ("replica", "sgs", "tum", "7scenes")
+
+
+@dataclass
+class Frame:
+    """One RGB-D frame."""
+
+    index: int
+    timestamp: float
+    rgb: np.ndarray  # [H, W, 3] float32 in [0, 1]
+    depth: np.ndarray  # [H, W] float32 metres, 0 = missing
+    semantics: np.ndarray | None  # [H, W] int64 class ids, or None
+    gt_c2w: np.ndarray | None  # [4, 4] float64 or None
+
+
+class Dataset:
+    """A random-access sequence of :class:`Frame` (use ``len`` and indexing)."""
+
+    def __init__(self, intrinsics: Intrinsics, rgb_paths: list[str], depth_paths: list[str],
+                 sem_paths: list[str] | None, poses: list[np.ndarray] | None, timestamps: list[float],
+                 depth_scale: float, classes: dict[int, str] | None = None) -> None:
+        n = len(rgb_paths)
+        if n == 0:
+            raise DatasetError("dataset has no frames")
+        if len(depth_paths) != n:
+            raise DatasetError(f"{n} colour images but {len(depth_paths)} depth images")
+        if sem_paths is not None and len(sem_paths) != n:
+            raise DatasetError(f"{n} colour images but {len(sem_paths)} semantic images")
+        if poses is not None and len(poses) < n:
+            raise DatasetError(f"{n} frames but only {len(poses)} poses in the trajectory file")
+        self.intrinsics = intrinsics
+        self.rgb_paths, self.depth_paths, self.sem_paths = rgb_paths, depth_paths, sem_paths
+        self.poses, self.timestamps, self.depth_scale = poses, timestamps, depth_scale
+        self.classes = classes or {}
+        self.native_intrinsics = intrinsics  # the files' camera; ``intrinsics`` is the working one
+        self.invalid_depth_raw: int | None = None  # a raw depth value meaning "no depth" besides 0 (7-Scenes: 65535)
+        # the colour camera relative to the depth camera (native size) when colour is not registered to depth;
+        # frames are then re-sampled into the depth camera's pixels (:mod:`semantic_gs_slam.io.colour_registration`)
+        self.colour_calib: ColourCalib | None = None
+
+    def resized(self, width: int, height: int) -> Dataset:
+        """The same frames at a working size ``width`` x ``height`` (a shallow copy; the files are untouched).
+
+        The intrinsics are scaled per axis (pixel-centre convention); colour is area-averaged, depth and
+        labels are taken nearest-neighbour (a depth pixel is never blended with an invalid 0).
+
+        Raises:
+            DatasetError: a non-positive size.
+        """
+        if width <= 0 or height <= 0:
+            raise DatasetError(f"working size must be positive, got {width}x{height}")
+        out = copy.copy(self)
+        out.intrinsics = scale_intrinsics(self.native_intrinsics, width, height)
+        return out
+
+    def __len__(self) -> int:
+        return len(self.rgb_paths)
+
+    def __getitem__(self, i: int) -> Frame:
+        if not -len(self) <= i < len(self):
+            raise IndexError(i)
+        i = i % len(self)
+        rgb = _read_image(self.rgb_paths[i])
+        if rgb.ndim != 3 or rgb.shape[2] < 3:
+            raise DatasetError(f"{self.rgb_paths[i]}: expected a colour image, got shape {rgb.shape}")
+        rgb = rgb[..., :3].astype(np.float32) / 255.0
+        depth = _read_image(self.depth_paths[i])
+        if depth.ndim != 2:
+            raise DatasetError(f"{self.depth_paths[i]}: expected a single-channel depth image, got {depth.shape}")
+        if self.invalid_depth_raw is not None:
+            depth = np.where(depth == self.invalid_depth_raw, 0, depth)
+        depth = depth.astype(np.float32) / self.depth_scale
+        if depth.shape != rgb.shape[:2] and self.colour_calib is None:
+            raise DatasetError(f"frame {i}: colour {rgb.shape[:2]} and depth {depth.shape} sizes differ")
+        sem = None
+        if self.sem_paths is not None:
+            sem = _read_image(self.sem_paths[i])
+            if sem.ndim == 3:
+                sem = sem[..., 0]
+            if sem.shape != depth.shape:
+                raise DatasetError(f"frame {i}: semantic {sem.shape} and depth {depth.shape} sizes differ")
+            sem = sem.astype(np.int64)
+        k = self.native_intrinsics
+        if depth.shape != (k.height, k.width):
+            raise DatasetError(f"frame {i}: image {depth.shape[1]}x{depth.shape[0]} does not match the intrinsics "
+                               f"{k.width}x{k.height}")
+        w = self.intrinsics
+        sx, sy = w.width / k.width, w.height / k.height
+        native_rgb = rgb.shape[1], rgb.shape[0]
+        if (w.width, w.height) != (k.width, k.height):
+            cw, ch = round(rgb.shape[1] * sx), round(rgb.shape[0] * sy)
+            rgb = rgb if (cw, ch) == (rgb.shape[1], rgb.shape[0]) else resize_area(rgb, cw, ch)
+            depth = resize_nearest(depth, w.width, w.height)
+            sem = None if sem is None else resize_nearest(sem, w.width, w.height)
+        if self.colour_calib is not None:  # at the working size: the colour camera's pixels -> the depth camera's
+            c = self.colour_calib  # for colour images of c.width x c.height (0: the files' size)
+            rgb = register(rgb, depth, w.fx, w.fy, w.cx, w.cy, scaled(c, rgb.shape[1] / (c.width or native_rgb[0]),
+                                                                     rgb.shape[0] / (c.height or native_rgb[1])))
+        pose = None if self.poses is None else self.poses[i]
+        return Frame(i, self.timestamps[i], rgb, depth, sem, pose)
+
+
+def scale_intrinsics(k: Intrinsics, width: int, height: int) -> Intrinsics:
+    """``k`` for the image resized to ``width`` x ``height`` (per-axis factors, pixel-centre convention)."""
+    sx, sy = width / k.width, height / k.height
+    return Intrinsics(width, height, k.fx * sx, k.fy * sy, (k.cx + 0.5) * sx - 0.5, (k.cy + 0.5) * sy - 0.5)
+
+
+def resize_area(img: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Resize a float image [H, W, C] by box (area) filtering (PIL, per channel in float32)."""
+    from PIL import Image
+
+    chans = [np.asarray(Image.fromarray(np.ascontiguousarray(img[..., c], np.float32), mode="F")
+                        .resize((width, height), Image.Resampling.BOX)) for c in range(img.shape[2])]
+    return np.stack(chans, -1).astype(np.float32)
+
+
+def resize_nearest(img: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Nearest-neighbour resize of a 2-D array [H, W] (depth, ids): the sample at each output pixel centre."""
+    h, w = img.shape[:2]
+    ys = np.minimum(((np.arange(height) + 0.5) * h / height).astype(np.int64), h - 1)
+    xs = np.minimum(((np.arange(width) + 0.5) * w / width).astype(np.int64), w - 1)
+    return img[ys[:, None], xs[None, :]]
+
+
+def frame_indices(n: int, start: int = 0, stride: int = 1, frames: int = 0, stop: int = 0) -> list[int]:
+    """Dataset indices: ``start``, ``start + stride``, ... below ``stop`` (0: the end), at most ``frames`` (0: all).
+
+    Raises:
+        DatasetError: negative values, ``stride < 1`` or a range that selects no frame.
+    """
+    if stride < 1 or start < 0 or frames < 0 or stop < 0:
+        raise DatasetError(f"need stride >= 1 and start, frames, stop >= 0; got stride={stride} start={start} "
+                           f"frames={frames} stop={stop}")
+    idx = list(range(start, min(stop, n) if stop else n, stride))
+    if frames:
+        idx = idx[:frames]
+    if not idx:
+        raise DatasetError(f"no frames selected: the dataset has {n} frames, start={start} stop={stop}")
+    return idx
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    """``"320x240"`` -> (320, 240).
+
+    Raises:
+        DatasetError: anything else.
+    """
+    m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
+    if not m or int(m.group(1)) <= 0 or int(m.group(2)) <= 0:
+        raise DatasetError(f"size must be WIDTHxHEIGHT, e.g. 320x240; got {text!r}")
+    return int(m.group(1)), int(m.group(2))
+
+
+def _read_image(path: str) -> np.ndarray:
+    from PIL import Image
+
+    if not os.path.isfile(path):
+        raise DatasetError(f"missing image file: {path}")
+    try:
+        with Image.open(path) as im:
+            return np.array(im)
+    except OSError as exc:
+        raise DatasetError(f"{path}: unreadable image ({exc})") from exc
+
+
+def _read_c2w_lines(path: str) -> list[np.ndarray]:
+    if not os.path.isfile(path):
+        raise DatasetError(f"missing trajectory file: {path}")
+    poses = []
+    with open(path) as fh:
+        for ln, line in enumerate(fh, 1):
+            if not line.strip():
+                continue
+            try:
+                vals = np.array([float(x) for x in line.split()])
+            except ValueError as exc:
+                raise DatasetError(f"{path}:{ln}: not numbers ({exc})") from exc
+            if vals.size != 16:
+                raise DatasetError(f"{path}:{ln}: expected 16 numbers (a 4x4 matrix), got {vals.size}")
+            m = vals.reshape(4, 4)
+            if not np.all(np.isfinite(m)):
+                raise DatasetError(f"{path}:{ln}: non-finite pose")
+            poses.append(m)
+    return poses
+
+
+def _numbered(folder: str, pattern: str) -> list[str]:
+    return [p for _, p in _numbered_with_ids(folder, pattern)]
+
+
+def _read_classes(root: str) -> dict[int, str]:
+    p = os.path.join(root, "semantic.json")
+    if not os.path.isfile(p):
+        return {}
+    try:
+        with open(p) as fh:
+            return {int(e["id"]): str(e["class"]) for e in json.load(fh)["segmentation"]}
+    except (ValueError, KeyError, TypeError) as exc:
+        raise DatasetError(f"{p}: not in the {{'segmentation': [{{'id', 'class'}}]}} schema ({exc})") from exc
+
+
+def _read_cam(root: str, default: Intrinsics) -> tuple[Intrinsics, float | None]:
+    p = os.path.join(root, "cam.json")
+    if not os.path.isfile(p):
+        return default, None
+    with open(p) as fh:
+        c = json.load(fh)
+    try:
+        k = Intrinsics(int(c["width"]), int(c["height"]), float(c["fx"]), float(c["fy"]),
+                       float(c["cx"]), float(c["cy"]))
+    except KeyError as exc:
+        raise DatasetError(f"{p}: missing key {exc}") from exc
+    return k, c.get("depth_scale")
+
+
+def load_replica(root: str, intrinsics: Intrinsics | None = None, depth_scale: float = 6553.5) -> Dataset:
+    """Replica in the NICE-SLAM layout (see module docstring).
+
+    Raises:
+        DatasetError: missing folder/files, counts that do not match.
+    """
+    res = os.path.join(root, "results")
+    if not os.path.isdir(res):
+        raise DatasetError(f"not a Replica (NICE-SLAM) folder: {res} is missing")
+    rgb = _numbered(res, r"frame(\d+)\.(?:jpg|png)")
+    depth = _numbered(res, r"depth(\d+)\.png")
+    sem_dir = os.path.join(root, "semantic")
+    sem = _numbered(sem_dir, r"semantic(\d+)\.png") if os.path.isdir(sem_dir) else None
+    poses = _read_c2w_lines(os.path.join(root, "traj.txt"))
+    k, ds = _read_cam(root, REPLICA_INTRINSICS)
+    return Dataset(intrinsics or k, rgb, depth, sem or None, poses, [float(i) for i in range(len(rgb))],
+                   ds or depth_scale, _read_classes(root))
+
+
+def load_sgs(root: str, intrinsics: Intrinsics | None = None, depth_scale: float = 1000.0) -> Dataset:
+    """Replica as SGS-SLAM / Semantic-NeRF lay it out (see module docstring)."""
+    for sub in ("rgb", "depth"):
+        if not os.path.isdir(os.path.join(root, sub)):
+            raise DatasetError(f"not an SGS-SLAM Replica folder: {os.path.join(root, sub)} is missing")
+    rgb = _numbered(os.path.join(root, "rgb"), r"rgb_(\d+)\.(?:png|jpg)")
+    depth = _numbered(os.path.join(root, "depth"), r"depth_(\d+)\.png")
+    sd = os.path.join(root, "semantic_class")
+    sem = _numbered(sd, r"semantic_class_(\d+)\.png") if os.path.isdir(sd) else None
+    poses = _read_c2w_lines(os.path.join(root, "traj_w_c.txt"))
+    k, ds = _read_cam(root, REPLICA_INTRINSICS)
+    return Dataset(intrinsics or k, rgb, depth, sem or None, poses, [float(i) for i in range(len(rgb))],
+                   ds or depth_scale, _read_classes(root))
+
+
+def _read_tum_list(path: str) -> list[tuple[float, list[str]]]:
+    if not os.path.isfile(path):
+        raise DatasetError(f"missing TUM list file: {path}")
+    out = []
+    with open(path) as fh:
+        for ln, line in enumerate(fh, 1):
+            line = line.strip()
+            if not line or line.startswith("#"):
+                continue
+            parts = line.split()
+            try:
+                out.append((float(parts[0]), parts[1:]))
+            except ValueError as exc:
+                raise DatasetError(f"{path}:{ln}: bad timestamp ({exc})") from exc
+    return out
+
+
+def _quat_pose(v: list[str]) -> np.ndarray:
+    import torch
+
+    from semantic_gs_slam.geometry import quat_to_rotmat
+
+    tx, ty, tz, qx, qy, qz, qw = (float(x) for x in v[:7])
+    m = np.eye(4)
+    m[:3, :3] = quat_to_rotmat(torch.tensor([qw, qx, qy, qz], dtype=torch.float64)).numpy()
+    m[:3, 3] = (tx, ty, tz)
+    return m
+
+
+def load_colmap_poses(path: str) -> dict[str, np.ndarray]:
+    """Camera poses in COLMAP's pose convention, one image per line: ``NAME QW QX QY QZ TX TY TZ [more]``, the
+    quaternion and translation of the world-to-camera transform, the name first (the layout of the 7-Scenes /
+    12-Scenes pseudo ground truth of Brachmann et al., ICCV 2021). COLMAP's own ``images.txt`` is not this layout (id
+    first, name last, a line of points after each). ``#`` comments and blank lines are skipped.
+
+    Returns:
+        image name -> camera-to-world [4, 4].
+
+    Raises:
+        DatasetError: missing file, or a line that is not a name and seven numbers (its number is named).
+    """
+    if not os.path.isfile(path):
+        raise DatasetError(f"missing pose file: {path}")
+    out: dict[str, np.ndarray] = {}
+    with open(path) as fh:
+        for ln, line in enumerate(fh, 1):
+            parts = line.split()
+            if not parts or parts[0].startswith("#"):
+                continue
+            try:
+                if len(parts) < 8:
+                    raise ValueError(f"{len(parts)} fields, need NAME QW QX QY QZ TX TY TZ")
+                qw, qx, qy, qz, tx, ty, tz = (float(x) for x in parts[1:8])
+                w2c = _quat_pose(parts[5:8] + parts[2:5] + parts[1:2])  # TUM's order: t, then x y z w
+                if not np.isfinite(w2c).all() or abs(np.linalg.norm([qw, qx, qy, qz]) - 1) > 1e-3:
+                    raise ValueError("not a unit quaternion")
+            except ValueError as exc:
+                raise DatasetError(f"{path}:{ln}: bad pose line ({exc})") from exc
+            out[parts[0]] = np.linalg.inv(w2c)
+    return out
+
+
+def associate(a: list[float], b: list[float], max_dt: float) -> list[tuple[int, int]]:
+    """Greedy nearest-timestamp association (each element used once), pairs sorted by ``a`` index."""
+    bs = np.asarray(b)
+    used: set[int] = set()
+    pairs = []
+    for i, t in enumerate(a):
+        if len(bs) == 0:
+            break
+        j = int(np.argmin(np.abs(bs - t)))
+        if abs(bs[j] - t) <= max_dt and j not in used:
+            used.add(j)
+            pairs.append((i, j))
+    return pairs
+
+
+def load_tum(root: str, intrinsics: Intrinsics | None = None, depth_scale: float = 5000.0,
+             max_dt: float = 0.08) -> Dataset:
+    """TUM RGB-D (``rgb.txt``, ``depth.txt``, ``groundtruth.txt``), associated within ``max_dt`` seconds."""
+    rgb = _read_tum_list(os.path.join(root, "rgb.txt"))
+    depth = _read_tum_list(os.path.join(root, "depth.txt"))
+    gt_path = os.path.join(root, "groundtruth.txt")
+    gt = _read_tum_list(gt_path) if os.path.isfile(gt_path) else None
+    pairs = associate([t for t, _ in rgb], [t for t, _ in depth], max_dt)
+    rgb_p, depth_p, poses, times = [], [], [], []
+    for i, j in pairs:
+        pose = None
+        if gt is not None:
+            k = int(np.argmin(np.abs(np.array([t for t, _ in gt]) - rgb[i][0])))
+            if abs(gt[k][0] - rgb[i][0]) > max_dt:
+                continue
+            pose = _quat_pose(gt[k][1])
+        rgb_p.append(os.path.join(root, rgb[i][1][0]))
+        depth_p.append(os.path.join(root, depth[j][1][0]))
+        poses.append(pose)
+        times.append(rgb[i][0])
+    if not rgb_p:
+        raise DatasetError(f"{root}: no colour/depth{'/pose' if gt else ''} triples within {max_dt} s")
+    return Dataset(intrinsics or TUM_INTRINSICS, rgb_p, depth_p, None, poses if gt is not None else None, times,
+                   depth_scale)
+
+
+def _read_k_txt(path: str, width: int, height: int) -> Intrinsics:
+    """7-Scenes ``camera-intrinsics.txt``: a 3x3 K matrix (rows on lines) of ``width`` x ``height`` images."""
+    try:
+        vals = np.loadtxt(path, dtype=np.float64)
+    except ValueError as exc:
+        raise DatasetError(f"{path}: not a 3x3 matrix of numbers ({exc})") from exc
+    if vals.shape != (3, 3) or not np.all(np.isfinite(vals)):
+        raise DatasetError(f"{path}: expected a 3x3 K matrix, got shape {vals.shape}")
+    return Intrinsics(width, height, float(vals[0, 0]), float(vals[1, 1]), float(vals[0, 2]), float(vals[1, 2]))
+
+
+def _read_c2w_file(path: str) -> np.ndarray:
+    try:
+        m = np.loadtxt(path, dtype=np.float64)
+    except ValueError as exc:
+        raise DatasetError(f"{path}: not a 4x4 matrix of numbers ({exc})") from exc
+    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
+        raise DatasetError(f"{path}: expected a finite 4x4 camera-to-world matrix, got shape {m.shape}")
+    return m
+
+
+def load_7scenes(root: str, intrinsics: Intrinsics | None = None, depth_scale: float = 1000.0,
+                 fps: float = 30.0) -> Dataset:
+    """One 7-Scenes sequence folder (see module docstring); timestamps are ``index / fps``.
+
+    Raises:
+        DatasetError: no frames, colour/depth/pose files that do not pair up, bad pose or K files.
+    """
+    rgb = dict(_numbered_with_ids(root, r"frame-(\d+)\.color\.(?:jpg|png)"))
+    depth = dict(_numbered_with_ids(root, r"frame-(\d+)\.depth\.png"))
+    pose = dict(_numbered_with_ids(root, r"frame-(\d+)\.pose\.txt"))
+    if not rgb:
+        seqs = sorted(d for d in os.listdir(root) if d.startswith("seq-")) if os.path.isdir(root) else []
+        hint = f" (it has {', '.join(seqs)}: give one of them)" if seqs else ""
+        raise DatasetError(f"{root}: no frame-XXXXXX.color.jpg files{hint}")
+    ids = sorted(rgb)
+    missing = [i for i in ids if i not in depth]
+    if missing:
+        raise DatasetError(f"{root}: {len(missing)} colour frames have no depth image (first: frame {missing[0]})")
+    poses = None
+    if pose:
+        missing = [i for i in ids if i not in pose]
+        if missing:
+            raise DatasetError(f"{root}: {len(missing)} frames have no pose file (first: frame {missing[0]})")
+        poses = [_read_c2w_file(pose[i]) for i in ids]
+    kp = os.path.join(root, "camera-intrinsics.txt")
+    if intrinsics is None and os.path.isfile(kp):
+        h, w = _read_image(depth[ids[0]]).shape[:2]  # the K file does not say the image size
+        intrinsics = _read_k_txt(kp, w, h)
+    k = intrinsics or SEVEN_SCENES_INTRINSICS
+    ds = Dataset(k, [rgb[i] for i in ids], [depth[i] for i in ids], None, poses, [i / fps for i in ids],
+                 depth_scale)
+    ds.invalid_depth_raw = 65535
+    ds.colour_calib = SEVEN_SCENES_COLOUR  # one Kinect v1 recorded the dataset; load_dataset may replace it
+    return ds
+
+
+def _numbered_with_ids(folder: str, pattern: str) -> list[tuple[int, str]]:
+    rx = re.compile(pattern)
+    out = []
+    for p in glob.glob(os.path.join(folder, "*")):
+        m = rx.fullmatch(os.path.basename(p))
+        if m:
+            out.append((int(m.group(1)), p))
+    return sorted(out)
+
+
+def detect_layout(root: str) -> str:
+    """The layout of a dataset folder (one of :data:`LAYOUTS`), told by its files.
+
+    Raises:
+        DatasetError: no known layout.
+    """
+    if os.path.isdir(os.path.join(root, "results")):
+        return "replica"
+    if os.path.isdir(os.path.join(root, "rgb")) and os.path.isfile(os.path.join(root, "traj_w_c.txt")):
+        return "sgs"
+    if os.path.isfile(os.path.join(root, "rgb.txt")):
+        return "tum"
+    if glob.glob(os.path.join(root, "frame-*.color.*")):
+        return "7scenes"
+    raise DatasetError(f"{root}: cannot tell the layout (no results/, rgb/+traj_w_c.txt, rgb.txt or "
+                       f"frame-XXXXXX.color.jpg)")
+
+
+def load_dataset(root: str, layout: str = "auto", intrinsics: Intrinsics | None = None,
+                 size: tuple[int, int] | None = None, colour_calib: str = "auto") -> Dataset:
+    """Open a dataset folder; ``layout`` is ``auto`` or one of :data:`LAYOUTS`.
+
+    Args:
+        root: the folder.
+        layout: ``auto`` tells it from the files (:func:`detect_layout`).
+        intrinsics: overrides the layout's (native-size) camera.
+        size: (width, height) working size; frames are resized and the intrinsics scaled (None: native).
+        colour_calib: how colour meets depth. ``"auto"``: the folder's ``colour-calibration.json`` when
+            present, else the layout's default (7-Scenes: ``colour_registration.SEVEN_SCENES_COLOUR``; the
+            others are registered already); ``"none"``: colour taken as registered; else a calibration
+            file's path (``python -m semantic_gs_slam.colour_registration`` writes one).
+
+    Raises:
+        DatasetError: missing folder, unknown layout, bad files, a bad calibration file.
+    """
+    if not os.path.isdir(root):
+        raise DatasetError(f"dataset folder not found: {root}")
+    ds = _load(root, layout, intrinsics)
+    if colour_calib == "auto":
+        own = os.path.join(root, CALIB_FILE)
+        if os.path.isfile(own):
+            ds.colour_calib = load_colour_calib(own)
+    elif colour_calib == "none":
+        ds.colour_calib = None
+    else:
+        ds.colour_calib = load_colour_calib(colour_calib)
+    return ds.resized(*size) if size is not None else ds
+
+
+def _load(root: str, layout: str, intrinsics: Intrinsics | None) -> Dataset:
+    if layout == "auto":
+        layout = detect_layout(root)
+    loaders = {"replica": load_replica, "sgs": load_sgs, "tum": load_tum, "7scenes": load_7scenes}
+    if layout not in loaders:
+        raise DatasetError(f"unknown layout {layout!r}; use one of {sorted(loaders)} or 'auto'")
+    return loaders[layout](root, intrinsics)
