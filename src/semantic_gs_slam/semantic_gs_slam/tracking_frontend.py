@@ -171,6 +171,14 @@ def _check_image(name: str, img: np.ndarray | None, k: Intrinsics, channels: int
     return img.astype(np.float64, copy=False)
 
 
+def _use_numba(cfg: FrontendConfig) -> bool:
+    if cfg.backend == "numba":
+        if not numba_available():
+            raise ConfigError("backend 'numba' needs the numba package; set it to 'auto' or 'numpy'")
+        return True
+    return cfg.backend == "auto" and numba_available()
+
+
 def _pyramid_cameras(k: Intrinsics, levels: int) -> list[Intrinsics]:
     cams = [k]
     for _ in range(1, levels):
@@ -190,6 +198,14 @@ def _half_depth(depth: np.ndarray, jump: float) -> np.ndarray:
     lo, hi = c.min(-1), c.max(-1)
     mean = c.mean(-1)
     return np.where((lo > 0) & (hi - lo < jump * mean), mean, 0.0)
+
+
+def _half(depth: np.ndarray, jump: float, fast: bool) -> np.ndarray:
+    if not fast:
+        return _half_depth(depth, jump)
+    out = np.empty((depth.shape[0] // 2, depth.shape[1] // 2))
+    _fast().half_depth(depth, float(jump), out)
+    return out
 
 
 def _backproject(depth: np.ndarray, k: Intrinsics) -> np.ndarray:
@@ -254,17 +270,27 @@ def build_reference(depth: np.ndarray, c2w: np.ndarray, k: Intrinsics, cfg: Fron
     normals = _check_image("normals", normals, k, 3)
     d = np.where((d >= cfg.depth_min) & (d <= cfg.depth_max), d, 0.0)
     r, t = c2w[:3, :3], c2w[:3, 3]
+    fast = _use_numba(cfg)
     levels = []
     for lv, cam in enumerate(_pyramid_cameras(k, cfg.levels)):
         if lv > 0:
-            d = _half_depth(d, cfg.depth_jump)
-        vc = _backproject(d, cam)
+            d = _half(d, cfg.depth_jump, fast)
         valid = d > 0
-        if lv == 0 and normals is not None:
-            nc = normals
-            nok = valid & (np.abs(np.linalg.norm(nc, axis=-1) - 1) < 1e-2)
+        rad = cfg.normal_radius if lv == 0 else 1
+        if fast:
+            n_px = cam.width * cam.height
+            vw, nw, nok = np.empty((n_px, 3)), np.empty((n_px, 3)), np.empty(n_px, np.bool_)
+            _fast().model_level(d, float(cam.fx), float(cam.fy), float(cam.cx), float(cam.cy), c2w, rad,
+                                float(cfg.depth_jump), vw, nw, nok)
         else:
-            nc, nok = _normals(vc, valid, cfg.normal_radius if lv == 0 else 1, cfg.depth_jump)
+            vc = _backproject(d, cam)
+            nc, nok2 = _normals(vc, valid, rad, cfg.depth_jump)
+            vw = np.where(valid.reshape(-1, 1), vc.reshape(-1, 3) @ r.T + t, 0.0)
+            nw = nc.reshape(-1, 3) @ r.T
+            nok = nok2.reshape(-1)
+        if lv == 0 and normals is not None:
+            nok = (valid & (np.abs(np.linalg.norm(normals, axis=-1) - 1) < 1e-2)).reshape(-1)
+            nw = np.where(nok[:, None], normals.reshape(-1, 3) @ r.T, 0.0)
         col = None
         if lv == 0 and rgb is not None and cfg.photometric_weight > 0:
             im = _intensity(rgb)
@@ -278,10 +304,8 @@ def build_reference(depth: np.ndarray, c2w: np.ndarray, k: Intrinsics, cfg: Fron
             okc[:, [0, -1]] = False
             okc[[0, -1]] = False
             col = np.ascontiguousarray(np.stack([im, gx, gy, okc.astype(np.float64)], -1).reshape(-1, 4))
-        vw = vc.reshape(-1, 3) @ r.T + t
-        nw = nc.reshape(-1, 3) @ r.T
         levels.append(ModelLevel(cam, np.ascontiguousarray(vw), np.ascontiguousarray(nw),
-                                 np.ascontiguousarray(nok.reshape(-1)), col))
+                                 np.ascontiguousarray(nok), col))
     return ReferenceModel(c2w, np.linalg.inv(c2w), levels, keyframe_id)
 
 
@@ -302,15 +326,22 @@ def prepare_live(depth: np.ndarray, k: Intrinsics, cfg: FrontendConfig, rgb: np.
     d = _check_image("depth", depth, k, None)
     rgb = _check_image("rgb", rgb, k, 3)
     d = np.where((d >= cfg.depth_min) & (d <= cfg.depth_max), d, 0.0)
+    fast = _use_numba(cfg)
     pts, val = [], []
     il = None
     for lv, cam in enumerate(_pyramid_cameras(k, cfg.levels)):
         if lv > 0:
-            d = _half_depth(d, cfg.depth_jump)
+            d = _half(d, cfg.depth_jump, fast)
         s = cfg.point_stride[lv]
-        p = _backproject(d, cam)[::s, ::s].reshape(-1, 3)
-        pts.append(np.ascontiguousarray(p))
-        val.append(np.ascontiguousarray(p[:, 2] > 0))
+        if fast:
+            m = (-(-cam.height // s)) * (-(-cam.width // s))
+            p, ok = np.empty((m, 3)), np.empty(m, np.bool_)
+            _fast().live_points(d, float(cam.fx), float(cam.fy), float(cam.cx), float(cam.cy), s, p, ok)
+        else:
+            p = np.ascontiguousarray(_backproject(d, cam)[::s, ::s].reshape(-1, 3))
+            ok = p[:, 2] > 0
+        pts.append(p)
+        val.append(ok)
         if lv == 0 and rgb is not None and cfg.photometric_weight > 0:
             il = np.ascontiguousarray(_intensity(rgb)[::s, ::s].reshape(-1))
     return LiveFrame(pts, val, il)
@@ -325,12 +356,12 @@ def _kernel():
     return nk.icp_accumulate
 
 
-def _use_numba(cfg: FrontendConfig) -> bool:
-    if cfg.backend == "numba":
-        if not numba_available():
-            raise ConfigError("backend 'numba' needs the numba package; set it to 'auto' or 'numpy'")
-        return True
-    return cfg.backend == "auto" and numba_available()
+@functools.cache
+def _fast():
+    """The front end's compiled kernels (:mod:`semantic_gs_slam.tracking_frontend_numba`; imports numba)."""
+    from semantic_gs_slam import tracking_frontend_numba as fk
+
+    return fk
 
 
 def normal_equations(est: np.ndarray, points: np.ndarray, valid: np.ndarray, intensity: np.ndarray | None,
@@ -462,6 +493,16 @@ def track(live: LiveFrame, model: ReferenceModel, guess_c2w: np.ndarray, cfg: Fr
     for lv in order:
         lvl = model.levels[lv]
         il = live.intensity if lv == 0 else None
+        if fast:  # the whole level in one compiled call (tracking_frontend_numba.icp_level)
+            photometric = bool(lv == 0 and cfg.photometric_weight > 0 and il is not None and lvl.col is not None)
+            k = lvl.k
+            steps += _fast().icp_level(est, guess_inv, np.diagonal(prior_w).copy(), model.w2c, live.points[lv],
+                                       live.valid[lv], il if photometric else np.zeros(1), lvl.vm, lvl.nm, lvl.nvalid,
+                                       lvl.col if photometric else np.zeros((1, 4)), float(k.fx), float(k.fy),
+                                       float(k.cx), float(k.cy), int(k.width), int(k.height), float(cfg.max_dist[lv]),
+                                       float(cfg.sigma_geo), photometric, float(cfg.sigma_col),
+                                       float(cfg.photometric_weight), int(cfg.iters[lv]), float(cfg.min_step))
+            continue
         for _ in range(cfg.iters[lv]):
             a, b, st = sums(est, live.points[lv], live.valid[lv], il, lvl, model.w2c, cfg.max_dist[lv], cfg,
                             lv == 0)

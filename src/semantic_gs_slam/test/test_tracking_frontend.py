@@ -64,6 +64,28 @@ def test_compiled_sums_equal_the_reference(scene, photometric):
         np.testing.assert_allclose(b, br, rtol=1e-9, atol=1e-9 * np.abs(br).max())
 
 
+@needs_numba
+def test_compiled_model_live_points_and_track_equal_the_reference(scene):
+    k, poses, views = scene
+    fast = replace(CFG, backend="numba")
+    d0, d1 = views[0][1], views[3][1]
+    m_ref, m_fast = build_reference(d0, poses[0], k, CFG), build_reference(d0, poses[0], k, fast)
+    for a, b in zip(m_ref.levels, m_fast.levels):
+        assert a.k == b.k and a.nvalid.sum() > 100
+        np.testing.assert_array_equal(a.nvalid, b.nvalid)
+        np.testing.assert_allclose(a.vm, b.vm, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(a.nm, b.nm, rtol=0, atol=1e-12)
+    l_ref, l_fast = prepare_live(d1, k, CFG), prepare_live(d1, k, fast)
+    for a, b, va, vb in zip(l_ref.points, l_fast.points, l_ref.valid, l_fast.valid):
+        np.testing.assert_array_equal(va, vb)
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
+    start = perturb(poses[3], [0.02, -0.01, 0.01, 0.03, -0.02, 0.01])
+    r_ref, r_fast = track(l_ref, m_ref, start, CFG), track(l_fast, m_fast, start, fast)
+    assert r_ref.steps == r_fast.steps > 0
+    np.testing.assert_allclose(r_ref.c2w, r_fast.c2w, rtol=0, atol=1e-9)
+    assert r_ref.quality.correspondences == r_fast.quality.correspondences
+
+
 @pytest.mark.parametrize("backend", ["numpy", pytest.param("numba", marks=needs_numba)])
 @pytest.mark.parametrize("xi", [[0, 0, 0, 0.04, -0.03, 0.02], [0.04, -0.03, 0.02, 0, 0, 0]])
 def test_converges_from_a_perturbed_pose(scene, backend, xi):
