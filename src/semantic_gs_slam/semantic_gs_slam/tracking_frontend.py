@@ -65,6 +65,8 @@ class FrontendConfig:
     min_step: float = 1e-5  # a level ends once a step's largest component (rad or m) is below this
     depth_min: float = 0.1  # metres; live and model depth outside [depth_min, depth_max] is not used
     depth_max: float = 4.0
+    model_smoothing: int = 1  # the reference depth is averaged over this window (odd; 1: off), over neighbours
+    # within depth_jump of the centre only (no blur across edges): sensor depth as a stand-in for a rendered map
     normal_radius: int = 2  # normals from central differences over this many pixels (finest level; 1 coarser)
     depth_jump: float = 0.05  # a neighbour more than this fraction of the depth away breaks the normal / pyramid cell
     min_correspondences: int = 200  # fewer at the finest level: lost
@@ -88,6 +90,8 @@ class FrontendConfig:
             raise ConfigError("prior sigmas must be > 0")
         if not 0 <= self.depth_min < self.depth_max:
             raise ConfigError(f"need 0 <= depth_min < depth_max, got {self.depth_min}, {self.depth_max}")
+        if self.model_smoothing < 1 or self.model_smoothing % 2 == 0:
+            raise ConfigError(f"model_smoothing must be an odd window >= 1, got {self.model_smoothing}")
         if self.normal_radius < 1:
             raise ConfigError(f"normal_radius must be >= 1, got {self.normal_radius}")
         if self.backend not in ("auto", "numba", "numpy"):
@@ -208,6 +212,26 @@ def _half(depth: np.ndarray, jump: float, fast: bool) -> np.ndarray:
     return out
 
 
+def _smooth_depth(depth: np.ndarray, size: int, jump: float) -> np.ndarray:
+    """``depth`` [H, W] averaged over a ``size`` x ``size`` window, over the neighbours with depth within ``jump``
+    times the centre's (edges stay sharp); pixels without depth stay 0."""
+    if size <= 1:
+        return depth
+    r = size // 2
+    h, w = depth.shape
+    pad = np.pad(depth, r)
+    num = np.zeros_like(depth)
+    den = np.zeros_like(depth)
+    lim = jump * depth
+    for dy in range(size):
+        for dx in range(size):
+            nb = pad[dy:dy + h, dx:dx + w]
+            use = (nb > 0) & (np.abs(nb - depth) < lim)
+            num += np.where(use, nb, 0.0)
+            den += use
+    return np.where(depth > 0, num / np.maximum(den, 1.0), 0.0)
+
+
 def _backproject(depth: np.ndarray, k: Intrinsics) -> np.ndarray:
     """[H, W, 3] camera-frame points of ``depth`` [H, W]."""
     h, w = depth.shape
@@ -269,6 +293,7 @@ def build_reference(depth: np.ndarray, c2w: np.ndarray, k: Intrinsics, cfg: Fron
     rgb = _check_image("rgb", rgb, k, 3)
     normals = _check_image("normals", normals, k, 3)
     d = np.where((d >= cfg.depth_min) & (d <= cfg.depth_max), d, 0.0)
+    d = _smooth_depth(d, cfg.model_smoothing, cfg.depth_jump)
     r, t = c2w[:3, :3], c2w[:3, 3]
     fast = _use_numba(cfg)
     levels = []

@@ -70,13 +70,13 @@ def test_compiled_model_live_points_and_track_equal_the_reference(scene):
     fast = replace(CFG, backend="numba")
     d0, d1 = views[0][1], views[3][1]
     m_ref, m_fast = build_reference(d0, poses[0], k, CFG), build_reference(d0, poses[0], k, fast)
-    for a, b in zip(m_ref.levels, m_fast.levels):
+    for a, b in zip(m_ref.levels, m_fast.levels, strict=True):
         assert a.k == b.k and a.nvalid.sum() > 100
         np.testing.assert_array_equal(a.nvalid, b.nvalid)
         np.testing.assert_allclose(a.vm, b.vm, rtol=0, atol=1e-12)
         np.testing.assert_allclose(a.nm, b.nm, rtol=0, atol=1e-12)
     l_ref, l_fast = prepare_live(d1, k, CFG), prepare_live(d1, k, fast)
-    for a, b, va, vb in zip(l_ref.points, l_fast.points, l_ref.valid, l_fast.valid):
+    for a, b, va, vb in zip(l_ref.points, l_fast.points, l_ref.valid, l_fast.valid, strict=True):
         np.testing.assert_array_equal(va, vb)
         np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
     start = perturb(poses[3], [0.02, -0.01, 0.01, 0.03, -0.02, 0.01])
