@@ -139,10 +139,10 @@ def main() -> int:
     ap.add_argument("--strides", default="1,2,6", help="comma-separated strides")
     ap.add_argument("--size", default="320x240", help="working size WIDTHxHEIGHT")
     ap.add_argument("--keyframe-every", type=int, default=10, help="new reference every K tracked frames")
-    ap.add_argument("--keyframe-coverage", type=float, default=0.7,
+    ap.add_argument("--keyframe-coverage", type=float, default=0.5,
                     help="... or sooner, once the reference covers fewer of the frame's points than this")
     ap.add_argument("--config", help="JSON of FrontendConfig overrides, e.g. {\"sigma_geo\": 0.02}")
-    ap.add_argument("--rgb", action="store_true", help="pass colour (photometric term when photometric_weight > 0)")
+    ap.add_argument("--no-rgb", action="store_true", help="depth only (no photometric term)")
     ap.add_argument("--reference", default="sensor", choices=["sensor", "tsdf"],
                     help="reference depth: the keyframe's sensor depth, or raycast from a TSDF that integrates every "
                          "tracked frame at our pose (Open3D's voxel grid as a stand-in for the rendered map)")
@@ -178,7 +178,7 @@ def main() -> int:
             frames = [dec[i] for i in idx]
             gts = [ds.poses[i] for i in idx]
             tsdf = _TsdfReference(k, args.o3d_voxel, args.o3d_depth_max) if args.reference == "tsdf" else None
-            ours = run_front_end(frames, k, cfg, args.keyframe_every, args.keyframe_coverage, args.rgb, tsdf)
+            ours = run_front_end(frames, k, cfg, args.keyframe_every, args.keyframe_coverage, not args.no_rgb, tsdf)
             ate = 100 * ate_rmse(ours["poses"], gts)
             o3 = None if args.no_open3d else run_open3d(dec, idx, args.o3d_voxel, args.o3d_depth_max, "cpu")
             o3_ate = 100 * ate_rmse(o3["poses"], gts) if o3 else float("nan")

@@ -53,12 +53,13 @@ class FrontendConfig:
     """
 
     levels: int = 3  # pyramid levels (each halves the image)
-    iters: tuple[int, ...] = (6, 6, 8)  # Gauss-Newton steps per level (finest first); a level stops earlier once a
-    # step's largest component is below min_step
+    iters: tuple[int, ...] = (3, 4, 6)  # Gauss-Newton steps per level (finest first); a level stops earlier once a
+    # step's largest component is below min_step (on the kitchen, (6, 6, 8) gave the same ATE at 1.5x the time)
     point_stride: tuple[int, ...] = (2, 1, 1)  # live points: every k-th pixel of that level's image (finest first)
     max_dist: tuple[float, ...] = (0.05, 0.10, 0.20)  # metres; associations farther apart are rejected (per level)
     sigma_geo: float = 0.01  # metres; Huber threshold and scale of point-to-plane residuals
-    photometric_weight: float = 0.0  # weight of the intensity term at the finest level (0: geometry only)
+    photometric_weight: float = 1.0  # weight of the intensity term at the finest level when colour is given (0:
+    # geometry only); on the kitchen (frames 0-249) ATE 2.50 -> 1.64 cm at stride 1, 2.18 -> 1.76 at stride 2
     sigma_col: float = 0.05  # intensity units; Huber threshold and scale of the intensity residuals
     prior_sigma_trans: float = 0.2  # metres; weak prior toward the initial guess (keeps free directions still)
     prior_sigma_rot: float = 0.2  # radians
