@@ -1,0 +1,163 @@
+"""The frame-rate front end: compiled sums equal the reference, ICP converges, lost is detected, relocalisation."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from semantic_gs_slam.devices import numba_available
+from semantic_gs_slam.errors import ConfigError, FrameError, TrackingError
+from semantic_gs_slam.geometry import pose_error
+from semantic_gs_slam.synthetic import HomeRenderer, default_intrinsics, trajectory
+from semantic_gs_slam.tracking_frontend import (
+    FrameTracker,
+    FrontendConfig,
+    RelocalisationError,
+    build_reference,
+    normal_equations,
+    normal_equations_reference,
+    prepare_live,
+    relocalise,
+    track,
+)
+from semantic_gs_slam.tracking_numba import _se3_exp
+
+needs_numba = pytest.mark.skipif(not numba_available(), reason="numba not installed")
+CFG = FrontendConfig(backend="numpy")
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """Two views of the synthetic home 160x120 (keyframe, live 3 orbit steps on) and a far-away view."""
+    k = default_intrinsics(160, 120)
+    poses = trajectory(60, 60.0)
+    ren = HomeRenderer(0)
+    views = {i: ren.render(poses[i], k) for i in (0, 3, 45)}
+    return k, poses, views
+
+
+def perturb(c2w: np.ndarray, xi: list[float]) -> np.ndarray:
+    return _se3_exp(np.asarray(xi, np.float64)) @ c2w
+
+
+@needs_numba
+@pytest.mark.parametrize("photometric", [0.0, 0.5])
+def test_compiled_sums_equal_the_reference(scene, photometric):
+    k, poses, views = scene
+    cfg = replace(CFG, photometric_weight=photometric)
+    rgb0, d0, _ = views[0]
+    rgb1, d1, _ = views[3]
+    model = build_reference(d0, poses[0], k, cfg, rgb=rgb0)
+    live = prepare_live(d1, k, cfg, rgb=rgb1)
+    est = perturb(poses[3], [0.01, -0.02, 0.005, 0.02, 0.0, -0.01])
+    for lv in range(cfg.levels):
+        args = (est, live.points[lv], live.valid[lv], live.intensity if lv == 0 else None, model.levels[lv],
+                model.w2c, cfg.max_dist[lv], cfg, lv == 0)
+        a, b, st = normal_equations(*args)
+        ar, br, sr = normal_equations_reference(*args)
+        assert st[0] > 100
+        np.testing.assert_array_equal(st[[0, 2, 3]], sr[[0, 2, 3]])
+        np.testing.assert_allclose(st[1], sr[1], rtol=1e-9)
+        np.testing.assert_allclose(a, ar, rtol=1e-9, atol=1e-9 * np.abs(ar).max())
+        np.testing.assert_allclose(b, br, rtol=1e-9, atol=1e-9 * np.abs(br).max())
+
+
+@needs_numba
+def test_compiled_model_live_points_and_track_equal_the_reference(scene):
+    k, poses, views = scene
+    fast = replace(CFG, backend="numba")
+    d0, d1 = views[0][1], views[3][1]
+    m_ref, m_fast = build_reference(d0, poses[0], k, CFG), build_reference(d0, poses[0], k, fast)
+    for a, b in zip(m_ref.levels, m_fast.levels, strict=True):
+        assert a.k == b.k and a.nvalid.sum() > 100
+        np.testing.assert_array_equal(a.nvalid, b.nvalid)
+        np.testing.assert_allclose(a.vm, b.vm, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(a.nm, b.nm, rtol=0, atol=1e-12)
+    l_ref, l_fast = prepare_live(d1, k, CFG), prepare_live(d1, k, fast)
+    for a, b, va, vb in zip(l_ref.points, l_fast.points, l_ref.valid, l_fast.valid, strict=True):
+        np.testing.assert_array_equal(va, vb)
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
+    start = perturb(poses[3], [0.02, -0.01, 0.01, 0.03, -0.02, 0.01])
+    r_ref, r_fast = track(l_ref, m_ref, start, CFG), track(l_fast, m_fast, start, fast)
+    assert r_ref.steps == r_fast.steps > 0
+    np.testing.assert_allclose(r_ref.c2w, r_fast.c2w, rtol=0, atol=1e-9)
+    assert r_ref.quality.correspondences == r_fast.quality.correspondences
+
+
+@pytest.mark.parametrize("backend", ["numpy", pytest.param("numba", marks=needs_numba)])
+@pytest.mark.parametrize("xi", [[0, 0, 0, 0.04, -0.03, 0.02], [0.04, -0.03, 0.02, 0, 0, 0]])
+def test_converges_from_a_perturbed_pose(scene, backend, xi):
+    k, poses, views = scene
+    cfg = replace(CFG, backend=backend)
+    model = build_reference(views[0][1], poses[0], k, cfg)
+    res = track(prepare_live(views[3][1], k, cfg), model, perturb(poses[3], xi), cfg)
+    et, er = pose_error(res.c2w, poses[3])
+    assert et < 0.005 and er < 0.3, (et, er)
+    assert res.quality.trusted, res.quality
+    assert res.quality.agreement > 0.9 and res.quality.coverage > 0.5
+
+
+def test_garbage_depth_is_lost(scene):
+    k, poses, views = scene
+    model = build_reference(views[0][1], poses[0], k, CFG)
+    rng = np.random.default_rng(0)
+    garbage = rng.uniform(0.3, 3.5, (k.height, k.width))  # depth noise: no surface agrees with the map
+    res = track(prepare_live(garbage, k, CFG), model, poses[3], CFG)
+    assert not res.quality.trusted
+    assert "agreement" in res.quality.reason or "coverage" in res.quality.reason
+    empty = track(prepare_live(np.zeros((k.height, k.width)), k, CFG), model, poses[3], CFG)
+    assert not empty.quality.trusted and "correspondences" in empty.quality.reason
+
+
+def test_a_lone_plane_is_ill_conditioned():
+    k = default_intrinsics(80, 60)
+    wall = np.full((k.height, k.width), 2.0)  # a fronto-parallel wall leaves three directions free
+    res = track(prepare_live(wall, k, CFG), build_reference(wall, np.eye(4), k, CFG), np.eye(4), CFG)
+    assert not res.quality.trusted and "condition" in res.quality.reason
+
+
+def test_relocalises_from_a_wrong_guess(scene):
+    k, poses, views = scene
+    model = build_reference(views[0][1], poses[0], k, CFG, keyframe_id=0)
+    far = build_reference(views[45][1], poses[45], k, CFG, keyframe_id=45)
+    live = prepare_live(views[3][1], k, CFG)
+    wrong = poses[3] @ _se3_exp(np.array([0.0, 0.6, 0.0, 0.0, 0.0, 0.0]))  # turned 34 degrees: plain ICP fails
+    assert not track(live, model, wrong, CFG).quality.trusted
+    res = relocalise(live, [far, model], CFG, extra_guesses=[wrong])
+    et, er = pose_error(res.c2w, poses[3])
+    assert res.quality.trusted and res.keyframe_id == 0
+    assert et < 0.01 and er < 0.5, (et, er)
+    garbage = prepare_live(np.random.default_rng(1).uniform(0.3, 3.5, (k.height, k.width)), k, CFG)
+    with pytest.raises(RelocalisationError, match="no trusted pose"):
+        relocalise(garbage, [model], CFG)
+
+
+def test_frame_tracker_tracks_reports_lost_and_recovers(scene):
+    k, poses, views = scene
+    tr = FrameTracker(k, CFG)
+    with pytest.raises(TrackingError, match="no reference"):
+        tr.track_frame(views[3][1])
+    tr.set_reference(build_reference(views[0][1], poses[0], k, CFG, keyframe_id=0))
+    assert tr.track_frame(views[0][1]).quality.trusted
+    res = tr.track_frame(views[3][1])
+    assert res.quality.trusted and pose_error(res.c2w, poses[3])[0] < 0.01
+    lost = tr.track_frame(np.random.default_rng(2).uniform(0.3, 3.5, (k.height, k.width)))
+    assert tr.lost and not lost.quality.trusted
+    back = tr.track_frame(views[3][1])  # relocalised against the kept keyframe
+    assert not tr.lost and pose_error(back.c2w, poses[3])[0] < 0.01
+
+
+def test_bad_input_is_refused(scene):
+    k, poses, views = scene
+    with pytest.raises(FrameError, match="shape"):
+        prepare_live(np.zeros((10, 10)), k, CFG)
+    with pytest.raises(FrameError, match="NaN"):
+        prepare_live(np.full((k.height, k.width), np.nan), k, CFG)
+    with pytest.raises(FrameError, match="float"):
+        prepare_live(np.zeros((k.height, k.width), np.uint16), k, CFG)
+    with pytest.raises(FrameError, match="pose"):
+        build_reference(views[0][1], np.eye(3), k, CFG)
+    with pytest.raises(ConfigError, match="one value per level"):
+        FrontendConfig(levels=2).check()
