@@ -6,7 +6,7 @@ Usage (from the repository root; the data stays outside the repository)::
     source scripts/env.sh && PYTHONPATH=$PYTHONPATH:$PWD/.bench-open3d python bench/tracking_frontend.py \\
         ../shared/data/7scenes-redkitchen-0-499 --ranges 0:250,250:500 --strides 1,2,6
 
-For every frame range and stride, the front end (:mod:`semantic_gs_slam.tracking_frontend`) tracks every selected
+For every frame range and stride, the front end (:mod:`semantic_gs_slam.tracking.frontend`) tracks every selected
 frame against a reference model that is rebuilt every ``--keyframe-every`` tracked frames (or sooner, when the
 share of the frame's points the reference covers drops below ``--keyframe-coverage``) from the sensor's own depth
 at that frame and its tracked pose: a stand-in for the depth rendered from the map, so this measures the tracker
@@ -28,9 +28,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from semantic_gs_slam.datasets import frame_indices, load_dataset, parse_size
-from semantic_gs_slam.metrics import ate_rmse, rpe_rmse
-from semantic_gs_slam.tracking_frontend import FrameTracker, FrontendConfig, build_reference
+from semantic_gs_slam.io.datasets import frame_indices, load_dataset, parse_size
+from semantic_gs_slam.eval.metrics import ate_rmse, rpe_rmse
+from semantic_gs_slam.tracking.frontend import FrameTracker, FrontendConfig, build_reference
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from slam_real import run_open3d  # noqa: E402  (bench/ is not a package)

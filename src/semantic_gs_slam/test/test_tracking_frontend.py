@@ -11,7 +11,7 @@ from semantic_gs_slam.devices import numba_available
 from semantic_gs_slam.errors import ConfigError, FrameError, TrackingError
 from semantic_gs_slam.geometry import pose_error
 from semantic_gs_slam.synthetic import HomeRenderer, default_intrinsics, trajectory
-from semantic_gs_slam.tracking_frontend import (
+from semantic_gs_slam.tracking.frontend import (
     FrameTracker,
     FrontendConfig,
     RelocalisationError,
@@ -22,7 +22,7 @@ from semantic_gs_slam.tracking_frontend import (
     relocalise,
     track,
 )
-from semantic_gs_slam.tracking_numba import _se3_exp
+from semantic_gs_slam.tracking.icp_numba import _se3_exp
 
 needs_numba = pytest.mark.skipif(not numba_available(), reason="numba not installed")
 CFG = FrontendConfig(backend="numpy")

@@ -1,13 +1,13 @@
 """Compiled CPU kernels of the tracking front end (numba, ``nogil=True``: a mapping thread runs beside them).
 
-Each has a NumPy reference in :mod:`semantic_gs_slam.tracking_frontend` that ``test_tracking_frontend.py`` checks
+Each has a NumPy reference in :mod:`semantic_gs_slam.tracking.frontend` that ``test_tracking_frontend.py`` checks
 it against:
 
 * :func:`half_depth` - ``_half_depth`` (one pyramid step of a depth image);
 * :func:`model_level` - ``_backproject`` + ``_normals`` + the move to world coordinates in ``build_reference``;
 * :func:`live_points` - the strided back-projection in ``prepare_live``;
 * :func:`icp_level` - one pyramid level of ``track``'s Gauss-Newton loop: the sums of
-  :func:`semantic_gs_slam.numba_kernels.icp_accumulate` (called from here, compiled together), the prior toward
+  :func:`semantic_gs_slam.tracking.numba_kernels.icp_accumulate` (called from here, compiled together), the prior toward
   the guess, a Cholesky solve of the 6x6 system and the pose update, so a level is one call from Python instead of
   one per step (the per-step Python and NumPy glue cost as much as the sums at 320x240).
 
@@ -22,7 +22,7 @@ import math
 import numba
 import numpy as np
 
-from semantic_gs_slam.numba_kernels import icp_accumulate
+from semantic_gs_slam.tracking.numba_kernels import icp_accumulate
 
 __all__ = ["half_depth", "icp_level", "live_points", "model_level"]
 

@@ -16,7 +16,7 @@ end can track every frame while a mapping back end refines the map and publishes
 * :class:`FrameTracker` keeps the state of one camera (reference, constant-velocity guess, lost flag); its
   reference swap is guarded by a lock, so a mapping thread may publish while the tracking thread runs.
 
-The per-step sums are computed by the compiled kernel :func:`semantic_gs_slam.numba_kernels.icp_accumulate`
+The per-step sums are computed by the compiled kernel :func:`semantic_gs_slam.tracking.numba_kernels.icp_accumulate`
 (``nogil=True``: a mapping thread runs beside it) and, as the reference, by :func:`normal_equations_reference`
 (vectorised NumPy, the same sums in another order); ``test_tracking_frontend.py`` checks that they agree.
 All arrays are NumPy (float64 poses and points): tracking on a CPU touches no torch tensor.
@@ -34,7 +34,7 @@ import numpy as np
 from semantic_gs_slam.config import Intrinsics
 from semantic_gs_slam.devices import numba_available
 from semantic_gs_slam.errors import ConfigError, FrameError, TrackingError
-from semantic_gs_slam.tracking_numba import _se3_exp, _so3_log
+from semantic_gs_slam.tracking.icp_numba import _se3_exp, _so3_log
 
 __all__ = ["FrameTracker", "FrontendConfig", "LiveFrame", "ModelLevel", "ReferenceModel", "RelocalisationError",
            "TrackQuality", "TrackResult", "build_reference", "normal_equations", "normal_equations_reference",
@@ -377,15 +377,15 @@ def prepare_live(depth: np.ndarray, k: Intrinsics, cfg: FrontendConfig, rgb: np.
 
 @functools.cache
 def _kernel():
-    from semantic_gs_slam import numba_kernels as nk
+    from semantic_gs_slam.tracking import numba_kernels as nk
 
     return nk.icp_accumulate
 
 
 @functools.cache
 def _fast():
-    """The front end's compiled kernels (:mod:`semantic_gs_slam.tracking_frontend_numba`; imports numba)."""
-    from semantic_gs_slam import tracking_frontend_numba as fk
+    """The front end's compiled kernels (:mod:`semantic_gs_slam.tracking.frontend_numba`; imports numba)."""
+    from semantic_gs_slam.tracking import frontend_numba as fk
 
     return fk
 
@@ -519,7 +519,7 @@ def track(live: LiveFrame, model: ReferenceModel, guess_c2w: np.ndarray, cfg: Fr
     for lv in order:
         lvl = model.levels[lv]
         il = live.intensity if lv == 0 else None
-        if fast:  # the whole level in one compiled call (tracking_frontend_numba.icp_level)
+        if fast:  # the whole level in one compiled call (frontend_numba.icp_level)
             photometric = bool(lv == 0 and cfg.photometric_weight > 0 and il is not None and lvl.col is not None)
             k = lvl.k
             steps += _fast().icp_level(est, guess_inv, np.diagonal(prior_w).copy(), model.w2c, live.points[lv],
