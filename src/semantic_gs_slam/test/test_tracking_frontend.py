@@ -10,7 +10,7 @@ import pytest
 from semantic_gs_slam.devices import numba_available
 from semantic_gs_slam.errors import ConfigError, FrameError, TrackingError
 from semantic_gs_slam.geometry import pose_error
-from semantic_gs_slam.synthetic import HomeRenderer, default_intrinsics, trajectory
+from semantic_gs_slam.synthetic.scenes import HomeRenderer, default_intrinsics, trajectory
 from semantic_gs_slam.tracking.frontend import (
     FrameTracker,
     FrontendConfig,
