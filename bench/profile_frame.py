@@ -40,6 +40,7 @@ from semantic_gs_slam.config import RendererConfig, SlamConfig
 from semantic_gs_slam.devices import resolve_device
 from semantic_gs_slam.errors import ConfigError
 from semantic_gs_slam.io.datasets import load_dataset
+from semantic_gs_slam.run import add_camera_args, camera_kwargs
 from semantic_gs_slam.synthetic.scenes import generate
 
 
@@ -159,6 +160,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--dataset", default="", help="profile a recorded sequence instead (any layout load_dataset "
                     "reads, e.g. 7-Scenes), resized to --size; frames --start, --start + --stride, ...")
     ap.add_argument("--start", type=int, default=0)
+    add_camera_args(ap)
     ap.add_argument("--stride", type=int, default=1)
     ap.add_argument("--no-sync", action="store_true", help="no device synchronisation around stages")
     ap.add_argument("--profile-from", type=int, default=8, help="first frame under torch.profiler")
@@ -170,7 +172,8 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(a.threads)
     w, h = (int(v) for v in a.size.lower().split("x"))
     if a.dataset:
-        ds = load_dataset(a.dataset, size=(w, h))
+        ds = load_dataset(a.dataset, size=(w, h), **camera_kwargs(a))
+        print(ds.camera_line(), file=sys.stderr)
         idx = list(range(a.start, len(ds), a.stride))[:a.frames]
     else:
         root = a.data or tempfile.mkdtemp(prefix="slam_profile_")

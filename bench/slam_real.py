@@ -8,10 +8,14 @@ Usage (from the repository root; the data stays outside the repository, mind its
     python bench/slam_real.py <seq> --frames 250 --stride 2          # all 500 frames, every 2nd
     python bench/slam_real.py <seq> --labels geometry                # with the geometry labelling stage
     python bench/slam_real.py <seq> --device cuda                    # on the GPU machine
+    python bench/slam_real.py rgbd_dataset_freiburg1_xyz --first 0 --frames 300 --stride 1   # TUM fr1 camera
+    python bench/slam_real.py <seq> --intrinsics 525,525,319.5,239.5 --depth-scale 5000     # any camera
 
-Runs our engine over the frames and prints ATE RMSE (aligned), PSNR (all pixels, and SplaTAM's depth-masked
+Runs our engine over the frames and prints the camera used (``--intrinsics``, ``--depth-scale``, ``--camera`` as for
+``python -m semantic_gs_slam.run``), ATE RMSE (aligned), RPE, PSNR (all pixels, and SplaTAM's depth-masked
 protocol), depth L1, FPS, tracking
-failures, the per-frame pose error every ``--curve-every`` frames, and, when ``open3d`` is importable
+failures, frames lost and recovered (when the engine's ``stats()`` reports them; "n/a" otherwise), the per-frame
+pose error every ``--curve-every`` frames, and, when ``open3d`` is importable
 (``requirements/bench-real.in``), Open3D's KinectFusion-style frame-to-model tracker
 (``open3d.t.pipelines.slam.Model``, depth only, ``--o3d-voxel`` voxels) on the same frames in the same
 run, with the ratios. Timings depend on what else runs on the machine.
@@ -32,7 +36,7 @@ from semantic_gs_slam.eval.metrics import ate_rmse, rpe_rmse
 from semantic_gs_slam.geometry import pose_error, umeyama_rigid
 from semantic_gs_slam.io.datasets import frame_indices, load_dataset, parse_size
 from semantic_gs_slam.labels import LABEL_MODES, LabelConfig, LabelStage
-from semantic_gs_slam.run import label_frame
+from semantic_gs_slam.run import add_camera_args, camera_kwargs, label_frame
 from semantic_gs_slam.slam import SLAM
 
 
@@ -44,6 +48,23 @@ def aligned_errors(est: list[np.ndarray], gt: list[np.ndarray]) -> np.ndarray:
         return np.linalg.norm(e - g, axis=1)
     t = umeyama_rigid(e, g)
     return np.linalg.norm(e @ t[:3, :3].T + t[:3, 3] - g, axis=1)
+
+
+def lost_summary(stats: dict, idx: list[int]) -> tuple[str, str]:
+    """From ``SLAM.stats()``: ("lost / recovered" counts, one line of which frames), or ("n/a", "") when the engine
+    does not report ``lost_frames`` (engine frame numbers) and ``recoveries`` ([lost_at, recovered_at] pairs)."""
+    lost, rec = stats.get("lost_frames"), stats.get("recoveries")
+    if lost is None or rec is None:
+        return "n/a", ""
+
+    def at(n: int) -> str:  # an engine frame number -> the dataset frame it was
+        return str(idx[n]) if 0 <= n < len(idx) else f"#{n}"
+
+    spans = ", ".join(f"{at(a)}->{at(b)}" for a, b in rec[:20]) + (f", and {len(rec) - 20} more" if len(rec) > 20
+                                                                   else "")
+    detail = (f"lost at dataset frames {', '.join(at(n) for n in lost[:20])}{' ...' if len(lost) > 20 else ''}"
+              f"{'; recovered (lost at -> recovered at): ' + spans if rec else '; none recovered'}") if lost else ""
+    return f"{len(lost)} / {len(rec)}", detail
 
 
 def run_ours(ds, idx: list[int], args: argparse.Namespace) -> dict:
@@ -94,7 +115,8 @@ def run_ours(ds, idx: list[int], args: argparse.Namespace) -> dict:
                wall_s=wall, label_ms=1000 * label_s / len(idx),
                lost=sum(lg.tracking_failed for lg in eng.logs), loops=list(eng.loops),
                poses=online_poses, keyframes=len(eng.keyframes),
-               classes=len(eng.classes), labelled=float((eng.semantic_ids() > 0).mean()) if len(eng.map) else 0.0)
+               classes=len(eng.classes), labelled=float((eng.semantic_ids() > 0).mean()) if len(eng.map) else 0.0,
+               stats=eng.stats())
     return res
 
 
@@ -143,8 +165,9 @@ def main() -> int:
     ap.add_argument("dataset", help="sequence folder (7-Scenes seq, TUM RGB-D, Replica, ...)")
     ap.add_argument("--frames", type=int, default=60, help="frames used (0: all)")
     ap.add_argument("--stride", type=int, default=2)
-    ap.add_argument("--start", type=int, default=0)
+    ap.add_argument("--start", "--first", type=int, default=0, help="first dataset frame")
     ap.add_argument("--size", default="320x240", help="working size WIDTHxHEIGHT")
+    add_camera_args(ap)
     ap.add_argument("--labels", default="none", choices=list(LABEL_MODES), help="labelling stage (default none)")
     ap.add_argument("--labels-every", type=int, default=1, help="geometry / onnx labels on every k-th frame only")
     ap.add_argument("--config", help="JSON of SlamConfig overrides, e.g. {\"tracking\": {\"icp_iters\": 20}}")
@@ -169,7 +192,7 @@ def main() -> int:
     if args.labels_every < 1:
         ap.error("--labels-every must be >= 1")
     ds = load_dataset(args.dataset, size=parse_size(args.size) if args.size else None,
-                      colour_calib=args.colour_calib)
+                      colour_calib=args.colour_calib, **camera_kwargs(args))
     idx = frame_indices(len(ds), args.start, args.stride, args.frames)
     if ds.poses is None:
         print("the sequence has no reference poses: ATE cannot be computed", file=sys.stderr)
@@ -178,6 +201,7 @@ def main() -> int:
     k = ds.intrinsics
     print(f"sequence {args.dataset}: frames {idx[0]}..{idx[-1]} every {args.stride} ({len(idx)} frames), "
           f"{k.width}x{k.height}, device {args.device}, labels {args.labels}")
+    print(ds.camera_line())
     o3 = None if args.no_open3d else run_open3d(ds, idx, args.o3d_voxel, args.o3d_depth_max, args.device)
     if args.open3d_only:
         if o3 is None:
@@ -197,6 +221,7 @@ def main() -> int:
             ("FPS, all frames (frame 0's initial mapping included)", f"{ours['fps_all']:.2f} (frame 0: "
              f"{ours['frame0_s']:.1f} s)"),
             ("tracking failures reported", str(ours["lost"])),
+            ("frames lost / recovered (the engine's stats)", lost_summary(ours["stats"], idx)[0]),
             ("drift found and corrected (loop closures)", f"{len(ours['loops'])}" + (
                 f", largest {max(x['found_cm'] for x in ours['loops']):.1f} cm / "
                 f"{max(x['found_deg'] for x in ours['loops']):.2f} deg" if ours["loops"] else "")),
@@ -240,6 +265,9 @@ def main() -> int:
         print(f"Open3D {o3['version']} t.pipelines.slam.Model ({o3['device']}, {args.o3d_voxel * 100:.0f} cm voxels, "
               f"depth only): ATE ratio ours/Open3D {ate_o / o3_ate:.2f}, speed ratio ours/Open3D "
               f"{ours['fps'] / o3['fps']:.3f}")
+    detail = lost_summary(ours["stats"], idx)[1]
+    if detail:
+        print(detail)
     e_ours = aligned_errors(ours["poses"], gts)
     e_o3 = aligned_errors(o3["poses"], gts) if o3 else None
     print("\nper-frame pose error (cm; 'anchored' = first frame on the reference, 'aligned' = whole trajectory "

@@ -26,6 +26,7 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 from semantic_gs_slam.io.datasets import load_dataset
+from semantic_gs_slam.run import add_camera_args, camera_kwargs
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -35,11 +36,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--names", default="cup,table", help="comma-separated object names to ask for")
     ap.add_argument("--frames", default="0", help="comma-separated dataset frame indices to draw into")
     ap.add_argument("--out", default="", help="PNG with the frames side by side and the answers marked")
+    add_camera_args(ap)
     args = ap.parse_args(argv)
     from object_query.semantic_map import ObjectDatabase  # the object-query server's own code
 
     db = ObjectDatabase.from_files(os.path.join(args.map, "params.npz"), os.path.join(args.map, "semantic.json"))
-    ds = load_dataset(args.dataset)
+    ds = load_dataset(args.dataset, **camera_kwargs(args))
+    print(ds.camera_line(), file=sys.stderr)
     k = ds.intrinsics
     answers = {}
     print("| name | answer (x, y, z) | " + " | ".join(f"frame {f}: pixel, depth difference" for f in

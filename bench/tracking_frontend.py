@@ -29,6 +29,7 @@ from dataclasses import replace
 import numpy as np
 
 from semantic_gs_slam.io.datasets import frame_indices, load_dataset, parse_size
+from semantic_gs_slam.run import add_camera_args, camera_kwargs
 from semantic_gs_slam.eval.metrics import ate_rmse, rpe_rmse
 from semantic_gs_slam.tracking.frontend import FrameTracker, FrontendConfig, build_reference
 
@@ -138,6 +139,7 @@ def main() -> int:
     ap.add_argument("--ranges", default="0:250", help="comma-separated START:STOP frame ranges")
     ap.add_argument("--strides", default="1,2,6", help="comma-separated strides")
     ap.add_argument("--size", default="320x240", help="working size WIDTHxHEIGHT")
+    add_camera_args(ap)
     ap.add_argument("--keyframe-every", type=int, default=10, help="new reference every K tracked frames")
     ap.add_argument("--keyframe-coverage", type=float, default=0.5,
                     help="... or sooner, once the reference covers fewer of the frame's points than this")
@@ -157,7 +159,8 @@ def main() -> int:
     cfg.check()
     if args.keyframe_every < 1:
         ap.error("--keyframe-every must be >= 1")
-    ds = load_dataset(args.dataset, size=parse_size(args.size))
+    ds = load_dataset(args.dataset, size=parse_size(args.size), **camera_kwargs(args))
+    print(ds.camera_line(), file=sys.stderr)
     if ds.poses is None:
         print("the sequence has no reference poses: ATE cannot be computed", file=sys.stderr)
         return 2

@@ -8,6 +8,11 @@ Usage::
     python -m semantic_gs_slam.run --dataset /tmp/home --out /tmp/home_map --device cuda --backend gsplat
     python -m semantic_gs_slam.run --dataset ../shared/data/7scenes-redkitchen-0-499 --out /tmp/kitchen \
         --size 320x240 --stride 2 --frames 120 --labels auto --eval   # a real camera (7-Scenes)
+    python -m semantic_gs_slam.run --dataset rgbd_dataset_freiburg1_xyz --out /tmp/fr1 --size 320x240
+        # TUM: the fr1 camera from the folder's name (or --camera tum-fr1, or --intrinsics fx,fy,cx,cy)
+
+The camera's intrinsics and depth scale: ``--intrinsics`` / ``--depth-scale`` > ``--camera`` > the folder's
+``cam.json`` > the preset the folder's name implies > the layout's own; one ``camera:`` line on stderr says which.
 
 Prints a progress bar and one log line per frame (pose error when ground truth exists, Gaussians,
 times) on stderr, and the evaluation table on stdout.
@@ -34,7 +39,7 @@ import numpy as np
 from semantic_gs_slam.config import MappingConfig, RendererConfig, SlamConfig, TrackingConfig
 from semantic_gs_slam.errors import MAX_BAD_IN_A_ROW, DatasetError, FrameError, SlamError
 from semantic_gs_slam.geometry import pose_error
-from semantic_gs_slam.io.datasets import LAYOUTS, frame_indices, load_dataset, parse_size
+from semantic_gs_slam.io.datasets import CAMERAS, LAYOUTS, frame_indices, load_dataset, parse_intrinsics, parse_size
 from semantic_gs_slam.labels import LABEL_MODES, LabelConfig, LabelStage, predict_pose
 from semantic_gs_slam.slam import SLAM
 
@@ -93,6 +98,41 @@ def _skipped_summary(skipped: list[tuple[int, str]], total: int) -> str:
     return f"skipped {len(skipped)} of {total} frames that could not be used ({shown}{more})"
 
 
+def _intrinsics_arg(text: str) -> tuple[float, float, float, float]:
+    try:
+        return parse_intrinsics(text)
+    except DatasetError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from exc
+
+
+def _depth_scale_arg(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        v = float("nan")
+    if not (np.isfinite(v) and v > 0):
+        raise argparse.ArgumentTypeError(f"depth scale must be a positive number of depth units per metre "
+                                         f"(1000: millimetres, 5000: TUM), got {text!r}")
+    return v
+
+
+def add_camera_args(ap: argparse.ArgumentParser) -> None:
+    """``--intrinsics``, ``--depth-scale``, ``--camera`` (the run and the benchmarks that read sequences take them;
+    a malformed value is a usage error, exit code 2). Pass :func:`camera_kwargs` to ``load_dataset``."""
+    ap.add_argument("--intrinsics", type=_intrinsics_arg, metavar="FX,FY,CX,CY",
+                    help="the camera in pixels of the files' images; outranks every other source")
+    ap.add_argument("--depth-scale", type=_depth_scale_arg, metavar="UNITS",
+                    help="depth image units per metre (1000: mm, 5000: TUM); outranks every other source")
+    ap.add_argument("--camera", default="auto", choices=list(CAMERAS),
+                    help="a published camera (TUM RGB-D fr1/fr2/fr3), outranking cam.json; auto: the one the "
+                         "folder's name implies (rgbd_dataset_freiburg1_xyz -> tum-fr1); none: no preset")
+
+
+def camera_kwargs(args: argparse.Namespace) -> dict:
+    """``load_dataset`` keyword arguments from :func:`add_camera_args`'s options."""
+    return {"intrinsics": args.intrinsics, "depth_scale": args.depth_scale, "camera": args.camera}
+
+
 def progress_line(done: int, total: int, width: int = 24) -> str:
     """``[#####.....]  12/60`` style bar."""
     fill = int(width * done / max(total, 1))
@@ -139,6 +179,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description="Semantic Gaussian-splatting RGB-D SLAM over a dataset folder.")
     ap.add_argument("--dataset", required=True, help="folder in the replica / sgs / tum / 7scenes layout")
     ap.add_argument("--layout", default="auto", choices=["auto", *LAYOUTS])
+    add_camera_args(ap)
     ap.add_argument("--colour-calib", default="auto",
                     help="colour registered to depth: auto (the folder's colour-calibration.json, else the layout's "
                          "default: 7-Scenes' Kinect), none (colour as recorded), or a calibration file")
@@ -179,7 +220,8 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--labels-every must be >= 1")
     try:
         ds = load_dataset(args.dataset, args.layout, size=parse_size(args.size) if args.size else None,
-                          colour_calib=args.colour_calib)
+                          colour_calib=args.colour_calib, **camera_kwargs(args))
+        print(ds.camera_line(), file=sys.stderr, flush=True)
         idx = frame_indices(len(ds), args.start, args.stride, args.frames)
         cfg = build_config(args, ds.intrinsics)
         stage = LabelStage(LabelConfig(mode=args.labels, onnx_model=args.onnx_model, every=args.labels_every),

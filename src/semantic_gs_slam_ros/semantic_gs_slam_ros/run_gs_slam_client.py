@@ -116,6 +116,7 @@ class SlamClient(Node):
             size = parse_size(g("size")) if g("size") else None
             data = load_dataset(g("dataset"), g("layout"), size=size, colour_calib=g("colour_calib"))
             indices = frame_indices(len(data), g("start"), max(1, g("stride")), g("max_frames"))
+            log.info(data.camera_line())  # the CameraInfo published: cam.json, a TUM preset from the name, ...
         except (SlamError, OSError) as exc:
             log.error(f"cannot read dataset {g('dataset')!r}: {exc}")
             return 2

@@ -17,6 +17,16 @@ Layouts:
   cx = 320, cy = 240), 30 Hz. Colour and depth come from two unregistered cameras: expect the
   colour a few pixels off the depth.
 
+The camera (intrinsics and depth scale) is resolved by :func:`load_dataset`, first source that has it:
+
+1. the caller's (the command line's ``--intrinsics fx,fy,cx,cy`` and ``--depth-scale``);
+2. a named preset (``--camera tum-fr1|tum-fr2|tum-fr3``, :data:`CAMERA_PRESETS`);
+3. the folder's ``cam.json`` (any layout; schema in :func:`read_cam_json`);
+4. the preset the folder's name implies (``rgbd_dataset_freiburg1_xyz`` -> ``tum-fr1``; :func:`camera_from_name`);
+5. the layout's own file or default (7-Scenes' ``camera-intrinsics.txt``, the defaults above).
+
+TUM's fr1 and fr2 presets publish lens distortion; frames are not undistorted (the log line says so).
+
 Any layout can be read at a working size (:meth:`Dataset.resized`: colour area-averaged, depth and
 labels nearest-neighbour so no invalid zero is blended into a valid depth, intrinsics scaled).
 """
@@ -41,6 +51,28 @@ REPLICA_INTRINSICS = Intrinsics(1200, 680, 600.0, 600.0, 599.5, 339.5)
 TUM_INTRINSICS = Intrinsics(640, 480, 525.0, 525.0, 319.5, 239.5)  # TUM "ROS default"
 SEVEN_SCENES_INTRINSICS = Intrinsics(640, 480, 585.0, 585.0, 320.0, 240.0)  # the Kinect v1 depth camera
 LAYOUTS = ("replica", "sgs", "tum", "7scenes")
+CAM_FILE = "cam.json"
+CAM_KEYS = ("fx", "fy", "cx", "cy", "width", "height", "depth_scale")  # depth_scale is optional
+
+
+@dataclass(frozen=True)
+class CameraPreset:
+    """A published camera: intrinsics of its 640x480 images, depth units per metre, lens distortion."""
+
+    intrinsics: Intrinsics
+    depth_scale: float
+    distortion: tuple[float, ...]  # OpenCV k1 k2 p1 p2 k3; all zero: none published
+
+
+# TUM RGB-D's published calibrations of its three Kinects (the colour camera; the depth images are registered to it)
+CAMERA_PRESETS: dict[str, CameraPreset] = {
+    "tum-fr1": CameraPreset(Intrinsics(640, 480, 517.3, 516.5, 318.6, 255.3), 5000.0,
+                            (0.2624, -0.9531, -0.0054, 0.0026, 1.1633)),
+    "tum-fr2": CameraPreset(Intrinsics(640, 480, 520.9, 521.0, 325.1, 249.7), 5000.0,
+                            (0.2312, -0.7849, -0.0033, -0.0001, 0.9172)),
+    "tum-fr3": CameraPreset(Intrinsics(640, 480, 535.4, 539.2, 320.1, 247.6), 5000.0, (0.0, 0.0, 0.0, 0.0, 0.0)),
+}
+CAMERAS = ("auto", "none", *CAMERA_PRESETS)  # --camera: auto = from the folder's name, none = never a preset
 
 
 @dataclass
@@ -79,6 +111,22 @@ class Dataset:
         # the colour camera relative to the depth camera (native size) when colour is not registered to depth;
         # frames are then re-sampled into the depth camera's pixels (:mod:`semantic_gs_slam.io.colour_registration`)
         self.colour_calib: ColourCalib | None = None
+        self.intrinsics_source = "layout default"  # where the native intrinsics came from (for the log line)
+        self.depth_scale_source = "layout default"
+        self.distortion: tuple[float, ...] | None = None  # a preset's published lens distortion (not corrected)
+
+    def camera_line(self) -> str:
+        """One log line: the effective camera, where each part came from, the working size's scaled intrinsics."""
+        k, w = self.native_intrinsics, self.intrinsics
+        line = (f"camera: fx {k.fx:.2f} fy {k.fy:.2f} cx {k.cx:.2f} cy {k.cy:.2f} at {k.width}x{k.height} "
+                f"({self.intrinsics_source}), depth scale {self.depth_scale:g} per metre ({self.depth_scale_source})")
+        if (w.width, w.height) != (k.width, k.height):
+            line += (f"; working size {w.width}x{w.height}: fx {w.fx:.2f} fy {w.fy:.2f} cx {w.cx:.2f} "
+                     f"cy {w.cy:.2f}")
+        if self.distortion is not None and any(self.distortion):
+            line += (f"; lens distortion k1 k2 p1 p2 k3 = {' '.join(f'{d:g}' for d in self.distortion)} "
+                     "published, frames NOT undistorted")
+        return line
 
     def resized(self, width: int, height: int) -> Dataset:
         """The same frames at a working size ``width`` x ``height`` (a shallow copy; the files are untouched).
@@ -242,18 +290,81 @@ def _read_classes(root: str) -> dict[int, str]:
         raise DatasetError(f"{p}: not in the {{'segmentation': [{{'id', 'class'}}]}} schema ({exc})") from exc
 
 
-def _read_cam(root: str, default: Intrinsics) -> tuple[Intrinsics, float | None]:
-    p = os.path.join(root, "cam.json")
-    if not os.path.isfile(p):
-        return default, None
-    with open(p) as fh:
-        c = json.load(fh)
+def read_cam_json(path: str) -> tuple[Intrinsics, float | None]:
+    """A ``cam.json``: one JSON object with ``fx``, ``fy``, ``cx``, ``cy`` (pixels), ``width``, ``height`` (the
+    files' image size, pixels) and optionally ``depth_scale`` (depth image units per metre: 1000 for millimetres,
+    5000 for TUM); no other keys (a misspelt key would otherwise be silently ignored).
+
+    Returns:
+        (intrinsics, depth_scale or None when the file does not say).
+
+    Raises:
+        DatasetError: unreadable JSON, a missing or unknown key, a value that is not a number, a non-positive size,
+            focal length or depth scale (the file and the key are named).
+    """
     try:
-        k = Intrinsics(int(c["width"]), int(c["height"]), float(c["fx"]), float(c["fy"]),
-                       float(c["cx"]), float(c["cy"]))
-    except KeyError as exc:
-        raise DatasetError(f"{p}: missing key {exc}") from exc
-    return k, c.get("depth_scale")
+        with open(path) as fh:
+            c = json.load(fh)
+    except (OSError, ValueError) as exc:
+        raise DatasetError(f"{path}: not a readable JSON file ({exc})") from exc
+    if not isinstance(c, dict):
+        raise DatasetError(f"{path}: expected a JSON object with keys {', '.join(CAM_KEYS)}, got {type(c).__name__}")
+    unknown = sorted(set(c) - set(CAM_KEYS))
+    if unknown:
+        raise DatasetError(f"{path}: unknown key(s) {', '.join(map(repr, unknown))}; the keys are "
+                           f"{', '.join(CAM_KEYS)} (depth_scale optional)")
+    missing = [key for key in CAM_KEYS[:6] if key not in c]
+    if missing:
+        raise DatasetError(f"{path}: missing key(s) {', '.join(map(repr, missing))}; need fx, fy, cx, cy, width, "
+                           "height (and optionally depth_scale)")
+    for key in c:
+        v = c[key]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+            raise DatasetError(f"{path}: {key!r} must be a finite number, got {v!r}")
+    for key in ("width", "height"):
+        if c[key] != int(c[key]) or c[key] <= 0:
+            raise DatasetError(f"{path}: {key!r} must be a positive whole number of pixels, got {c[key]!r}")
+    for key in ("fx", "fy", "depth_scale"):
+        if key in c and c[key] <= 0:
+            raise DatasetError(f"{path}: {key!r} must be positive, got {c[key]!r}")
+    k = Intrinsics(int(c["width"]), int(c["height"]), float(c["fx"]), float(c["fy"]), float(c["cx"]),
+                   float(c["cy"]))
+    return k, (float(c["depth_scale"]) if "depth_scale" in c else None)
+
+
+def _read_cam(root: str, default: Intrinsics) -> tuple[Intrinsics, float | None]:
+    p = os.path.join(root, CAM_FILE)
+    return read_cam_json(p) if os.path.isfile(p) else (default, None)
+
+
+def parse_intrinsics(text: str) -> tuple[float, float, float, float]:
+    """``"517.3,516.5,318.6,255.3"`` -> (fx, fy, cx, cy), in pixels of the files' images.
+
+    Raises:
+        DatasetError: not four comma-separated finite numbers, or a non-positive focal length.
+    """
+    parts = [p.strip() for p in text.split(",")]
+    try:
+        vals = tuple(float(p) for p in parts)
+    except ValueError:
+        vals = ()
+    if len(vals) != 4 or not all(np.isfinite(vals)):
+        raise DatasetError(f"intrinsics must be four numbers fx,fy,cx,cy (pixels), e.g. 517.3,516.5,318.6,255.3; "
+                           f"got {text!r}")
+    if vals[0] <= 0 or vals[1] <= 0:
+        raise DatasetError(f"focal lengths must be positive, got fx={vals[0]:g} fy={vals[1]:g}")
+    return vals  # type: ignore[return-value]
+
+
+def camera_from_name(root: str) -> str | None:
+    """The preset a folder's name implies: TUM RGB-D's ``rgbd_dataset_freiburg1_xyz`` -> ``"tum-fr1"`` (its own
+    name, else its parent's, so a ``seq`` subfolder works too); None when the name says nothing."""
+    path = os.path.abspath(root)
+    for name in (os.path.basename(path), os.path.basename(os.path.dirname(path))):
+        m = re.search(r"freiburg([123])(?!\d)", name)
+        if m:
+            return f"tum-fr{m.group(1)}"
+    return None
 
 
 def load_replica(root: str, intrinsics: Intrinsics | None = None, depth_scale: float = 6553.5) -> Dataset:
@@ -271,8 +382,9 @@ def load_replica(root: str, intrinsics: Intrinsics | None = None, depth_scale: f
     sem = _numbered(sem_dir, r"semantic(\d+)\.png") if os.path.isdir(sem_dir) else None
     poses = _read_c2w_lines(os.path.join(root, "traj.txt"))
     k, ds = _read_cam(root, REPLICA_INTRINSICS)
-    return Dataset(intrinsics or k, rgb, depth, sem or None, poses, [float(i) for i in range(len(rgb))],
-                   ds or depth_scale, _read_classes(root))
+    return _with_cam_source(Dataset(intrinsics or k, rgb, depth, sem or None, poses,
+                                    [float(i) for i in range(len(rgb))], ds or depth_scale, _read_classes(root)),
+                            root, intrinsics is None, ds is not None)
 
 
 def load_sgs(root: str, intrinsics: Intrinsics | None = None, depth_scale: float = 1000.0) -> Dataset:
@@ -286,8 +398,18 @@ def load_sgs(root: str, intrinsics: Intrinsics | None = None, depth_scale: float
     sem = _numbered(sd, r"semantic_class_(\d+)\.png") if os.path.isdir(sd) else None
     poses = _read_c2w_lines(os.path.join(root, "traj_w_c.txt"))
     k, ds = _read_cam(root, REPLICA_INTRINSICS)
-    return Dataset(intrinsics or k, rgb, depth, sem or None, poses, [float(i) for i in range(len(rgb))],
-                   ds or depth_scale, _read_classes(root))
+    return _with_cam_source(Dataset(intrinsics or k, rgb, depth, sem or None, poses,
+                                    [float(i) for i in range(len(rgb))], ds or depth_scale, _read_classes(root)),
+                            root, intrinsics is None, ds is not None)
+
+
+def _with_cam_source(ds: Dataset, root: str, k_from_file: bool, scale_from_file: bool) -> Dataset:
+    p = os.path.join(root, CAM_FILE)
+    if k_from_file and os.path.isfile(p):
+        ds.intrinsics_source = p
+    if scale_from_file:
+        ds.depth_scale_source = p
+    return ds
 
 
 def _read_tum_list(path: str) -> list[tuple[float, list[str]]]:
@@ -439,12 +561,15 @@ def load_7scenes(root: str, intrinsics: Intrinsics | None = None, depth_scale: f
             raise DatasetError(f"{root}: {len(missing)} frames have no pose file (first: frame {missing[0]})")
         poses = [_read_c2w_file(pose[i]) for i in ids]
     kp = os.path.join(root, "camera-intrinsics.txt")
+    source = "layout default"
     if intrinsics is None and os.path.isfile(kp):
         h, w = _read_image(depth[ids[0]]).shape[:2]  # the K file does not say the image size
         intrinsics = _read_k_txt(kp, w, h)
+        source = kp
     k = intrinsics or SEVEN_SCENES_INTRINSICS
     ds = Dataset(k, [rgb[i] for i in ids], [depth[i] for i in ids], None, poses, [i / fps for i in ids],
                  depth_scale)
+    ds.intrinsics_source = source
     ds.invalid_depth_raw = 65535
     ds.colour_calib = SEVEN_SCENES_COLOUR  # one Kinect v1 recorded the dataset; load_dataset may replace it
     return ds
@@ -478,26 +603,38 @@ def detect_layout(root: str) -> str:
                        f"frame-XXXXXX.color.jpg)")
 
 
-def load_dataset(root: str, layout: str = "auto", intrinsics: Intrinsics | None = None,
-                 size: tuple[int, int] | None = None, colour_calib: str = "auto") -> Dataset:
+def load_dataset(root: str, layout: str = "auto", intrinsics: Intrinsics | tuple[float, float, float, float] | None
+                 = None, size: tuple[int, int] | None = None, colour_calib: str = "auto",
+                 depth_scale: float | None = None, camera: str = "auto") -> Dataset:
     """Open a dataset folder; ``layout`` is ``auto`` or one of :data:`LAYOUTS`.
 
     Args:
         root: the folder.
         layout: ``auto`` tells it from the files (:func:`detect_layout`).
-        intrinsics: overrides the layout's (native-size) camera.
+        intrinsics: overrides every other source of the (native-size) camera: an :class:`Intrinsics`, or
+            ``(fx, fy, cx, cy)`` of the files' images (their size is read from the first depth image).
         size: (width, height) working size; frames are resized and the intrinsics scaled (None: native).
         colour_calib: how colour meets depth. ``"auto"``: the folder's ``colour-calibration.json`` when
             present, else the layout's default (7-Scenes: ``colour_registration.SEVEN_SCENES_COLOUR``; the
             others are registered already); ``"none"``: colour taken as registered; else a calibration
             file's path (``python -m semantic_gs_slam.colour_registration`` writes one).
+        depth_scale: depth image units per metre; overrides every other source.
+        camera: ``"auto"`` (a preset when the folder's name implies one, :func:`camera_from_name`), ``"none"`` (no
+            preset), or a :data:`CAMERA_PRESETS` name, which outranks ``cam.json``. The order of the sources is in
+            the module docstring; :meth:`Dataset.camera_line` says which one gave each value.
 
     Raises:
-        DatasetError: missing folder, unknown layout, bad files, a bad calibration file.
+        DatasetError: missing folder, unknown layout or camera, bad files (a malformed ``cam.json`` included), a bad
+            calibration file, a non-positive depth scale.
     """
     if not os.path.isdir(root):
         raise DatasetError(f"dataset folder not found: {root}")
-    ds = _load(root, layout, intrinsics)
+    if camera not in CAMERAS:
+        raise DatasetError(f"unknown camera {camera!r}; use one of {', '.join(CAMERAS)}")
+    if depth_scale is not None and not (np.isfinite(depth_scale) and depth_scale > 0):
+        raise DatasetError(f"depth scale must be a positive number of depth units per metre, got {depth_scale!r}")
+    ds = _load(root, layout, None)
+    _resolve_camera(ds, root, intrinsics, depth_scale, camera)
     if colour_calib == "auto":
         own = os.path.join(root, CALIB_FILE)
         if os.path.isfile(own):
@@ -507,6 +644,40 @@ def load_dataset(root: str, layout: str = "auto", intrinsics: Intrinsics | None 
     else:
         ds.colour_calib = load_colour_calib(colour_calib)
     return ds.resized(*size) if size is not None else ds
+
+
+def _resolve_camera(ds: Dataset, root: str, intrinsics, depth_scale: float | None, camera: str) -> None:
+    """Apply the camera sources over the layout's own (lowest first, so the highest wins)."""
+    named = camera if camera in CAMERA_PRESETS else None
+    implied = camera_from_name(root) if camera == "auto" else None
+    cam_path = os.path.join(root, CAM_FILE)
+    cam = read_cam_json(cam_path) if os.path.isfile(cam_path) else None
+    k, k_src = ds.native_intrinsics, ds.intrinsics_source
+    scale, scale_src = ds.depth_scale, ds.depth_scale_source
+    if implied is not None:
+        p = CAMERA_PRESETS[implied]
+        k, scale, ds.distortion = p.intrinsics, p.depth_scale, p.distortion
+        k_src = scale_src = f"preset {implied}, from the folder name {os.path.basename(os.path.abspath(root))!r}"
+    if cam is not None:
+        k, k_src = cam[0], cam_path
+        ds.distortion = None
+        if cam[1] is not None:
+            scale, scale_src = cam[1], cam_path
+    if named is not None:
+        p = CAMERA_PRESETS[named]
+        k, scale, ds.distortion = p.intrinsics, p.depth_scale, p.distortion
+        k_src = scale_src = f"preset {named}, --camera"
+    if intrinsics is not None:
+        if not isinstance(intrinsics, Intrinsics):
+            fx, fy, cx, cy = intrinsics
+            h, w = _read_image(ds.depth_paths[0]).shape[:2]  # the images' size, for fx, fy, cx, cy of their pixels
+            intrinsics = Intrinsics(w, h, float(fx), float(fy), float(cx), float(cy))
+        k, k_src = intrinsics, "given (--intrinsics)"
+        ds.distortion = None
+    if depth_scale is not None:
+        scale, scale_src = float(depth_scale), "given (--depth-scale)"
+    ds.intrinsics = ds.native_intrinsics = k
+    ds.intrinsics_source, ds.depth_scale, ds.depth_scale_source = k_src, scale, scale_src
 
 
 def _load(root: str, layout: str, intrinsics: Intrinsics | None) -> Dataset:
