@@ -74,7 +74,7 @@ def test_camera_option_overrides_the_folder_name(tmp_path):
     ds = load_dataset(root, camera="tum-fr2")
     assert ds.intrinsics == CAMERA_PRESETS["tum-fr2"].intrinsics and "--camera" in ds.intrinsics_source
     plain = load_dataset(root, camera="none")
-    assert plain.intrinsics == TUM_INTRINSICS and plain.intrinsics_source == "layout default"
+    assert plain.intrinsics == TUM_INTRINSICS and plain.intrinsics_source == "the layout's default"
     with pytest.raises(DatasetError, match="unknown camera 'tum-fr4'"):
         load_dataset(root, camera="tum-fr4")
 

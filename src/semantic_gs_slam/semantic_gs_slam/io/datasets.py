@@ -111,15 +111,16 @@ class Dataset:
         # the colour camera relative to the depth camera (native size) when colour is not registered to depth;
         # frames are then re-sampled into the depth camera's pixels (:mod:`semantic_gs_slam.io.colour_registration`)
         self.colour_calib: ColourCalib | None = None
-        self.intrinsics_source = "layout default"  # where the native intrinsics came from (for the log line)
-        self.depth_scale_source = "layout default"
+        self.intrinsics_source = "the layout's default"  # where the native intrinsics came from (for the log line)
+        self.depth_scale_source = "the layout's default"
         self.distortion: tuple[float, ...] | None = None  # a preset's published lens distortion (not corrected)
 
     def camera_line(self) -> str:
         """One log line: the effective camera, where each part came from, the working size's scaled intrinsics."""
         k, w = self.native_intrinsics, self.intrinsics
         line = (f"camera: fx {k.fx:.2f} fy {k.fy:.2f} cx {k.cx:.2f} cy {k.cy:.2f} at {k.width}x{k.height} "
-                f"({self.intrinsics_source}), depth scale {self.depth_scale:g} per metre ({self.depth_scale_source})")
+                f"(from {self.intrinsics_source}), depth scale {self.depth_scale:g} per metre "
+                f"(from {self.depth_scale_source})")
         if (w.width, w.height) != (k.width, k.height):
             line += (f"; working size {w.width}x{w.height}: fx {w.fx:.2f} fy {w.fy:.2f} cx {w.cx:.2f} "
                      f"cy {w.cy:.2f}")
@@ -561,7 +562,7 @@ def load_7scenes(root: str, intrinsics: Intrinsics | None = None, depth_scale: f
             raise DatasetError(f"{root}: {len(missing)} frames have no pose file (first: frame {missing[0]})")
         poses = [_read_c2w_file(pose[i]) for i in ids]
     kp = os.path.join(root, "camera-intrinsics.txt")
-    source = "layout default"
+    source = "the layout's default"
     if intrinsics is None and os.path.isfile(kp):
         h, w = _read_image(depth[ids[0]]).shape[:2]  # the K file does not say the image size
         intrinsics = _read_k_txt(kp, w, h)
@@ -657,7 +658,7 @@ def _resolve_camera(ds: Dataset, root: str, intrinsics, depth_scale: float | Non
     if implied is not None:
         p = CAMERA_PRESETS[implied]
         k, scale, ds.distortion = p.intrinsics, p.depth_scale, p.distortion
-        k_src = scale_src = f"preset {implied}, from the folder name {os.path.basename(os.path.abspath(root))!r}"
+        k_src = scale_src = f"preset {implied}, implied by the folder name {os.path.basename(os.path.abspath(root))!r}"
     if cam is not None:
         k, k_src = cam[0], cam_path
         ds.distortion = None
@@ -666,16 +667,16 @@ def _resolve_camera(ds: Dataset, root: str, intrinsics, depth_scale: float | Non
     if named is not None:
         p = CAMERA_PRESETS[named]
         k, scale, ds.distortion = p.intrinsics, p.depth_scale, p.distortion
-        k_src = scale_src = f"preset {named}, --camera"
+        k_src = scale_src = f"--camera {named}"
     if intrinsics is not None:
         if not isinstance(intrinsics, Intrinsics):
             fx, fy, cx, cy = intrinsics
             h, w = _read_image(ds.depth_paths[0]).shape[:2]  # the images' size, for fx, fy, cx, cy of their pixels
             intrinsics = Intrinsics(w, h, float(fx), float(fy), float(cx), float(cy))
-        k, k_src = intrinsics, "given (--intrinsics)"
+        k, k_src = intrinsics, "--intrinsics"
         ds.distortion = None
     if depth_scale is not None:
-        scale, scale_src = float(depth_scale), "given (--depth-scale)"
+        scale, scale_src = float(depth_scale), "--depth-scale"
     ds.intrinsics = ds.native_intrinsics = k
     ds.intrinsics_source, ds.depth_scale, ds.depth_scale_source = k_src, scale, scale_src
 
