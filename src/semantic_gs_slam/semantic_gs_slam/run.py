@@ -186,7 +186,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", required=True, help="output folder: params.npz, semantic.json, map.ply")
     ap.add_argument("--frames", type=int, default=0, help="use only the first N frames (0: all)")
     ap.add_argument("--stride", type=int, default=1, help="use every k-th frame")
-    ap.add_argument("--start", type=int, default=0, help="first dataset frame")
+    ap.add_argument("--start", "--first", type=int, default=0, help="first dataset frame")
     ap.add_argument("--size", default="", help="working size WIDTHxHEIGHT, e.g. 320x240 (default: the files')")
     ap.add_argument("--labels", default="auto", choices=list(LABEL_MODES),
                     help="per-pixel labels: the dataset's, from geometry, geometry + an ONNX COCO model, none; "

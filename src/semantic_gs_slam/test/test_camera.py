@@ -163,3 +163,16 @@ def test_a_bad_depth_scale_is_a_usage_error(tmp_path, capsys, text):
 
 def test_parse_intrinsics_reads_four_numbers():
     assert parse_intrinsics(" 517.3, 516.5 ,318.6,255.3") == (517.3, 516.5, 318.6, 255.3)
+
+
+def test_the_run_prints_the_camera_line_with_its_sources(tmp_path, capsys):
+    root = _tum(tmp_path / "rgbd_dataset_freiburg1_xyz")
+    _cam(root)
+    # --first past the end: the run stops with exit 2 after opening the dataset (no SLAM work), the line printed
+    code = main(["--dataset", root, "--out", str(tmp_path / "out"), "--first", "99", "--depth-scale", "1000",
+                 "--size", "4x3"])
+    err = capsys.readouterr().err
+    assert code == 2 and "no frames selected" in err
+    line = next(ln for ln in err.splitlines() if ln.startswith("camera: "))
+    assert f"fx 7.00 fy 7.50 cx 3.50 cy 2.50 at 8x6 (from {os.path.join(root, 'cam.json')})" in line
+    assert "depth scale 1000 per metre (from --depth-scale)" in line and "working size 4x3: fx 3.50" in line
