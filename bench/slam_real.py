@@ -263,7 +263,8 @@ def main() -> int:
           "counted, as for Open3D, whose frames are decoded up front)")
     if o3:
         print(f"Open3D {o3['version']} t.pipelines.slam.Model ({o3['device']}, {args.o3d_voxel * 100:.0f} cm voxels, "
-              f"depth only): ATE ratio ours/Open3D {ate_o / o3_ate:.2f}, speed ratio ours/Open3D "
+              f"depth only): ATE ratio ours/Open3D {ate_o / o3_ate:.2f}, RPE ratio ours/Open3D "
+              f"{ours['rpe_cm'] / (100 * rpe_rmse(o3['poses'], gts, 1)):.2f}, speed ratio ours/Open3D "
               f"{ours['fps'] / o3['fps']:.3f}")
     detail = lost_summary(ours["stats"], idx)[1]
     if detail:
