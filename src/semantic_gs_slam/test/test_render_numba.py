@@ -250,12 +250,16 @@ def test_compiled_kernels_come_from_numba_s_disk_cache_in_a_new_process():
         "fns = (nk.composite_forward, nk.composite_backward, nk.bin_pairs, nk.ssim_forward, nk.ssim_backward,\n"
         "       nk.icp_accumulate)\n"
         "print(sum(len(f.stats.cache_hits) for f in fns), sum(len(f.stats.cache_misses) for f in fns))\n")
-    runs = [subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
-            for _ in range(2)]
-    for r in runs:
+    def run() -> tuple[int, int]:
+        r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
         assert r.returncode == 0, r.stderr
-    hits, misses = (int(x) for x in runs[1].stdout.split())
-    assert hits >= 6 and misses == 0, runs[1].stdout
+        hits, misses = (int(x) for x in r.stdout.split())
+        return hits, misses
+
+    hits, misses = run()
+    if misses:  # a cold cache (a fresh checkout): this process compiled and wrote it; the next one must load it
+        hits, misses = run()
+    assert hits >= 6 and misses == 0, (hits, misses)
 
 
 def test_compiled_paths_asked_for_off_the_cpu_are_refused_when_the_engine_starts(monkeypatch):

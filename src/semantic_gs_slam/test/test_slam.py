@@ -554,8 +554,8 @@ def test_refinement_with_poses_pulls_a_displaced_keyframe_back(mapped_on_true_po
     _displace_keyframe_4(eng, 0.05)
     before = [p.copy() for p in eng.poses]
     err0 = pose_error(eng.poses[4], ds[4].gt_c2w)[0]
-    loss, done = eng.refine(300, poses=True)
-    assert done == 300 and np.isfinite(loss)
+    loss, done = eng.refine(200, poses=True)  # measured: 5.0 cm -> 2.1 cm after 200 iterations, 2.0 after 300
+    assert done == 200 and np.isfinite(loss)
     err1 = pose_error(eng.poses[4], ds[4].gt_c2w)[0]
     assert err0 > 0.049 and err1 < 0.5 * err0, (err0, err1)
     np.testing.assert_array_equal(eng.poses[0], before[0])  # the gauge
