@@ -83,6 +83,7 @@ class Operator:
         self._cancel.publish(String(data=text))
 
 
+@pytest.mark.slow
 def test_acknowledged_burst_spoofed_cancel_huge_command_and_spoken_stop(launch_nodes, ros_node):
     launch_nodes(nodeset="sim_robot", set=["mock_nav_server.speed=0.3"])
     op = Operator(ros_node)

@@ -16,6 +16,8 @@ from semantic_gs_slam.posegraph import Edge, optimise, pose_exp, pose_log, so3_e
 from semantic_gs_slam.slam import SLAM
 from semantic_gs_slam.synthetic import HomeRenderer, default_intrinsics, trajectory
 
+pytestmark = pytest.mark.slow  # the SLAM runs over the out-and-back sequence (a module fixture)
+
 
 def test_so3_log_inverts_exp_near_zero_and_near_pi():
     rng = np.random.default_rng(1)

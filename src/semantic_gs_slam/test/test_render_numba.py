@@ -116,6 +116,7 @@ def test_numba_result_does_not_depend_on_the_number_of_threads():
         assert torch.equal(rgb, results[0][0]) and torch.equal(gm, results[0][1])
 
 
+@pytest.mark.slow
 def test_numba_renders_from_three_python_threads_at_once():
     """numba's ``workqueue`` threading layer (its fallback without OpenMP or TBB) aborts the process when two Python
     threads enter it at once; the module's lock serialises the calls. Run with that layer forced, in a subprocess (an
@@ -204,6 +205,7 @@ def test_compiled_binning_gives_the_reference_pairs_in_the_reference_order():
     assert torch.equal(a.coef, b.coef)
 
 
+@pytest.mark.slow
 def test_cpu_kernels_bench_prints_every_row_with_agreeing_results(capsys):
     """``bench/cpu_kernels.py`` on the bundled map at a small size: five rows, each with both timings, and the
     fast path's results close to the reference's."""
@@ -225,6 +227,7 @@ def test_cpu_kernels_bench_prints_every_row_with_agreeing_results(capsys):
         assert float(cells[4].split()[0]) < 1e-3, line  # results apart
 
 
+@pytest.mark.slow
 def test_compiled_kernels_come_from_numba_s_disk_cache_in_a_new_process():
     """The kernels are module-level functions, so a second process loads them from numba's cache instead of
     compiling them again (kernels defined inside a function were recompiled in every process: ~10 s a start)."""

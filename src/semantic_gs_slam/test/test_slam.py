@@ -539,6 +539,8 @@ def _displace_keyframe_4(eng: SLAM, metres: float) -> None:
         eng.poses[i] = shift @ eng.poses[i]
 
 
+@pytest.mark.slow
+@pytest.mark.xdist_group("slam_refinement")  # one worker maps the tiny home for both tests
 def test_refinement_with_poses_pulls_a_displaced_keyframe_back(mapped_on_true_poses):
     """Bundle adjustment through the renderer: a keyframe moved 5 cm off its true pose comes most of the way back
     (with the default pose prior); the first keyframe (the gauge) stays; without ``poses`` no pose moves. (At this
@@ -570,6 +572,8 @@ def test_refinement_with_poses_pulls_a_displaced_keyframe_back(mapped_on_true_po
     assert done == 3 and all(np.array_equal(a, b) for a, b in zip(fixed, eng.poses, strict=True))
 
 
+@pytest.mark.slow
+@pytest.mark.xdist_group("slam_refinement")
 def test_pose_prior_holds_keyframes_the_image_cannot_place(mapped_on_true_poses):
     """Keyframes at their true poses, at a size where a pixel is ~5 cm: without the prior Adam walks them off by
     2-3 cm (its steps are about its learning rate whatever the gradient's size); the default prior (0.001) keeps
