@@ -23,7 +23,8 @@ from std_msgs.msg import String
 from home_robot_bringup.nodeset import load_nodeset
 from home_robot_bringup.testing import wait_for
 
-pytestmark = [pytest.mark.ros, pytest.mark.slow]
+# the run has its own deadline (600 s, below); pytest's 300 s default would cut it first on a loaded machine
+pytestmark = [pytest.mark.ros, pytest.mark.slow, pytest.mark.timeout(900)]
 
 # the engine's defaults on the CPU: mapping.iters 10, first_frame_iters 60, tracking.icp_iters 12. The objects'
 # places come from the depth the Gaussians are seeded at (posed by the odometry and ICP), not from the extra steps.
