@@ -46,14 +46,6 @@ def server_spec(work, sequence, **params) -> NodeSpec:
                     parameters={**base, **params}, ready="ready:")
 
 
-@pytest.fixture(scope="module")
-def shared_server(launch_shared_nodes, sequence, tmp_path_factory):
-    """One server with the default settings above for the tests whose runs name their own folders (the goal's
-    output_dir and map_dir, from the client): started once for them, not once per test."""
-    work = tmp_path_factory.mktemp("shared_server")
-    return launch_shared_nodes(nodes=[server_spec(work, sequence)]).get("run_gs_slam_server")
-
-
 class Client(CapturedProcess):
     """run_gs_slam_client as a process; output collected."""
 
@@ -134,15 +126,14 @@ def test_lag_control_pauses_intake_without_losing_frames(launch_nodes, ros_domai
     assert len(os.listdir(work / "frames")) == int(m.group(1))
 
 
-@pytest.mark.xdist_group("shared_slam_server")
-def test_cancel_mid_run_still_saves_a_map(shared_server, shared_domain, sequence, tmp_path):
+def test_cancel_mid_run_still_saves_a_map(launch_nodes, ros_domain, sequence, tmp_path):
     work = tmp_path / "run"
-    seen = len(shared_server.output())  # the server served other runs before: this run's lines come after
-    client = Client(shared_domain, sequence / "home", rate=1.0, output_dir=str(work), map_dir=str(work / "map"))
-    assert wait_for(lambda: processed_frames(work) >= 2, 120), client.text() + shared_server.output()
+    sup = launch_nodes(nodes=[server_spec(work, sequence)])
+    client = Client(ros_domain, sequence / "home", rate=1.0)
+    assert wait_for(lambda: processed_frames(work) >= 2, 120), client.text() + sup.output()
     client.proc.send_signal(signal.SIGINT)
     assert client.wait(120) == 130, client.text()
-    assert wait_for(lambda: "run finished: cancelled" in shared_server.output()[seen:], 60), shared_server.output()
+    assert wait_for(lambda: "run finished: cancelled" in sup.get("run_gs_slam_server").output(), 60), sup.output()
     assert (work / "map" / "params.npz").is_file()
 
 
@@ -167,12 +158,11 @@ def test_resume_after_a_crash(launch_nodes, ros_domain, sequence, tmp_path):
     assert len(indices) == len(set(indices)) and len(os.listdir(work / "frames")) == len(indices)
 
 
-@pytest.mark.xdist_group("shared_slam_server")
-def test_bad_output_directory_is_a_clear_error(shared_server, shared_domain, sequence, tmp_path):
+def test_bad_output_directory_is_a_clear_error(launch_nodes, ros_domain, sequence, tmp_path):
     blocker = tmp_path / "a_file"
     blocker.write_text("not a folder")
-    client = Client(shared_domain, sequence / "home", output_dir=str(blocker / "run"),
-                    map_dir=str(blocker / "run" / "map"))
+    launch_nodes(nodes=[server_spec(blocker / "run", sequence)])
+    client = Client(ros_domain, sequence / "home")
     assert client.wait(120) == 1, client.text()
     assert "run failed before it started" in client.text() and "not writable" in client.text()
 
