@@ -19,7 +19,7 @@ import pytest
 from home_robot_bringup.nodeset import find_executable
 from home_robot_bringup.process import node_environment
 
-pytestmark = pytest.mark.ros
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 SERVERS = [("object_query", "object_query_server"), ("decision_maker", "mock_nav_server"),
            ("decision_maker", "mock_grasp_server"), ("decision_maker", "decision_maker_node")]

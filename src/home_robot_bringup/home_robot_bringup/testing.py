@@ -8,6 +8,11 @@ Registered by the repository's ``conftest.py``. Fixtures:
   if the test failed, their output is printed (pytest shows it under "Captured stdout teardown").
 * ``ros_node`` -- an rclpy node in the test process on the test's domain, spun by a
   MultiThreadedExecutor in a background thread; wait on futures/events from the test.
+* ``shared_domain``, ``launch_shared_nodes``, ``shared_ros_node`` -- the same for a whole test
+  module: a node set started once that several tests use (one process start instead of one per
+  test). Only for tests that leave the nodes as they found them (queries, or names of their own);
+  mark them ``@pytest.mark.xdist_group(...)`` so that ``pytest -n 2 --dist loadgroup`` runs them on
+  one worker. The nodes' output is printed at the end of the module if one of its tests failed.
 
 Every environment created here sets ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST.
 """
@@ -68,6 +73,47 @@ def launch_nodes(ros_domain: int, request: pytest.FixtureRequest) -> Iterator[Ca
     if _failed(request):
         for sup in started:
             print(sup.output())
+
+
+@pytest.fixture(scope="module")
+def shared_domain() -> Iterator[int]:
+    with DomainLease() as lease:
+        yield lease.domain_id
+
+
+@pytest.fixture(scope="module")
+def launch_shared_nodes(shared_domain: int, request: pytest.FixtureRequest) -> Iterator[Callable[..., Supervisor]]:
+    started: list[Supervisor] = []
+    failed_before = request.session.testsfailed
+
+    def start(nodeset: str | None = None, nodes: list[NodeSpec] | None = None, set: list[str] | None = None,
+              ready_timeout: float = 60.0, env: dict[str, str] | None = None) -> Supervisor:
+        specs = list(load_nodeset(nodeset) if nodeset else []) + list(nodes or [])
+        specs = apply_overrides(specs, set or [])
+        node_env = node_environment(shared_domain)
+        node_env.update(env or {})
+        sup = Supervisor(specs, node_env, echo=None)
+        started.append(sup)
+        sup.start()
+        sup.wait_ready(ready_timeout)
+        return sup
+
+    yield start
+    for sup in started:
+        sup.stop()
+    if request.session.testsfailed > failed_before:
+        for sup in started:
+            print(sup.output())
+
+
+@pytest.fixture(scope="module")
+def shared_ros_node(shared_domain: int) -> Iterator[object]:
+    """An rclpy node in the test process on ``shared_domain``, already being spun, for a whole module."""
+    helper = BackgroundNode(shared_domain, "test_client")
+    try:
+        yield helper.node
+    finally:
+        helper.close()
 
 
 @pytest.fixture

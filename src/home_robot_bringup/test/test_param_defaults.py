@@ -120,6 +120,7 @@ def test_compare_finds_a_difference():
 
 
 @pytest.mark.ros
+@pytest.mark.slow
 def test_declared_defaults_equal_params_files(ros_domain):
     documented = yaml_params()
     with ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 2)) as pool:

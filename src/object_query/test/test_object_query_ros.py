@@ -15,8 +15,15 @@ from object_query.object_query_client import ObjectQueryClient
 pytestmark = pytest.mark.ros
 
 
-def test_query_and_late_joining_object_list(launch_nodes, ros_node, ros_domain):
-    launch_nodes(nodeset="object_query")
+@pytest.fixture(scope="module")
+def bundled_map_server(launch_shared_nodes) -> None:
+    """One object_query node set on the bundled map for the tests that only ask it (started once, not per test)."""
+    launch_shared_nodes(nodeset="object_query")
+
+
+@pytest.mark.xdist_group("object_query_bundled_map")
+def test_query_and_late_joining_object_list(bundled_map_server, shared_ros_node):
+    ros_node = shared_ros_node
     client = ObjectQueryClient(ros_node)
     assert client.wait_for_service(timeout_sec=20.0)
 
@@ -44,9 +51,9 @@ def test_query_and_late_joining_object_list(launch_nodes, ros_node, ros_domain):
     assert {"bottle", "chair", "table", "sofa", "bin", "cup", "trash"} <= set(objects)
 
 
-def test_command_line_client_exit_codes(launch_nodes, ros_domain):
-    launch_nodes(nodeset="object_query")
-    env = node_environment(ros_domain)
+@pytest.mark.xdist_group("object_query_bundled_map")
+def test_command_line_client_exit_codes(bundled_map_server, shared_domain):
+    env = node_environment(shared_domain)
     exe = find_executable("object_query", "object_query_client")
     found = subprocess.run([exe, "table", "--timeout", "20"], env=env, capture_output=True, text=True, timeout=60)
     assert found.returncode == 0, found.stdout + found.stderr

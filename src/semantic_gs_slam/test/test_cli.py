@@ -8,9 +8,17 @@ from semantic_gs_slam.run import main
 from semantic_gs_slam.slam import SLAM
 
 
+def _fast(tmp_path) -> list[str]:
+    """``--config`` with a short first-frame fit (60 iterations by default: most of a short run's time). These tests
+    check what the command line does with frames, checkpoints and signals, not the map's quality."""
+    path = tmp_path / "fast.json"
+    path.write_text('{"mapping": {"first_frame_iters": 4}}')
+    return ["--config", str(path)]
+
+
 def test_run_checkpoint_resume_and_eval(tiny_home, tmp_path, capsys):
     out = str(tmp_path / "map")
-    args = ["--dataset", str(tiny_home), "--out", out, "--threads", "1", "--mapping-iters", "3"]
+    args = ["--dataset", str(tiny_home), "--out", out, "--threads", "1", "--mapping-iters", "3", *_fast(tmp_path)]
     assert main(args + ["--frames", "4", "--checkpoint-every", "2"]) == 0
     assert os.path.isfile(os.path.join(out, "checkpoint", "checkpoint.json"))
     assert main(args + ["--frames", "6", "--resume", "--eval", "--refine-iters", "4", "--refine-poses"]) == 0
@@ -70,7 +78,7 @@ def test_a_bad_frame_is_skipped_and_nothing_is_lost(tiny_home, tmp_path, capsys)
     Image.new("I;16", Image.open(depth[4]).size, 0).save(depth[4])  # no valid depth at all
     out = str(tmp_path / "map")
     rc = main(["--dataset", str(seq), "--out", out, "--threads", "1", "--mapping-iters", "2", "--frames", "6",
-               "--quiet", "--eval", "--checkpoint-every", "2"])
+               "--quiet", "--eval", "--checkpoint-every", "2", *_fast(tmp_path)])
     cap = capsys.readouterr()
     assert rc == 0, cap.err
     assert "warning: frame 2 skipped" in cap.err and "unreadable image" in cap.err
@@ -106,7 +114,8 @@ def test_many_bad_frames_in_a_row_stop_the_run_and_keep_the_map(tiny_home, tmp_p
     old = run.MAX_BAD_IN_A_ROW
     run.MAX_BAD_IN_A_ROW = 3
     try:
-        assert main(["--dataset", str(seq), "--out", out, "--threads", "1", "--mapping-iters", "2", "--quiet"]) == 2
+        assert main(["--dataset", str(seq), "--out", out, "--threads", "1", "--mapping-iters", "2", "--quiet",
+                     *_fast(tmp_path)]) == 2
     finally:
         run.MAX_BAD_IN_A_ROW = old
     err = capsys.readouterr().err
@@ -153,7 +162,7 @@ def test_ctrl_c_saves_the_map_so_far_and_resume_goes_on(tiny_home, tmp_path):
     writes a checkpoint and exits with 130; --resume maps the rest."""
     out = tmp_path / "map"
     args = ["--dataset", str(tiny_home), "--out", str(out), "--threads", "1", "--mapping-iters", "2", "--frames", "6",
-            "--checkpoint-every", "4"]
+            "--checkpoint-every", "4", *_fast(tmp_path)]
     res = _run_with_sigint(2, args)
     assert res.returncode == 130, res.stderr
     assert "interrupted: finishing this step, then saving the map so far" in res.stderr
@@ -167,7 +176,7 @@ def test_ctrl_c_saves_the_map_so_far_and_resume_goes_on(tiny_home, tmp_path):
 def test_ctrl_c_during_the_last_frame_skips_the_refinement_and_says_so(tiny_home, tmp_path):
     out = tmp_path / "map"
     res = _run_with_sigint(3, ["--dataset", str(tiny_home), "--out", str(out), "--threads", "1", "--mapping-iters",
-                               "2", "--frames", "3", "--refine-iters", "50", "--eval"])
+                               "2", "--frames", "3", "--refine-iters", "50", "--eval", *_fast(tmp_path)])
     assert res.returncode == 130, res.stderr
     assert "error: stopped by Ctrl-C; the map of the 3 frames mapped is saved, without --eval" in res.stderr
     assert "refined the map" not in res.stderr and "ATE" not in res.stdout

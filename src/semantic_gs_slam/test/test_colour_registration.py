@@ -77,6 +77,7 @@ def test_register_with_the_true_calibration_puts_colour_where_the_depth_camera_s
     np.testing.assert_allclose(ident, rgb, atol=1e-5)  # the depth camera itself: nothing moves
 
 
+@pytest.mark.slow
 def test_estimate_finds_the_colour_camera_from_the_frames_alone():
     frames = []
     for s in range(8):

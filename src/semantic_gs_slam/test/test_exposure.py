@@ -91,6 +91,7 @@ class _Frames:
         return self.f[i]
 
 
+@pytest.mark.slow
 def test_the_map_keeps_the_first_frames_exposure_and_renders_in_each_frames():
     eng, frames = _run(auto_exposure=True, compensate=True)
     gains = torch.stack(eng.exposures)[:, 0].numpy()  # [T, 3]
@@ -123,6 +124,7 @@ def test_a_camera_without_auto_exposure_is_left_alone_and_the_exposures_survive_
     assert SLAM(off).exposure_of(0) is None
 
 
+@pytest.mark.slow
 def test_frames_with_odometry_are_left_alone_unless_asked():
     robot, _ = _run(auto_exposure=True, compensate=True, odometry=True)  # a robot's stream: off by default
     assert torch.equal(torch.stack(robot.exposures)[:, 0], torch.ones(10, 3))

@@ -435,6 +435,7 @@ def test_name_by_place_takes_unlabelled_gaussians_and_several_classes(tmp_path, 
 
 
 # ----------------------------------------------------------------------------- CLI on a label-less real layout
+@pytest.mark.slow
 def test_cli_runs_a_7scenes_layout_with_geometry_labels(tiny_home, tmp_path, capsys):
     from semantic_gs_slam.io.datasets import load_dataset
     from semantic_gs_slam.run import main

@@ -116,6 +116,7 @@ def test_numba_result_does_not_depend_on_the_number_of_threads():
         assert torch.equal(rgb, results[0][0]) and torch.equal(gm, results[0][1])
 
 
+@pytest.mark.slow
 def test_numba_renders_from_three_python_threads_at_once():
     """numba's ``workqueue`` threading layer (its fallback without OpenMP or TBB) aborts the process when two Python
     threads enter it at once; the module's lock serialises the calls. Run with that layer forced, in a subprocess (an
@@ -204,6 +205,7 @@ def test_compiled_binning_gives_the_reference_pairs_in_the_reference_order():
     assert torch.equal(a.coef, b.coef)
 
 
+@pytest.mark.slow
 def test_cpu_kernels_bench_prints_every_row_with_agreeing_results(capsys):
     """``bench/cpu_kernels.py`` on the bundled map at a small size: five rows, each with both timings, and the
     fast path's results close to the reference's."""
@@ -225,6 +227,7 @@ def test_cpu_kernels_bench_prints_every_row_with_agreeing_results(capsys):
         assert float(cells[4].split()[0]) < 1e-3, line  # results apart
 
 
+@pytest.mark.slow
 def test_compiled_kernels_come_from_numba_s_disk_cache_in_a_new_process():
     """The kernels are module-level functions, so a second process loads them from numba's cache instead of
     compiling them again (kernels defined inside a function were recompiled in every process: ~10 s a start)."""
@@ -252,12 +255,16 @@ def test_compiled_kernels_come_from_numba_s_disk_cache_in_a_new_process():
         "fns = (rk.composite_forward, rk.composite_backward, rk.bin_pairs, ek.ssim_forward, ek.ssim_backward,\n"
         "       tk.icp_accumulate)\n"
         "print(sum(len(f.stats.cache_hits) for f in fns), sum(len(f.stats.cache_misses) for f in fns))\n")
-    runs = [subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
-            for _ in range(2)]
-    for r in runs:
+    def run() -> tuple[int, int]:
+        r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
         assert r.returncode == 0, r.stderr
-    hits, misses = (int(x) for x in runs[1].stdout.split())
-    assert hits >= 6 and misses == 0, runs[1].stdout
+        hits, misses = (int(x) for x in r.stdout.split())
+        return hits, misses
+
+    hits, misses = run()
+    if misses:  # a cold cache (a fresh checkout): this process compiled and wrote it; the next one must load it
+        hits, misses = run()
+    assert hits >= 6 and misses == 0, (hits, misses)
 
 
 def test_compiled_paths_asked_for_off_the_cpu_are_refused_when_the_engine_starts(monkeypatch):

@@ -356,6 +356,13 @@ def test_engine_adapter_reports_the_engines_last_frame():
     assert len(adapter.slam.logs) == 1  # the report is the engine's own log of that frame
 
 
+def _short_fits(cfg):
+    """Few Adam steps per frame (the first frame's 60 by default are most of a short run's time): the sessions below
+    check what the session does with the engine's frames, results and failures, not the map's quality."""
+    cfg.mapping.first_frame_iters, cfg.mapping.iters = 5, 3
+    return cfg
+
+
 def _engine_session(tmp_path, refine_iters: int, log: list[str], refine_poses: bool = False):
     """A session around the real engine (EngineAdapter + SLAM) fed four frames of the synthetic home."""
     from semantic_gs_slam.config import SlamConfig
@@ -365,7 +372,7 @@ def _engine_session(tmp_path, refine_iters: int, log: list[str], refine_poses: b
     from semantic_gs_slam_ros.session import SessionConfig, StreamingSession
 
     k = default_intrinsics(128, 72)
-    cfg = SlamConfig(intrinsics=k, threads=1)
+    cfg = _short_fits(SlamConfig(intrinsics=k, threads=1))
     cfg.mapping.keyframe_every = 2  # frames 0 and 2 are keyframes: a pose to refine besides the gauge
     engine = EngineAdapter(SLAM(cfg))
     session = StreamingSession(SessionConfig(work_dir=str(tmp_path / "work"), width=0, height=0, checkpoint_every=0,
@@ -467,7 +474,7 @@ def _labelled_engine_session(tmp_path, bad: set[int], n: int, log: list[str]):
 
     k = default_intrinsics(128, 72)
     stage = make_labels("geometry", "", k, streamed_labels=False)
-    engine = EngineAdapter(SLAM(SlamConfig(intrinsics=k, threads=1)), stage)
+    engine = EngineAdapter(SLAM(_short_fits(SlamConfig(intrinsics=k, threads=1))), stage)
     session = StreamingSession(SessionConfig(work_dir=str(tmp_path / "work"), width=0, height=0,
                                              checkpoint_every=0), engine, log=log.append)
     r = HomeRenderer(0)

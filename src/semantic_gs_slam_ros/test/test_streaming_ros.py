@@ -19,7 +19,7 @@ from home_robot_bringup.nodeset import NodeSpec, find_executable
 from home_robot_bringup.process import node_environment
 from home_robot_bringup.testing import wait_for
 
-pytestmark = pytest.mark.ros
+pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 FAST_SLAM = """
 mapping: {first_frame_iters: 10, iters: 4, keyframe_every: 3}
