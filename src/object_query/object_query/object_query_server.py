@@ -163,6 +163,7 @@ class ObjectQueryServer(Node):
         self._seen_signature: FileSignature | None = None
         self._pending: str | None = None  # reason of a reload requested by a parameter change
         self._staged_started = False  # the start-up map's instances are built in the background
+        self._staged: StagedBuild | None = None  # that build, waited for at shutdown
 
         self._list_pub = self.create_publisher(String, "object_list", OBJECT_LIST_QOS)
         self._marker_pub = self.create_publisher(MarkerArray, "object_markers", OBJECT_LIST_QOS)
@@ -189,7 +190,15 @@ class ObjectQueryServer(Node):
                                f"{'; provisional class centroids, instances being built' if db.provisional else ''}")
         if staged is not None and not staged.done:
             self._staged_started = True
-            staged.start()  # after the services exist: answers never wait for the instances
+            self._staged = staged.start()  # after the services exist: answers never wait for the instances
+
+    def wait_background(self, timeout_s: float) -> bool:
+        """Wait up to ``timeout_s`` seconds for the start-up map's background build; True when none runs.
+
+        Called before the node is destroyed: a build thread still inside compiled code when the
+        interpreter exits aborts the process ("terminate called without an active exception").
+        """
+        return self._staged is None or self._staged.wait(timeout_s)
 
     # -- settings --------------------------------------------------------------------------------
 
@@ -418,6 +427,10 @@ class ObjectQueryServer(Node):
             self.reload("map files changed")
 
 
+#: How long shutdown waits for the start-up map's background build (seconds).
+BUILD_JOIN_S = 10.0
+
+
 def main(args: list[str] | None = None) -> int:
     rclpy.init(args=args)
     try:
@@ -440,6 +453,8 @@ def main(args: list[str] | None = None) -> int:
         maintenance.shutdown(timeout_sec=2.0)
         executor.shutdown(timeout_sec=2.0)
         maintenance_thread.join(3.0)  # before destroying: a live spin thread at exit aborts the process
+        if not node.wait_background(BUILD_JOIN_S):
+            node.get_logger().warning(f"the instance build is still running after {BUILD_JOIN_S:.0f} s; exiting anyway")
         node.maintenance_node.destroy_node()
         node.destroy_node()
         rclpy.try_shutdown()
