@@ -6,9 +6,13 @@ Modes (``LabelConfig.mode``):
 * ``dataset`` — the dataset's own label images (ground truth, e.g. our synthetic home);
 * ``geometry`` — class-agnostic objects and named planes from depth alone (:mod:`.geometry`), offline,
   no model;
-* ``onnx`` — ``geometry`` plus COCO names from a local ONNX segmenter/detector (:mod:`.onnx_model`);
+* ``onnx`` — ``geometry`` plus COCO names from a local ONNX segmenter/detector (:mod:`.onnx_model`): the file
+  ``onnx_model``, or when that is empty the installed COCO detector (NanoDet-g,
+  :func:`semantic_gs_slam.models.fetch.detector_path`);
 * ``none`` — no labels (the map has no classes);
-* ``auto`` — ``dataset`` when the dataset has label images, else ``geometry``.
+* ``auto`` — ``dataset`` when the dataset has label images; else ``onnx`` when ``onnx_model`` is given or the COCO
+  detector is installed (``python -m semantic_gs_slam.models.fetch``); else ``geometry``, with one warning line
+  (logging) that says how to add the detector.
 
 Names given by people (``"this is my mug"``) are written into a saved map's ``semantic.json`` by
 :func:`semantic_gs_slam.labels.names.name_instance`.
@@ -16,6 +20,7 @@ Names given by people (``"this is my mug"``) are written into a saved map's ``se
 
 from __future__ import annotations
 
+import logging
 import numbers
 from dataclasses import dataclass, field
 
@@ -32,6 +37,7 @@ from semantic_gs_slam.labels.geometry import (
 )
 
 LABEL_MODES = ("auto", "dataset", "geometry", "onnx", "none")
+_log = logging.getLogger(__name__)
 OBJECT_ID = 5  # the map id of geometry instances with map_ids "class"
 
 
@@ -40,8 +46,13 @@ class LabelConfig:
     """Which labels the SLAM stream gets (see the module docstring)."""
 
     mode: str = "auto"
-    onnx_model: str = ""  # path of the ONNX model (mode "onnx")
-    onnx_score: float = 0.5  # detections below this score are ignored
+    onnx_model: str = ""  # path of the ONNX model (modes "onnx" and "auto"); "": the installed COCO detector
+    # (semantic_gs_slam.models.fetch.detector_path(): $HOME_ROBOT_MODELS or ~/.cache/home-robot/models,
+    # nanodet-g/nanodet-g.onnx)
+    onnx_score: float = 0.5  # detections below this score are ignored (the installed NanoDet: detector_score)
+    detector_score: float = 0.4  # score threshold when the model is the installed NanoDet-g (measured on the
+    # kitchen, docs/detector.md)
+    onnx_threads: int = 0  # onnxruntime intra-op threads (0: one per core)
     onnx_label_space: str = "coco91"  # "coco91" (category ids 1-90, torchvision) or "coco80" (indices 0-79)
     map_ids: str = "class"  # "class": every geometry instance goes to the map as class OBJECT_ID ("object",
     # one class column; the object-query server splits instances in space); "instance": each tracked instance
@@ -59,8 +70,8 @@ class LabelConfig:
             raise ConfigError(f"labels.mode must be one of {LABEL_MODES}, got {self.mode!r}")
         if isinstance(self.every, bool) or not isinstance(self.every, numbers.Integral) or self.every < 1:
             raise ConfigError(f"labels.every must be an integer >= 1, got {self.every!r}")
-        if self.mode == "onnx" and not self.onnx_model:
-            raise ConfigError("labels.mode 'onnx' needs labels.onnx_model (a local .onnx file)")
+        if not 0 <= self.onnx_score <= 1 or not 0 <= self.detector_score <= 1:
+            raise ConfigError("labels.onnx_score and labels.detector_score must lie in [0, 1]")
         if self.map_ids not in ("class", "instance"):
             raise ConfigError(f"labels.map_ids must be 'class' or 'instance', got {self.map_ids!r}")
         self.geometry.check()
@@ -87,21 +98,33 @@ class LabelStage:
         Raises:
             ConfigError: bad config; ``dataset`` mode without dataset labels; an unloadable ONNX model.
         """
+        from semantic_gs_slam.models.fetch import HOW_TO_ADD, detector_path, installed_detector
+
         config.check()
         self.cfg = config
         mode = config.mode
+        model = config.onnx_model or (installed_detector() if mode in ("auto", "onnx") else None)
         if mode == "auto":
-            mode = "dataset" if dataset_has_labels else "geometry"
+            mode = "dataset" if dataset_has_labels else ("onnx" if model else "geometry")
+            if mode == "geometry":
+                _log.warning("labels: no COCO detector installed (%s), objects get no names (labels: geometry); "
+                             "add it with: %s", detector_path(), HOW_TO_ADD)
+        if mode == "onnx" and not model:
+            raise ConfigError(f"labels.mode 'onnx' needs labels.onnx_model (a local .onnx file) or the installed COCO "
+                              f"detector ({detector_path()}: not there; add it with: {HOW_TO_ADD})")
         if mode == "dataset" and not dataset_has_labels:
             raise ConfigError("labels.mode 'dataset' but the dataset has no label images (use auto or geometry)")
         self.mode = mode
         self.geometry = GeometryLabeller(intrinsics, config.geometry) if mode in ("geometry", "onnx") else None
         self.model = None
+        self.model_path = model if mode == "onnx" else None  # the ONNX file used
         self._coco: dict[int, str] = {}
         if mode == "onnx":
             from semantic_gs_slam.labels.onnx_model import OnnxSegmenter, coco_classes
 
-            self.model = OnnxSegmenter(config.onnx_model, config.onnx_score, config.onnx_label_space)
+            self.model = OnnxSegmenter(model, config.onnx_score, config.onnx_label_space, threads=config.onnx_threads)
+            if self.model.kind == "nanodet" and not config.onnx_model:
+                self.model.score_threshold = config.detector_score
             self._coco = coco_classes()
         self.classes: dict[int, str] = {}  # ids this stage produced -> names
         self._calls = 0  # frames seen (the frame index when the caller gives none)

@@ -427,7 +427,12 @@ def _onnx_window(b: _Builder, n: TfjsNode, x: str, out: str, op: str, w: np.ndar
     inp = x if nchw else b.node("Transpose", [x], hint=n.name + "/to_nchw", perm=[0, 3, 1, 2])[0]
     attrs: dict = {"strides": s}
     pad = n.a("padding", "VALID")
-    if pad == "SAME":
+    if pad == "SAME" and max(d) > 1:  # onnxruntime has no auto_pad with dilation: stride 1 pads (k - 1) d in all
+        if max(s) > 1:
+            raise ModelFormatError(f"{n.name}: SAME padding with both dilation {d} and stride {s} is not supported")
+        k = [(w.shape[0] - 1) * d[0], (w.shape[1] - 1) * d[1]]
+        attrs["pads"] = [k[0] // 2, k[1] // 2, k[0] - k[0] // 2, k[1] - k[1] // 2]
+    elif pad == "SAME":
         attrs["auto_pad"] = "SAME_UPPER"  # TensorFlow's SAME: the extra pixel at the end
     elif pad == "EXPLICIT":
         (t, bo), (le, r) = _explicit_hw(n, nchw)
