@@ -132,3 +132,51 @@ def test_the_installed_detector_carries_its_licence_and_finds_the_kitchens_objec
     rgb = np.asarray(Image.open(frame).convert("RGB").resize((320, 240), Image.Resampling.BILINEAR))
     found = {COCO_NAMES[i - COCO_BASE] for i, _s, _m, _b in det(rgb)}
     assert {"cup", "chair", "dining table", "tv"} <= found, found
+
+
+def _toy_nanodet(path, size: int = 64, bins: int = 8) -> str:
+    """An ONNX file with NanoDet's raw-head signature whose outputs are constants: a "cup" (COCO80 index 41) on the
+    stride-8 anchor at column 4, row 4 (centre (36, 36)), 2 strides left and up, 1 right and down."""
+    onnx = pytest.importorskip("onnx")
+    pytest.importorskip("onnxruntime")
+    from onnx import TensorProto, helper, numpy_helper
+
+    nodes, outs = [], []
+    for stride in (8, 16, 32):
+        side = size // stride
+        cls = np.zeros((1, side * side, 80), np.float32)
+        reg = np.full((1, side * side, 4, bins), -30.0, np.float32)
+        if stride == 8:
+            a = 4 * side + 4
+            cls[0, a, 41] = 0.8
+            for s, d in enumerate([2, 2, 1, 1]):
+                reg[0, a, s, d] = 0.0
+        reg = reg.reshape(1, side * side, 4 * bins)
+        for name, val in ((f"cls_{stride}", cls), (f"reg_{stride}", reg)):
+            nodes.append(helper.make_node("Constant", [], [name], value=numpy_helper.from_array(val, name + "_v")))
+            outs.append(helper.make_tensor_value_info(name, TensorProto.FLOAT, list(val.shape)))
+    inp = helper.make_tensor_value_info("input_1", TensorProto.FLOAT, [1, 3, size, size])
+    model = helper.make_model(helper.make_graph(nodes, "toy", [inp], outs), opset_imports=[helper.make_opsetid("", 17)])
+    model.ir_version = 8
+    onnx.save(model, str(path))
+    return str(path)
+
+
+def test_a_nanodet_head_names_the_geometry_instance_in_its_box(tmp_path):
+    """The NanoDet signature is recognised by its output shapes; the decoded box, taken back through the letterbox
+    (a 64x48 frame sits 8 pixels down in the 64x64 input), names the object standing in it "cup"."""
+    from semantic_gs_slam.labels import LabelConfig, LabelStage
+    from semantic_gs_slam.labels.geometry import GeometryLabelConfig
+    from semantic_gs_slam.synthetic import default_intrinsics
+
+    k = default_intrinsics(64, 48)
+    path = _toy_nanodet(tmp_path / "toy_nanodet.onnx")
+    st = LabelStage(LabelConfig(mode="onnx", onnx_model=path, geometry=GeometryLabelConfig(max_planes=0)), k)
+    assert st.model.kind == "nanodet"
+    (sid, score, mask, box), = st.model(np.zeros((48, 64, 3), np.uint8))
+    assert sid == 10 + 47 and score == pytest.approx(0.8) and mask is None
+    np.testing.assert_allclose(box, [20, 12, 44, 36], atol=1e-3)
+    depth = np.full((48, 64), 2.0)
+    depth[16:32, 22:42] = 1.5  # an object standing in front of a far background (too large to be an object)
+    ids = st(np.full((48, 64, 3), 0.3), depth, None, np.eye(4))
+    assert (ids[16:32, 22:42] == 57).mean() > 0.9 and st.classes[57] == "cup"
