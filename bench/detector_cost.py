@@ -94,13 +94,15 @@ def home(threads: int) -> None:
     k = default_intrinsics(320, 240)
     seen: dict[str, list[float]] = {}
     poses = trajectory(24, 360.0)
-    for c2w in poses:
+    views: dict[str, set[int]] = {}
+    for j, c2w in enumerate(poses):
         rgb, _depth, _sem = HomeRenderer(0).render(c2w, k)
         for sid, sc, _m, _b in det((np.clip(rgb, 0, 1) * 255).astype(np.uint8)):
             seen.setdefault(COCO_NAMES[sid - COCO_BASE], []).append(sc)
+            views.setdefault(COCO_NAMES[sid - COCO_BASE], set()).add(j)
     print(f"synthetic home, {len(poses)} views around the room at 320x240, score >= 0.4:")
     for n, s in sorted(seen.items(), key=lambda x: -len(x[1])):
-        print(f"   {n:14s} in {len(s):2d} views (best score {max(s):.2f})")
+        print(f"   {n:14s} {len(s):3d} detections in {len(views[n]):2d} views (best score {max(s):.2f})")
     if not seen:
         print("   nothing")
 

@@ -180,3 +180,22 @@ def test_a_nanodet_head_names_the_geometry_instance_in_its_box(tmp_path):
     depth[16:32, 22:42] = 1.5  # an object standing in front of a far background (too large to be an object)
     ids = st(np.full((48, 64, 3), 0.3), depth, None, np.eye(4))
     assert (ids[16:32, 22:42] == 57).mean() > 0.9 and st.classes[57] == "cup"
+
+
+def test_a_detected_dining_table_names_the_table_plane_in_its_box():
+    """The top of a dining table is the geometry's "table" plane, not an instance: the detection names the plane's
+    pixels inside its box (and only those), and the instance that fills its box as before."""
+    from semantic_gs_slam.labels import FIRST_INSTANCE_ID, LabelConfig, LabelStage
+    from semantic_gs_slam.labels.geometry import TABLE, WALL
+    from semantic_gs_slam.synthetic import default_intrinsics
+
+    st = LabelStage(LabelConfig(mode="geometry"), default_intrinsics(40, 30))
+    geo = np.zeros((30, 40), np.int64)
+    geo[15:, :] = TABLE
+    geo[:15, :] = WALL
+    geo[20:25, 5:10] = FIRST_INSTANCE_ID  # a leg
+    out = st._apply_model([(10 + 67, 0.7, None, np.array([0.0, 10.0, 20.0, 30.0]))], geo)
+    assert (out[15:, :20][geo[15:, :20] == TABLE] == 77).all() and (out[20:25, 5:10] == 77).all()
+    assert (out[15:, 20:] == TABLE).all() and (out[:15] == WALL).all()  # outside the box, and not the wall
+    cup = st._apply_model([(10 + 47, 0.7, None, np.array([0.0, 10.0, 20.0, 30.0]))], geo)
+    assert (cup[geo == TABLE] == TABLE).all()  # other classes leave the plane alone

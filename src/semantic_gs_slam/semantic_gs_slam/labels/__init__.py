@@ -32,11 +32,13 @@ from semantic_gs_slam.labels.geometry import (
     FIRST_INSTANCE_ID,
     OBJECT_CLASS,
     PLANE_CLASSES,
+    TABLE,
     GeometryLabelConfig,
     GeometryLabeller,
 )
 
 LABEL_MODES = ("auto", "dataset", "geometry", "onnx", "none")
+SUPPORT_IDS = frozenset({10 + 67})  # COCO "dining table" (semantic id COCO_BASE + 67): names the table plane in its box
 _log = logging.getLogger(__name__)
 OBJECT_ID = 5  # the map id of geometry instances with map_ids "class"
 
@@ -186,13 +188,18 @@ class LabelStage:
 
     def _apply_model(self, detections: list, geo: np.ndarray) -> np.ndarray:
         """COCO names over the geometry labels: a mask's pixels take its class; without masks a detection
-        names the geometry instance that fills most of its box. ``detections``: the model's output for the frame
-        (``OnnxSegmenter.__call__``: (id, score, mask or None, box), best first)."""
+        names the geometry instance that fills most of its box, and a detected support (``dining table``,
+        :data:`SUPPORT_IDS`) also names the geometry's ``table`` plane pixels in its box (its top is a plane, not an
+        instance). ``detections``: the model's output for the frame (``OnnxSegmenter.__call__``: (id, score, mask or
+        None, box), best first)."""
         out = geo.copy()
         h, w = geo.shape
         for sem_id, _score, mask, box in reversed(detections):  # best last: it wins overlaps
             if mask is None:
                 x1, y1, x2, y2 = np.clip(np.round(box), 0, [w, h, w, h]).astype(int)
+                if sem_id in SUPPORT_IDS:
+                    top = out[y1:y2, x1:x2]
+                    top[geo[y1:y2, x1:x2] == TABLE] = sem_id
                 inside = geo[y1:y2, x1:x2]
                 cand = inside[inside >= FIRST_INSTANCE_ID]
                 if cand.size == 0:
