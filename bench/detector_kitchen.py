@@ -136,7 +136,7 @@ def top_view(db, truth: dict, out: str) -> None:
         cx, cy = px(i.centre[0], i.centre[2])
         dr.ellipse([cx - 3, cy - 3, cx + 3, cy + 3], fill=col)
         dr.text((cx + 4, cy - 6), i.label, fill=col)
-    for name, (_c, p, _s) in truth.items():
+    for _c, p, _s in truth.values():
         cx, cy = px(p[0], p[2])
         dr.line([cx - 6, cy - 6, cx + 6, cy + 6], fill=(0, 0, 0), width=2)
         dr.line([cx - 6, cy + 6, cx + 6, cy - 6], fill=(0, 0, 0), width=2)

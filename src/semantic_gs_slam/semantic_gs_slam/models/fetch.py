@@ -36,7 +36,6 @@ import shutil
 import subprocess
 import sys
 import tarfile
-import tempfile
 import time
 
 from semantic_gs_slam.models.errors import FetchError, ModelFormatError
@@ -115,7 +114,7 @@ def _npm_reason(stderr: str) -> str:
     lines = [ln.strip() for ln in stderr.splitlines() if ln.strip()]
     code = next((ln.split()[-1] for ln in lines if ln.startswith("npm error code")), "")
     msg = next((ln[len("npm error"):].strip() for ln in lines if ln.startswith("npm error")
-                and not ln.split()[2:3] in (["code"], ["syscall"], ["errno"]) and " at " not in ln), "")
+                and ln.split()[2:3] not in (["code"], ["syscall"], ["errno"]) and " at " not in ln), "")
     return ": ".join(x for x in (code, msg) if x) or (lines[-1] if lines else "(no message)")
 
 
