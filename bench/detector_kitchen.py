@@ -185,6 +185,43 @@ def sheet_of_instances(ds, db, poses: list[np.ndarray], out: str) -> None:
     sheet.save(out, quality=85)
 
 
+def gravity_aligned_copy(map_dir: str, out_dir: str) -> np.ndarray:
+    """A copy of the map with z up and the floor at z = 0, as a robot's map is (the planner's approach poses are in
+    x, y): the floor Gaussians' plane (least squares) gives up, oriented towards the rest of the map. The Gaussians
+    are isotropic, so only their centres move. Returns the 4x4 transform applied."""
+    import json
+    import shutil
+
+    from semantic_gs_slam.gaussian_map import load_params
+
+    arrays = load_params(os.path.join(map_dir, "params.npz"))
+    with open(os.path.join(map_dir, "semantic.json"), encoding="utf-8") as fh:
+        sem = json.load(fh)
+    names = {int(c["id"]): c["class"] for c in sem["segmentation"]} if "segmentation" in sem else {}
+    ids = np.asarray(arrays["semantic_ids"]).reshape(-1)
+    means = np.asarray(arrays["means3D"], np.float64)
+    floor = np.isin(ids, [i for i, n in names.items() if n == "floor"])
+    if floor.sum() < 100:
+        raise SystemExit(f"{map_dir}: too few floor Gaussians ({int(floor.sum())}) to find up")
+    pts = means[floor]
+    c = pts.mean(0)
+    up = np.linalg.svd(pts - c, full_matrices=False)[2][-1]
+    if (means.mean(0) - c) @ up < 0:
+        up = -up
+    x = np.array([1.0, 0.0, 0.0]) - up[0] * up
+    x /= np.linalg.norm(x)
+    rot = np.stack([x, np.cross(up, x), up])  # rows: new x, y, z in the old frame
+    t = np.eye(4)
+    t[:3, :3] = rot
+    t[:3, 3] = -rot @ c
+    os.makedirs(out_dir, exist_ok=True)
+    out = dict(arrays)
+    out["means3D"] = (means @ rot.T + t[:3, 3]).astype(np.asarray(arrays["means3D"]).dtype)
+    np.savez_compressed(os.path.join(out_dir, "params.npz"), **out)
+    shutil.copy(os.path.join(map_dir, "semantic.json"), os.path.join(out_dir, "semantic.json"))
+    return t
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--map", help="map folder (params.npz, semantic.json) of a run with --labels auto")
@@ -196,6 +233,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--overlay-frames", default="0,220,300,340,400,480")
     ap.add_argument("--top", default="", help="write a top view of the named map to this PNG")
     ap.add_argument("--sheet", default="", help="write each named instance in a frame that sees it to this image")
+    ap.add_argument("--z-up", default="", help="write a copy of the map with z up and the floor at z = 0 here (for "
+                    "plan_command: its approach poses are in x, y)")
     args = ap.parse_args(argv)
     w, h = (int(x) for x in args.size.split("x"))
     ds = load_dataset(args.dataset, size=(w, h))
@@ -266,6 +305,13 @@ def main(argv: list[str] | None = None) -> int:
             full[2 * j] = p
         sheet_of_instances(ds, db, [p if p is not None else np.eye(4) for p in full], args.sheet)
         print(f"instances sheet: {args.sheet}")
+    if args.z_up:
+        t = gravity_aligned_copy(args.map, args.z_up)
+        print(f"z-up copy: {args.z_up} (transform rows {np.round(t[:3], 3).tolist()})")
+        for name, (c, p, _s) in truth.items():
+            if c == "cup":
+                q = t[:3, :3] @ p + t[:3, 3]
+                print(f"  {name} in the z-up copy: ({q[0]:.3f}, {q[1]:.3f}, {q[2]:.3f})")
     print(f"({time.perf_counter() - t0:.1f} s)")
     return 0
 
