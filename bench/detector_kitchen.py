@@ -290,7 +290,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  {c:13s} {len(found)}/{len(objs)}  " + "; ".join(f"{n}: {', '.join(matched[n])}" for n in found))
     for q in ("cup", "mug", "tv", "television", "chair", "dining table", "table"):
         r = db.query(q)
-        print(f"  query {q!r}: " + (f"({r.position[0]:.3f}, {r.position[1]:.3f}, {r.position[2]:.3f}) {r.name}"
+        print(f"  query {q!r}: " + (f"({r.position[0]:.3f}, {r.position[1]:.3f}, {r.position[2]:.3f}) {r.message[:60]}"
                                     if r.found else "not found: " + r.message[:80]))
     if args.top:
         top_view(db, truth, args.top)

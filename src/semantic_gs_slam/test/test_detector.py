@@ -200,3 +200,23 @@ def test_a_detected_dining_table_names_the_table_plane_in_its_box():
     assert (out[15:, 20:] == TABLE).all() and (out[:15] == WALL).all()  # outside the box, and not the wall
     cup = st._apply_model([(10 + 47, 0.7, None, np.array([0.0, 10.0, 20.0, 30.0]))], geo)
     assert (cup[geo == TABLE] == TABLE).all()  # other classes leave the plane alone
+
+
+def test_instances_are_named_after_two_detections_and_keep_their_name():
+    """With the installed detector's vote (min_views 2): one detection names nothing, the second names the tracked
+    instance, a frame without a detection keeps the name, and a one-off other class does not flip it."""
+    from semantic_gs_slam.labels import FIRST_INSTANCE_ID, LabelConfig, LabelStage
+    from semantic_gs_slam.synthetic import default_intrinsics
+
+    st = LabelStage(LabelConfig(mode="geometry"), default_intrinsics(40, 30))
+    st.min_views = 2
+    geo = np.zeros((30, 40), np.int64)
+    geo[10:20, 10:20] = FIRST_INSTANCE_ID
+    cup = (10 + 47, 0.6, None, np.array([8.0, 8.0, 22.0, 22.0]))
+    bowl = (10 + 51, 0.5, None, np.array([8.0, 8.0, 22.0, 22.0]))
+    assert (st._apply_model([cup], geo) == geo).all()  # one view: not yet
+    assert (st._apply_model([cup], geo)[10:20, 10:20] == 57).all()  # two views: a cup
+    assert (st._apply_model([], geo)[10:20, 10:20] == 57).all()  # missed in this frame: still a cup
+    assert (st._apply_model([bowl], geo)[10:20, 10:20] == 57).all()  # a one-off bowl does not flip it
+    with pytest.raises(Exception, match="detector_min_views"):
+        LabelStage(LabelConfig(detector_min_views=0), default_intrinsics(40, 30))

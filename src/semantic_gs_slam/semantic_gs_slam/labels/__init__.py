@@ -55,6 +55,9 @@ class LabelConfig:
     detector_score: float = 0.4  # score threshold when the model is the installed NanoDet-g (measured on the
     # kitchen, docs/detector.md)
     onnx_threads: int = 0  # onnxruntime intra-op threads (0: one per core)
+    detector_min_views: int = 2  # the installed NanoDet-g names a tracked geometry instance once it was detected as
+    # one class in this many labelled frames (the class detected most often; then also in frames that miss it);
+    # a model given by path names at once
     onnx_label_space: str = "coco91"  # "coco91" (category ids 1-90, torchvision) or "coco80" (indices 0-79)
     map_ids: str = "class"  # "class": every geometry instance goes to the map as class OBJECT_ID ("object",
     # one class column; the object-query server splits instances in space); "instance": each tracked instance
@@ -72,6 +75,9 @@ class LabelConfig:
             raise ConfigError(f"labels.mode must be one of {LABEL_MODES}, got {self.mode!r}")
         if isinstance(self.every, bool) or not isinstance(self.every, numbers.Integral) or self.every < 1:
             raise ConfigError(f"labels.every must be an integer >= 1, got {self.every!r}")
+        if isinstance(self.detector_min_views, bool) or not isinstance(self.detector_min_views, numbers.Integral) \
+                or self.detector_min_views < 1:
+            raise ConfigError(f"labels.detector_min_views must be an integer >= 1, got {self.detector_min_views!r}")
         if not 0 <= self.onnx_score <= 1 or not 0 <= self.detector_score <= 1:
             raise ConfigError("labels.onnx_score and labels.detector_score must lie in [0, 1]")
         if self.map_ids not in ("class", "instance"):
@@ -119,6 +125,8 @@ class LabelStage:
         self.mode = mode
         self.geometry = GeometryLabeller(intrinsics, config.geometry) if mode in ("geometry", "onnx") else None
         self.model = None
+        self.min_views = 1  # detections of an instance needed before it is named (installed detector: config's)
+        self._inst_votes: dict[int, dict[int, int]] = {}  # geometry instance -> {semantic id: frames detected as it}
         self.model_path = model if mode == "onnx" else None  # the ONNX file used
         self._coco: dict[int, str] = {}
         if mode == "onnx":
@@ -127,6 +135,7 @@ class LabelStage:
             self.model = OnnxSegmenter(model, config.onnx_score, config.onnx_label_space, threads=config.onnx_threads)
             if self.model.kind == "nanodet" and not config.onnx_model:
                 self.model.score_threshold = config.detector_score
+                self.min_views = config.detector_min_views
             self._coco = coco_classes()
         self.classes: dict[int, str] = {}  # ids this stage produced -> names
         self._calls = 0  # frames seen (the frame index when the caller gives none)
@@ -194,6 +203,7 @@ class LabelStage:
         None, box), best first)."""
         out = geo.copy()
         h, w = geo.shape
+        seen: dict[int, int] = {}  # instance -> class it was named in this frame
         for sem_id, _score, mask, box in reversed(detections):  # best last: it wins overlaps
             if mask is None:
                 x1, y1, x2, y2 = np.clip(np.round(box), 0, [w, h, w, h]).astype(int)
@@ -209,6 +219,26 @@ class LabelStage:
                 total = int((geo == vals[j]).sum())
                 if cnt[j] < 0.6 * total:  # the instance lies mostly outside the box: not this object
                     continue
+                if self.min_views > 1:  # voted over the labelled frames: see _confirmed_names
+                    seen[int(vals[j])] = sem_id
+                    continue
                 mask = geo == vals[j]
             out[mask] = sem_id
+        if self.min_views > 1:
+            self._confirmed_names(seen, geo, out)
         return out
+
+    def _confirmed_names(self, seen: dict[int, int], geo: np.ndarray, out: np.ndarray) -> None:
+        """Name the tracked geometry instances by their detections over the labelled frames so far: an instance takes
+        the class it was detected as most often once that count reaches :attr:`min_views` (one-off false detections
+        name nothing), and keeps it in the frames where the detector misses it (a small cup seen from afar)."""
+        for inst, sem_id in seen.items():
+            votes = self._inst_votes.setdefault(inst, {})
+            votes[sem_id] = votes.get(sem_id, 0) + 1
+        for inst in np.unique(geo[geo >= FIRST_INSTANCE_ID]):
+            votes = self._inst_votes.get(int(inst))
+            if not votes:
+                continue
+            sem_id, n = max(votes.items(), key=lambda kv: (kv[1], -kv[0]))
+            if n >= self.min_views:
+                out[geo == inst] = sem_id
