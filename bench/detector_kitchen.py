@@ -114,34 +114,42 @@ def overlay(ds, model: str, frames: list[int], out: str, score: float) -> None:
     sheet.save(out, quality=85)
 
 
-def top_view(db, truth: dict, out: str) -> None:
-    """The named map from above (x right, z up the image: the kitchen's floor plane), instances as boxes."""
+def top_view(db, truth: dict, out: str, t: np.ndarray) -> None:
+    """The named map from above (``t``: the gravity-aligned frame, x right, y up the image), instances' centres with
+    their labels (boxes for those under 1.5 m across), true positions as crosses."""
     insts = [i for i in db.all_instances() if i.name not in ("floor", "wall", "ceiling", "object", "table")]
-    pts = np.array([i.centre for i in insts] + [p for _c, p, _s in truth.values()])
-    lo, hi = pts.min(0) - 0.6, pts.max(0) + 0.6
-    scale = 700 / max(hi[0] - lo[0], hi[2] - lo[2])
-    w, h = int((hi[0] - lo[0]) * scale) + 20, int((hi[2] - lo[2]) * scale) + 40
 
-    def px(x: float, z: float) -> tuple[float, float]:
-        return 10 + (x - lo[0]) * scale, h - 30 - (z - lo[2]) * scale
+    def g(p) -> np.ndarray:
+        return t[:3, :3] @ np.asarray(p, np.float64) + t[:3, 3]
+
+    pts = np.array([g(i.centre) for i in insts] + [g(p) for _c, p, _s in truth.values()])
+    lo, hi = pts.min(0) - 0.5, pts.max(0) + 0.5
+    scale = 640 / max(hi[0] - lo[0], hi[1] - lo[1])
+    w, h = int((hi[0] - lo[0]) * scale) + 20, int((hi[1] - lo[1]) * scale) + 40
+
+    def px(p: np.ndarray) -> tuple[float, float]:
+        return 10 + (p[0] - lo[0]) * scale, h - 30 - (p[1] - lo[1]) * scale
 
     img = Image.new("RGB", (w, h), (250, 250, 250))
     dr = ImageDraw.Draw(img)
     cols = {"cup": (220, 30, 30), "tv": (30, 110, 230), "chair": (30, 160, 30), "dining table": (200, 150, 0)}
     for i in sorted(insts, key=lambda i: -i.point_count):
         col = cols.get(i.name, (120, 120, 120))
-        x0, y0 = px(i.bbox_min[0], i.bbox_max[2])
-        x1, y1 = px(i.bbox_max[0], i.bbox_min[2])
-        dr.rectangle([x0, y0, x1, y1], outline=col, width=2)
-        cx, cy = px(i.centre[0], i.centre[2])
+        corners = np.array([g([x, y, z]) for x in (i.bbox_min[0], i.bbox_max[0]) for y in (i.bbox_min[1],
+                            i.bbox_max[1]) for z in (i.bbox_min[2], i.bbox_max[2])])
+        if np.ptp(corners[:, :2], 0).max() < 1.5:
+            a, b = px(corners.min(0)), px(corners.max(0))
+            dr.rectangle([a[0], b[1], b[0], a[1]], outline=col, width=1)
+        cx, cy = px(g(i.centre))
         dr.ellipse([cx - 3, cy - 3, cx + 3, cy + 3], fill=col)
-        dr.text((cx + 4, cy - 6), i.label, fill=col)
-    for _c, p, _s in truth.values():
-        cx, cy = px(p[0], p[2])
+        dr.text((cx + 5, cy - 6), i.label, fill=col)
+    for name, (_c, p, _s) in truth.items():
+        cx, cy = px(g(p))
         dr.line([cx - 6, cy - 6, cx + 6, cy + 6], fill=(0, 0, 0), width=2)
         dr.line([cx - 6, cy + 6, cx + 6, cy - 6], fill=(0, 0, 0), width=2)
-    dr.text((10, h - 22), "named map from above (x right, z up); boxes: instances, x: true positions; 1 m = "
-            f"{scale:.0f} px", fill=(0, 0, 0))
+        dr.text((cx + 6, cy + 4), name.split(" (")[0], fill=(60, 60, 60))
+    dr.text((10, h - 22), f"named map from above (floor plane, 1 m = {scale:.0f} px): dots = instances (boxes: "
+            "their extent), x = true positions", fill=(0, 0, 0))
     img.save(out)
 
 
@@ -153,7 +161,7 @@ def sheet_of_instances(ds, db, poses: list[np.ndarray], out: str) -> None:
     cache: dict[int, object] = {}
     for inst in insts:
         c = np.array(inst.centre)
-        best = None
+        cands = []
         for fi, c2w in enumerate(poses):
             if fi % 2:
                 continue
@@ -163,9 +171,17 @@ def sheet_of_instances(ds, db, poses: list[np.ndarray], out: str) -> None:
             u, v = k.fx * p[0] / p[2] + k.cx, k.fy * p[1] / p[2] + k.cy
             if not (20 <= u < k.width - 20 and 20 <= v < k.height - 20):
                 continue
-            off = (u - k.width / 2) ** 2 + (v - k.height / 2) ** 2
-            if best is None or off < best[0]:
-                best = (off, fi, u, v, p[2])
+            cands.append(((u - k.width / 2) ** 2 + (v - k.height / 2) ** 2, fi, u, v, p[2]))
+        best = None
+        for cand in sorted(cands)[:8]:  # the most central views in which the depth there is the centre's: not hidden
+            _o, fi, u, v, z = cand
+            f = cache.setdefault(fi, ds[fi])
+            d = f.depth[int(v) - 2:int(v) + 3, int(u) - 2:int(u) + 3]
+            if (d > 0).any() and np.abs(d[d > 0] - z).min() < 0.1:
+                best = cand
+                break
+        if best is None:
+            best = min(cands) if cands else None
         if best is None:
             continue
         _o, fi, u, v, z = best
@@ -185,12 +201,14 @@ def sheet_of_instances(ds, db, poses: list[np.ndarray], out: str) -> None:
     sheet.save(out, quality=85)
 
 
-def gravity_aligned_copy(map_dir: str, out_dir: str) -> np.ndarray:
-    """A copy of the map with z up and the floor at z = 0, as a robot's map is (the planner's approach poses are in
-    x, y): the floor Gaussians' plane (least squares) gives up, oriented towards the rest of the map. The Gaussians
-    are isotropic, so only their centres move. Returns the 4x4 transform applied."""
+def gravity_transform(map_dir: str) -> np.ndarray:
+    """4x4 transform from the map's frame to one with z up and the floor at z = 0: the floor Gaussians' plane (least
+    squares) gives up, oriented towards the rest of the map; x stays the map's x as far as it can."""
+    return _gravity(map_dir)[0]
+
+
+def _gravity(map_dir: str) -> tuple[np.ndarray, dict]:
     import json
-    import shutil
 
     from semantic_gs_slam.gaussian_map import load_params
 
@@ -214,9 +232,19 @@ def gravity_aligned_copy(map_dir: str, out_dir: str) -> np.ndarray:
     t = np.eye(4)
     t[:3, :3] = rot
     t[:3, 3] = -rot @ c
+    return t, arrays
+
+
+def gravity_aligned_copy(map_dir: str, out_dir: str) -> np.ndarray:
+    """A copy of the map in :func:`gravity_transform`'s frame, as a robot's map is (the planner's approach poses are
+    in x, y). The Gaussians are isotropic, so only their centres move. Returns the transform applied."""
+    import shutil
+
+    t, arrays = _gravity(map_dir)
     os.makedirs(out_dir, exist_ok=True)
     out = dict(arrays)
-    out["means3D"] = (means @ rot.T + t[:3, 3]).astype(np.asarray(arrays["means3D"]).dtype)
+    means = np.asarray(arrays["means3D"], np.float64)
+    out["means3D"] = (means @ t[:3, :3].T + t[:3, 3]).astype(np.asarray(arrays["means3D"]).dtype)
     np.savez_compressed(os.path.join(out_dir, "params.npz"), **out)
     shutil.copy(os.path.join(map_dir, "semantic.json"), os.path.join(out_dir, "semantic.json"))
     return t
@@ -254,9 +282,13 @@ def main(argv: list[str] | None = None) -> int:
         print(f"overlay: {args.overlay}")
     if not args.map:
         return 0
+    from object_query.names import load_synonyms
     from object_query.semantic_map import ObjectDatabase
 
-    db = ObjectDatabase.from_files(os.path.join(args.map, "params.npz"), os.path.join(args.map, "semantic.json"))
+    synonyms = load_synonyms(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "src", "object_query",
+                                          "config", "synonyms.yaml"))  # the server's bundled synonyms
+    db = ObjectDatabase.from_files(os.path.join(args.map, "params.npz"), os.path.join(args.map, "semantic.json"),
+                                   synonyms=synonyms)
     named = [i for i in db.all_instances() if i.name not in ("floor", "wall", "ceiling", "object", "table")]
     print(f"\nNamed instances of the map ({len(named)}; plane classes and unnamed objects left out):")
     matched: dict[str, list[str]] = {}
@@ -293,7 +325,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"  query {q!r}: " + (f"({r.position[0]:.3f}, {r.position[1]:.3f}, {r.position[2]:.3f}) {r.message[:60]}"
                                     if r.found else "not found: " + r.message[:80]))
     if args.top:
-        top_view(db, truth, args.top)
+        top_view(db, truth, args.top, gravity_transform(args.map))
         print(f"top view: {args.top}")
     if args.sheet:
         from semantic_gs_slam.gaussian_map import load_params, trajectory_from_params
