@@ -55,9 +55,10 @@ class LabelConfig:
     detector_score: float = 0.4  # score threshold when the model is the installed NanoDet-g (measured on the
     # kitchen, docs/detector.md)
     onnx_threads: int = 0  # onnxruntime intra-op threads (0: one per core)
-    detector_min_views: int = 2  # the installed NanoDet-g names a tracked geometry instance once it was detected as
-    # one class in this many labelled frames (the class detected most often; then also in frames that miss it);
-    # a model given by path names at once
+    detector_min_views: int = 1  # > 1: the installed NanoDet-g names a tracked geometry instance only once it was
+    # detected as one class in this many labelled frames (the class detected most often; then also in frames that miss
+    # it); 1: each detection names the instance in its own frame, and the map's votes decide. Kitchen, docs/detector.md:
+    # 2 made the 'tv' answer right but lost the printed mug and grew false instances; a model given by path: always 1
     onnx_label_space: str = "coco91"  # "coco91" (category ids 1-90, torchvision) or "coco80" (indices 0-79)
     map_ids: str = "class"  # "class": every geometry instance goes to the map as class OBJECT_ID ("object",
     # one class column; the object-query server splits instances in space); "instance": each tracked instance
