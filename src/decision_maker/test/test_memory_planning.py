@@ -380,3 +380,21 @@ def test_no_declines_a_pending_question():
         planner.plan("no", ctx())
     with pytest.raises(NoMatchingScenario):
         planner.plan("yes", ctx())  # declined: nothing pending
+
+
+def test_the_bundled_synonyms_lead_spoken_words_to_the_detectors_classes():
+    """A map named by the COCO detector knows "cup", "tv", "couch" ...: the words people say reach them."""
+    from decision_maker.memory.world import aliases_for
+    from object_query.names import load_synonyms
+
+    path = os.path.join(os.path.dirname(__file__), "..", "..", "object_query", "config", "synonyms.yaml")
+    groups = load_synonyms(path).groups
+    coco = {"cup", "chair", "dining table", "tv", "couch", "refrigerator", "potted plant", "laptop", "bottle"}
+    aliases = aliases_for(coco, groups)
+    for said, cls in [("mug", "cup"), ("table", "dining table"), ("television", "tv"), ("sofa", "couch"),
+                      ("fridge", "refrigerator"), ("plant", "potted plant"), ("flask", "bottle"),
+                      ("computer", "laptop")]:
+        assert aliases.get(said) == cls, (said, aliases.get(said))
+    context = dataclasses.replace(ctx(), known_objects=frozenset(coco), memory=(), aliases=aliases)
+    plan = RegistryPlanner().plan("could you bring me the mug", context)
+    assert plan.slots["item"] == "cup" and steps(plan)[-2:] == ["grasp:cup", "place:user"]

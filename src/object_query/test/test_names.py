@@ -51,3 +51,15 @@ def test_closest_and_singulars():
     assert closest_names("zzz", ["bottle"]) == []
     assert "box" in singular_forms("boxes") and "cup" in singular_forms("cups") and "berry" in singular_forms("berries")
     assert singular_forms("glass") == []
+
+
+def test_bundled_synonyms_cover_the_coco_names_people_say():
+    """The words people say for the COCO detector's classes lead to those classes (mug -> cup, TV -> tv, ...)."""
+    syn = load_synonyms(BUNDLED)
+    for said, coco in [("mug", "cup"), ("table", "dining table"), ("television", "tv"), ("TV", "tv"),
+                       ("sofa", "couch"), ("fridge", "refrigerator"), ("plant", "potted plant"),
+                       ("phone", "cell phone"), ("glass", "wine glass"), ("notebook computer", "laptop")]:
+        key = normalise_name(said)
+        assert key == coco or coco in syn.alternatives(key), (said, coco)
+    for name in ("laptop", "book", "bottle", "bowl", "chair"):
+        assert syn.alternatives(name), name

@@ -190,9 +190,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--size", default="", help="working size WIDTHxHEIGHT, e.g. 320x240 (default: the files')")
     ap.add_argument("--labels", default="auto", choices=list(LABEL_MODES),
                     help="per-pixel labels: the dataset's, from geometry, geometry + an ONNX COCO model, none; "
-                         "auto = dataset when it has labels, else geometry")
+                         "auto = dataset when it has labels, else the installed COCO detector (python -m "
+                         "semantic_gs_slam.models.fetch), else geometry")
     ap.add_argument("--onnx-model", default="", help="ONNX instance segmenter/detector with COCO classes "
-                                                     "(--labels onnx)")
+                                                     "(--labels onnx/auto; default: the installed detector)")
     ap.add_argument("--labels-every", type=int, default=1,
                     help="geometry / onnx labels on every k-th frame only, and on frames expected to be keyframes "
                          "(faster, fewer Gaussians labelled)")

@@ -85,8 +85,9 @@ class SlamServer(Node):
         p("reload_service", "/object_query_server/reload")  # std_srvs/Trigger of object_query_server
         p("done_wait", 10.0)  # s to wait for images still in flight after data_transfer_done
         p("image_qos_depth", 50)
-        p("labels", "auto")  # auto | dataset | geometry | onnx | none (auto: the semantic stream if any, else geometry)
-        p("onnx_model", "")  # ONNX COCO instance segmenter/detector for labels:=onnx
+        p("labels", "auto")  # auto | dataset | geometry | onnx | none (auto: the semantic stream if any, else the
+        # installed COCO detector, else geometry)
+        p("onnx_model", "")  # ONNX COCO segmenter/detector for labels:=onnx/auto ("" = the installed NanoDet-g)
         p("labels_every", 1)  # geometry / onnx labels on every k-th frame only (2 or 4: faster, fewer labelled)
         p("odometry_topic", "")  # PoseStamped camera-to-map odometry (OpenCV axes) as the tracking prior; "" = none
         p("live_view_port", 0)  # > 0: serve the map as it grows and the camera's path in a browser (viser)

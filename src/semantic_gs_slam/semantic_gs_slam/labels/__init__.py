@@ -6,9 +6,13 @@ Modes (``LabelConfig.mode``):
 * ``dataset`` — the dataset's own label images (ground truth, e.g. our synthetic home);
 * ``geometry`` — class-agnostic objects and named planes from depth alone (:mod:`.geometry`), offline,
   no model;
-* ``onnx`` — ``geometry`` plus COCO names from a local ONNX segmenter/detector (:mod:`.onnx_model`);
+* ``onnx`` — ``geometry`` plus COCO names from a local ONNX segmenter/detector (:mod:`.onnx_model`): the file
+  ``onnx_model``, or when that is empty the installed COCO detector (NanoDet-g,
+  :func:`semantic_gs_slam.models.fetch.detector_path`);
 * ``none`` — no labels (the map has no classes);
-* ``auto`` — ``dataset`` when the dataset has label images, else ``geometry``.
+* ``auto`` — ``dataset`` when the dataset has label images; else ``onnx`` when ``onnx_model`` is given or the COCO
+  detector is installed (``python -m semantic_gs_slam.models.fetch``); else ``geometry``, with one warning line
+  (logging) that says how to add the detector.
 
 Names given by people (``"this is my mug"``) are written into a saved map's ``semantic.json`` by
 :func:`semantic_gs_slam.labels.names.name_instance`.
@@ -16,6 +20,7 @@ Names given by people (``"this is my mug"``) are written into a saved map's ``se
 
 from __future__ import annotations
 
+import logging
 import numbers
 from dataclasses import dataclass, field
 
@@ -27,11 +32,14 @@ from semantic_gs_slam.labels.geometry import (
     FIRST_INSTANCE_ID,
     OBJECT_CLASS,
     PLANE_CLASSES,
+    TABLE,
     GeometryLabelConfig,
     GeometryLabeller,
 )
 
 LABEL_MODES = ("auto", "dataset", "geometry", "onnx", "none")
+SUPPORT_IDS = frozenset({10 + 67})  # COCO "dining table" (semantic id COCO_BASE + 67): names the table plane in its box
+_log = logging.getLogger(__name__)
 OBJECT_ID = 5  # the map id of geometry instances with map_ids "class"
 
 
@@ -40,8 +48,17 @@ class LabelConfig:
     """Which labels the SLAM stream gets (see the module docstring)."""
 
     mode: str = "auto"
-    onnx_model: str = ""  # path of the ONNX model (mode "onnx")
-    onnx_score: float = 0.5  # detections below this score are ignored
+    onnx_model: str = ""  # path of the ONNX model (modes "onnx" and "auto"); "": the installed COCO detector
+    # (semantic_gs_slam.models.fetch.detector_path(): $HOME_ROBOT_MODELS or ~/.cache/home-robot/models,
+    # nanodet-g/nanodet-g.onnx)
+    onnx_score: float = 0.5  # detections below this score are ignored (the installed NanoDet: detector_score)
+    detector_score: float = 0.4  # score threshold when the model is the installed NanoDet-g (measured on the
+    # kitchen, docs/detector.md)
+    onnx_threads: int = 0  # onnxruntime intra-op threads (0: one per core)
+    detector_min_views: int = 1  # > 1: the installed NanoDet-g names a tracked geometry instance only once it was
+    # detected as one class in this many labelled frames (the class detected most often; then also in frames that miss
+    # it); 1: each detection names the instance in its own frame, and the map's votes decide. Kitchen, docs/detector.md:
+    # 2 made the 'tv' answer right but lost the printed mug and grew false instances; a model given by path: always 1
     onnx_label_space: str = "coco91"  # "coco91" (category ids 1-90, torchvision) or "coco80" (indices 0-79)
     map_ids: str = "class"  # "class": every geometry instance goes to the map as class OBJECT_ID ("object",
     # one class column; the object-query server splits instances in space); "instance": each tracked instance
@@ -59,8 +76,11 @@ class LabelConfig:
             raise ConfigError(f"labels.mode must be one of {LABEL_MODES}, got {self.mode!r}")
         if isinstance(self.every, bool) or not isinstance(self.every, numbers.Integral) or self.every < 1:
             raise ConfigError(f"labels.every must be an integer >= 1, got {self.every!r}")
-        if self.mode == "onnx" and not self.onnx_model:
-            raise ConfigError("labels.mode 'onnx' needs labels.onnx_model (a local .onnx file)")
+        if isinstance(self.detector_min_views, bool) or not isinstance(self.detector_min_views, numbers.Integral) \
+                or self.detector_min_views < 1:
+            raise ConfigError(f"labels.detector_min_views must be an integer >= 1, got {self.detector_min_views!r}")
+        if not 0 <= self.onnx_score <= 1 or not 0 <= self.detector_score <= 1:
+            raise ConfigError("labels.onnx_score and labels.detector_score must lie in [0, 1]")
         if self.map_ids not in ("class", "instance"):
             raise ConfigError(f"labels.map_ids must be 'class' or 'instance', got {self.map_ids!r}")
         self.geometry.check()
@@ -87,21 +107,36 @@ class LabelStage:
         Raises:
             ConfigError: bad config; ``dataset`` mode without dataset labels; an unloadable ONNX model.
         """
+        from semantic_gs_slam.models.fetch import HOW_TO_ADD, detector_path, installed_detector
+
         config.check()
         self.cfg = config
         mode = config.mode
+        model = config.onnx_model or (installed_detector() if mode in ("auto", "onnx") else None)
         if mode == "auto":
-            mode = "dataset" if dataset_has_labels else "geometry"
+            mode = "dataset" if dataset_has_labels else ("onnx" if model else "geometry")
+            if mode == "geometry":
+                _log.warning("labels: no COCO detector installed (%s), objects get no names (labels: geometry); "
+                             "add it with: %s", detector_path(), HOW_TO_ADD)
+        if mode == "onnx" and not model:
+            raise ConfigError(f"labels.mode 'onnx' needs labels.onnx_model (a local .onnx file) or the installed COCO "
+                              f"detector ({detector_path()}: not there; add it with: {HOW_TO_ADD})")
         if mode == "dataset" and not dataset_has_labels:
             raise ConfigError("labels.mode 'dataset' but the dataset has no label images (use auto or geometry)")
         self.mode = mode
         self.geometry = GeometryLabeller(intrinsics, config.geometry) if mode in ("geometry", "onnx") else None
         self.model = None
+        self.min_views = 1  # detections of an instance needed before it is named (installed detector: config's)
+        self._inst_votes: dict[int, dict[int, int]] = {}  # geometry instance -> {semantic id: frames detected as it}
+        self.model_path = model if mode == "onnx" else None  # the ONNX file used
         self._coco: dict[int, str] = {}
         if mode == "onnx":
             from semantic_gs_slam.labels.onnx_model import OnnxSegmenter, coco_classes
 
-            self.model = OnnxSegmenter(config.onnx_model, config.onnx_score, config.onnx_label_space)
+            self.model = OnnxSegmenter(model, config.onnx_score, config.onnx_label_space, threads=config.onnx_threads)
+            if self.model.kind == "nanodet" and not config.onnx_model:
+                self.model.score_threshold = config.detector_score
+                self.min_views = config.detector_min_views
             self._coco = coco_classes()
         self.classes: dict[int, str] = {}  # ids this stage produced -> names
         self._calls = 0  # frames seen (the frame index when the caller gives none)
@@ -163,13 +198,19 @@ class LabelStage:
 
     def _apply_model(self, detections: list, geo: np.ndarray) -> np.ndarray:
         """COCO names over the geometry labels: a mask's pixels take its class; without masks a detection
-        names the geometry instance that fills most of its box. ``detections``: the model's output for the frame
-        (``OnnxSegmenter.__call__``: (id, score, mask or None, box), best first)."""
+        names the geometry instance that fills most of its box, and a detected support (``dining table``,
+        :data:`SUPPORT_IDS`) also names the geometry's ``table`` plane pixels in its box (its top is a plane, not an
+        instance). ``detections``: the model's output for the frame (``OnnxSegmenter.__call__``: (id, score, mask or
+        None, box), best first)."""
         out = geo.copy()
         h, w = geo.shape
+        seen: dict[int, int] = {}  # instance -> class it was named in this frame
         for sem_id, _score, mask, box in reversed(detections):  # best last: it wins overlaps
             if mask is None:
                 x1, y1, x2, y2 = np.clip(np.round(box), 0, [w, h, w, h]).astype(int)
+                if sem_id in SUPPORT_IDS:
+                    top = out[y1:y2, x1:x2]
+                    top[geo[y1:y2, x1:x2] == TABLE] = sem_id
                 inside = geo[y1:y2, x1:x2]
                 cand = inside[inside >= FIRST_INSTANCE_ID]
                 if cand.size == 0:
@@ -179,6 +220,26 @@ class LabelStage:
                 total = int((geo == vals[j]).sum())
                 if cnt[j] < 0.6 * total:  # the instance lies mostly outside the box: not this object
                     continue
+                if self.min_views > 1:  # voted over the labelled frames: see _confirmed_names
+                    seen[int(vals[j])] = sem_id
+                    continue
                 mask = geo == vals[j]
             out[mask] = sem_id
+        if self.min_views > 1:
+            self._confirmed_names(seen, geo, out)
         return out
+
+    def _confirmed_names(self, seen: dict[int, int], geo: np.ndarray, out: np.ndarray) -> None:
+        """Name the tracked geometry instances by their detections over the labelled frames so far: an instance takes
+        the class it was detected as most often once that count reaches :attr:`min_views` (one-off false detections
+        name nothing), and keeps it in the frames where the detector misses it (a small cup seen from afar)."""
+        for inst, sem_id in seen.items():
+            votes = self._inst_votes.setdefault(inst, {})
+            votes[sem_id] = votes.get(sem_id, 0) + 1
+        for inst in np.unique(geo[geo >= FIRST_INSTANCE_ID]):
+            votes = self._inst_votes.get(int(inst))
+            if not votes:
+                continue
+            sem_id, n = max(votes.items(), key=lambda kv: (kv[1], -kv[0]))
+            if n >= self.min_views:
+                out[geo == inst] = sem_id

@@ -1,7 +1,14 @@
 """Names from a pretrained model: an ONNX instance segmenter or detector with COCO classes, run with
 onnxruntime (CUDA provider when present, else CPU), loaded from a local file the user gives.
 
-Accepted signatures (the torchvision Mask R-CNN / Faster R-CNN export and its batched variant):
+Accepted signatures:
+
+**NanoDet's raw head** (the COCO detector :mod:`semantic_gs_slam.models.fetch` installs): one float input
+``[1, 3, S, S]`` and pairs of outputs per stride, class scores ``[1, N, 80]`` (sigmoid applied, COCO's 80 classes in
+their contiguous order) and box distributions ``[1, N, 4 (reg_max + 1)]``; decoded by :mod:`.nanodet` (letterbox in
+and out, GFL distances, class-wise NMS at IoU ``nms_iou``). Recognised by the output shapes.
+
+**torchvision** (the Mask R-CNN / Faster R-CNN export and its batched variant):
 
 * input: one float32 (0-1) or uint8 RGB image, ``[3, H, W]`` or ``[1, 3, H, W]``; a fixed H, W in the
   model is honoured by resizing the frame (boxes and masks are scaled back);
@@ -55,8 +62,16 @@ class OnnxSegmenter:
     """An ONNX COCO instance segmenter/detector applied to one RGB frame at a time."""
 
     def __init__(self, path: str, score_threshold: float = 0.5, label_space: str = "coco91",
-                 mask_threshold: float = 0.5) -> None:
+                 mask_threshold: float = 0.5, threads: int = 0, nms_iou: float = 0.6) -> None:
         """Load the model.
+
+        Args:
+            path: the .onnx file.
+            score_threshold: detections below this score are dropped.
+            label_space: class numbering of a torchvision model (a NanoDet head is always COCO's 80 classes).
+            mask_threshold: mask probability that counts as inside.
+            threads: onnxruntime's intra-op threads (0: its default, one per core).
+            nms_iou: class-wise NMS threshold of the NanoDet decoder.
 
         Raises:
             ConfigError: missing file, onnxruntime not installed, a signature this class cannot read.
@@ -69,8 +84,12 @@ class OnnxSegmenter:
             import onnxruntime as ort
         except ImportError as exc:
             raise ConfigError("labels: the onnx mode needs onnxruntime (pip install onnxruntime)") from exc
+        opts = ort.SessionOptions()
+        opts.log_severity_level = 3  # no warnings about folded initializers on stderr
+        if threads > 0:
+            opts.intra_op_num_threads = threads
         try:
-            self.session = ort.InferenceSession(path, providers=_providers())
+            self.session = ort.InferenceSession(path, opts, providers=_providers())
         except Exception as exc:  # onnxruntime raises its own exception types for bad files
             raise ConfigError(f"labels: cannot load ONNX model {path}: {exc}") from exc
         self.score_threshold, self.label_space, self.mask_threshold = score_threshold, label_space, mask_threshold
@@ -86,11 +105,20 @@ class OnnxSegmenter:
         hw = shape[-2:]
         self.fixed_hw = tuple(hw) if all(isinstance(x, int) for x in hw) else None
         self.uint8 = "uint8" in self.input.type
+        self.nms_iou = nms_iou
+        self.provider = self.session.get_providers()[0]
+        from semantic_gs_slam.labels.nanodet import is_nanodet_signature
+
+        heads = [(o.name, list(o.shape)) for o in self.session.get_outputs()]
+        self.kind = "nanodet" if (is_nanodet_signature(heads) and len(shape) == 4 and self.fixed_hw is not None
+                                  and self.fixed_hw[0] == self.fixed_hw[1]
+                                  and any(s[2] == 80 for _, s in heads)) else "torchvision"
+        if self.kind == "nanodet":
+            return
         outs = [o.name for o in self.session.get_outputs()]
         if len(outs) < 3:
             raise ConfigError(f"labels: expected boxes, labels, scores (and masks) outputs, got {outs}")
         self.out_index = self._match_outputs(outs)
-        self.provider = self.session.get_providers()[0]
 
     @staticmethod
     def _match_outputs(names: list[str]) -> dict[str, int]:
@@ -125,6 +153,8 @@ class OnnxSegmenter:
         if rgb.ndim != 3 or rgb.shape[2] != 3:
             raise FrameError(f"labels: rgb must be [H, W, 3], got {list(rgb.shape)}")
         h, w = rgb.shape[:2]
+        if self.kind == "nanodet":
+            return self._nanodet(rgb)
         img = rgb.astype(np.float32) / 255.0 if rgb.dtype == np.uint8 else rgb.astype(np.float32)
         if self.fixed_hw is not None and self.fixed_hw != (h, w):
             fh, fw = self.fixed_hw
@@ -168,3 +198,19 @@ class OnnxSegmenter:
                 mask = m > self.mask_threshold
             res.append((COCO_BASE + cat, float(scores[j]), mask, box))
         return res
+
+    def _nanodet(self, rgb: np.ndarray) -> list[tuple[int, float, np.ndarray | None, np.ndarray]]:
+        from semantic_gs_slam.labels import nanodet
+
+        h, w = rgb.shape[:2]
+        size = self.fixed_hw[0]
+        x, scale, ox, oy = nanodet.letterbox(rgb, size)
+        try:
+            outs = self.session.run(None, {self.input.name: x})
+            levels = nanodet.pair_levels(outs, 80)
+            boxes, scores, labels = nanodet.decode(levels, size, self.score_threshold, self.nms_iou)
+        except Exception as exc:  # onnxruntime's own error types; a head that does not decode
+            raise FrameError(f"labels: the NanoDet model failed on a {w}x{h} frame: {exc}") from exc
+        boxes = nanodet.unletterbox(boxes, scale, ox, oy, w, h)
+        return [(COCO_BASE + COCO80_TO_91[int(c)], float(sc), None, b)
+                for b, sc, c in zip(boxes, scores, labels, strict=True)]
