@@ -152,7 +152,8 @@ class Chromium:
              "--disable-extensions", "--disable-background-networking", "--disable-sync", "--mute-audio",
              "--remote-debugging-port=0", "--remote-debugging-address=127.0.0.1", "--remote-allow-origins=*",
              f"--user-data-dir={self._profile}", "about:blank"],
-            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+            env={**os.environ, "TMPDIR": self._profile})  # its singleton socket folder goes with the profile
         self._pages: list[Page] = []
         port_file = os.path.join(self._profile, "DevToolsActivePort")
         deadline = time.monotonic() + start_timeout_s
