@@ -28,6 +28,7 @@ SERVERS = [("object_query", "object_query_server"), ("decision_maker", "mock_nav
 def test_seed_terminals_with_defaults_only(ros_domain):
     env = node_environment(ros_domain)
     procs: list[tuple[str, subprocess.Popen, Path]] = []
+    stop = None
     with tempfile.TemporaryDirectory() as tmp:
         try:
             for pkg, exe in SERVERS:  # one "terminal" each: the plain executable, nothing else
@@ -35,15 +36,15 @@ def test_seed_terminals_with_defaults_only(ros_domain):
                 with log.open("wb") as out:
                     procs.append((exe, subprocess.Popen([find_executable(pkg, exe)], env=env, stdin=subprocess.DEVNULL,
                                                         stdout=out, stderr=subprocess.STDOUT), log))
+            # the safety terminal: running, nothing typed into it (started beside the servers: it starts meanwhile)
+            stop = subprocess.Popen([find_executable("decision_maker", "cancel_command_node")], env=env,
+                                    stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
             deadline = time.monotonic() + 120.0
             for exe, proc, log in procs:
                 while "ready:" not in log.read_text(errors="replace"):
                     assert proc.poll() is None, f"{exe} exited ({proc.returncode}):\n{log.read_text()}"
                     assert time.monotonic() < deadline, f"{exe} not ready:\n{log.read_text()}"
                     time.sleep(0.1)
-            # the safety terminal: running, nothing typed into it
-            stop = subprocess.Popen([find_executable("decision_maker", "cancel_command_node")], env=env,
-                                    stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
             typed = "give me the bottle\nclean table\ngive me the cup\n"
             result = subprocess.run([find_executable("decision_maker", "nl_command_node")], input=typed, env=env,
                                     capture_output=True, text=True, timeout=240)
@@ -56,6 +57,9 @@ def test_seed_terminals_with_defaults_only(ros_domain):
             for exe, proc, log in procs:
                 assert proc.poll() is None, f"{exe} died:\n{log.read_text()}"
         finally:
+            if stop is not None and stop.poll() is None:  # a check failed before its end of input
+                stop.kill()
+                stop.communicate(timeout=5)
             for _, proc, _ in procs:
                 proc.terminate()
             for _, proc, _ in procs:

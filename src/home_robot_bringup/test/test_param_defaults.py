@@ -2,7 +2,7 @@
 
 The code defaults are the source of truth (``ros2 run <pkg> <exe>`` with no parameters must do
 what the node sets do); the YAML files are the documented copy the launchers load. This test
-builds each node in a child process with no parameters (real node classes, nothing patched),
+builds each node in one child process with no parameters (real node classes, nothing patched),
 reads what it declared, and compares names, types and values with the YAML. Change one side
 only, and it fails.
 """
@@ -11,10 +11,8 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import subprocess
 import sys
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import pytest
@@ -48,14 +46,20 @@ NODES = {
 BUILTIN = {"use_sim_time", "start_type_description_service"}
 
 _DUMP = """
-import importlib, json, sys
+import importlib, json, os, sys, traceback
 import rclpy
 rclpy.init()
-mod, cls = sys.argv[1].split(":")
-node = getattr(importlib.import_module(mod), cls)()
-print("PARAMS=" + json.dumps({n: p.value for n, p in node.get_parameters_by_prefix("").items()}))
-node.destroy_node()
-rclpy.try_shutdown()
+out = {}
+for target in sys.argv[1:]:
+    try:
+        mod, cls = target.split(":")
+        node = getattr(importlib.import_module(mod), cls)()
+        out[target] = {n: p.value for n, p in node.get_parameters_by_prefix("").items()}
+        node.destroy_node()
+    except Exception:
+        out[target] = "did not build with no parameters:\\n" + traceback.format_exc()
+print("PARAMS=" + json.dumps(out), flush=True)
+os._exit(0)  # a node's own threads (web server, viewer) must not keep the process alive
 """
 
 
@@ -70,13 +74,18 @@ def yaml_params() -> dict[str, dict[str, object]]:
     return out
 
 
-def declared_defaults(target: str, domain: int) -> dict[str, object]:
+def declared_defaults(targets: list[str], domain: int) -> dict[str, object]:
+    """``module:Class`` -> the parameters that class declares when built with none (one child process builds them
+    all in turn: real node classes, nothing patched; one interpreter and rclpy start instead of one per node)."""
     env = node_environment(domain)
-    proc = subprocess.run([sys.executable, "-c", _DUMP, target], env=env, capture_output=True, text=True,
+    proc = subprocess.run([sys.executable, "-c", _DUMP, *targets], env=env, capture_output=True, text=True,
                           timeout=240, stdin=subprocess.DEVNULL)
     lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("PARAMS=")]
-    assert proc.returncode == 0 and lines, f"{target} did not build with no parameters:\n{proc.stdout}\n{proc.stderr}"
-    return {k: v for k, v in json.loads(lines[-1][len("PARAMS="):]).items() if k not in BUILTIN}
+    assert proc.returncode == 0 and lines, f"the nodes were not built:\n{proc.stdout}\n{proc.stderr}"
+    dumped = json.loads(lines[-1][len("PARAMS="):])
+    failed = [f"{t} {v}" for t, v in dumped.items() if isinstance(v, str)]
+    assert not failed, "\n".join(failed) + "\n" + proc.stderr
+    return {t: {k: v for k, v in params.items() if k not in BUILTIN} for t, params in dumped.items()}
 
 
 def same(a: object, b: object) -> bool:
@@ -123,8 +132,7 @@ def test_compare_finds_a_difference():
 @pytest.mark.slow
 def test_declared_defaults_equal_params_files(ros_domain):
     documented = yaml_params()
-    with ThreadPoolExecutor(max_workers=min(4, os.cpu_count() or 2)) as pool:
-        declared = dict(zip(NODES, pool.map(lambda n: declared_defaults(NODES[n][2], ros_domain), NODES),
-                            strict=True))
+    by_target = declared_defaults([NODES[n][2] for n in NODES], ros_domain)
+    declared = {n: by_target[NODES[n][2]] for n in NODES}
     problems = [p for node in NODES for p in compare(node, declared[node], documented.get(node, {}))]
     assert not problems, "code defaults and config/params/*.yaml disagree:\n  " + "\n  ".join(problems)

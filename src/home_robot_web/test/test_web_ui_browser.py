@@ -4,7 +4,7 @@ One node set (``demo``: the simulated robot and ``web_ui_node`` on a free loopba
 browser are shared by the tests of this module, which run in order as a person would use the page:
 a command with its steps and "Done", a question answered in place, STOP during a long task, bad
 input, a closed tab, a phone-sized screen. The exposed node (a pairing token on every request) is
-started on its own.
+started on its own and opened in a new tab of the same browser, its cookies cleared before and after.
 """
 
 from __future__ import annotations
@@ -149,7 +149,9 @@ def test_phone_sized_viewport(robot_page):
         browser.close_page(phone)
 
 
-def test_exposed_page_needs_the_token(tmp_path):
+def test_exposed_page_needs_the_token(robot_page, tmp_path):
+    """Its own node set (an exposed web_ui); the module's browser, in a new tab with no cookies."""
+    _, browser, _, _ = robot_page
     token = "pairing-token-of-the-test-1234"
     token_file = tmp_path / "token"
     fd = os.open(token_file, os.O_WRONLY | os.O_CREAT, 0o600)
@@ -169,8 +171,9 @@ def test_exposed_page_needs_the_token(tmp_path):
                 with pytest.raises(urllib.error.HTTPError) as info:
                     urllib.request.urlopen(url + suffix, timeout=10)
                 assert info.value.code == code
-            with Chromium() as browser:
-                page = browser.page()
+            page = browser.page()
+            try:
+                page.call("Network.clearBrowserCookies")  # cookies are per host, not per port: start with none
                 page.navigate(url)  # no token: refused, the browser shows why
                 assert "pairing token required" in page.evaluate("document.body.innerText")
                 page.navigate(url + "?token=" + token)
@@ -178,6 +181,9 @@ def test_exposed_page_needs_the_token(tmp_path):
                 assert page.evaluate("location.search") == ""  # the token left the address bar
                 page.navigate(url)  # a reload: the cookie is the key now
                 page.wait_for("hr.connected && hr.hello > 0", 30)
+            finally:
+                page.call("Network.clearBrowserCookies")  # the token's cookie stays with this test
+                browser.close_page(page)
             for _ in range(2):  # 3 wrong tokens in all: locked out, even with the right one
                 with pytest.raises(urllib.error.HTTPError):
                     urllib.request.urlopen(url + "?token=wrong-again", timeout=10)

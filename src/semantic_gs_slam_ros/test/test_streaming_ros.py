@@ -38,12 +38,41 @@ def sequence(tmp_path_factory):
     return root
 
 
+@pytest.fixture(scope="module")
+def long_sequence(sequence, tmp_path_factory):
+    """``sequence``'s 8 frames played forth and back (0..7, 6..1, 0..7, ...) to 120 frames, linked, not copied: a
+    run that a client at 2 frames per second needs about a minute to send, and the camera's motion stays smooth."""
+    src = sequence / "home"
+    root = tmp_path_factory.mktemp("long") / "home"
+    (root / "results").mkdir(parents=True)
+    (root / "semantic").mkdir()
+    for name in ("cam.json", "semantic.json"):
+        (root / name).symlink_to(src / name)
+    poses = (src / "traj.txt").read_text().splitlines()
+    cycle = list(range(8)) + list(range(6, 0, -1))
+    order = [cycle[i % len(cycle)] for i in range(120)]
+    files = (("results", "frame", "jpg"), ("results", "depth", "png"), ("semantic", "semantic", "png"))
+    for i, j in enumerate(order):
+        for sub, stem, ext in files:
+            (root / sub / f"{stem}{i:06d}.{ext}").symlink_to(src / sub / f"{stem}{j:06d}.{ext}")
+    (root / "traj.txt").write_text("\n".join(poses[j] for j in order) + "\n")
+    return root
+
+
 def server_spec(work, sequence, **params) -> NodeSpec:
     base = {"work_dir": str(work), "map_dir": str(work / "map"), "width": 64, "height": 36,
             "use_semantic": True, "slam_config": str(sequence / "fast.yaml"), "checkpoint_every": 2,
             "done_wait": 5.0}
     return NodeSpec("run_gs_slam_server", "semantic_gs_slam_ros", "run_gs_slam_server",
                     parameters={**base, **params}, ready="ready:")
+
+
+@pytest.fixture(scope="module")
+def shared_server(launch_shared_nodes, sequence, tmp_path_factory):
+    """One server with the default settings above for the tests whose runs name their own folders (the goal's
+    output_dir and map_dir, from the client): started once for them, not once per test."""
+    work = tmp_path_factory.mktemp("shared_server")
+    return launch_shared_nodes(nodes=[server_spec(work, sequence)]).get("run_gs_slam_server")
 
 
 class Client(CapturedProcess):
@@ -126,15 +155,21 @@ def test_lag_control_pauses_intake_without_losing_frames(launch_nodes, ros_domai
     assert len(os.listdir(work / "frames")) == int(m.group(1))
 
 
-def test_cancel_mid_run_still_saves_a_map(launch_nodes, ros_domain, sequence, tmp_path):
+@pytest.mark.xdist_group("shared_slam_server")
+def test_cancel_mid_run_still_saves_a_map(shared_server, shared_domain, long_sequence, tmp_path):
     work = tmp_path / "run"
-    sup = launch_nodes(nodes=[server_spec(work, sequence)])
-    client = Client(ros_domain, sequence / "home", rate=1.0)
-    assert wait_for(lambda: processed_frames(work) >= 2, 120), client.text() + sup.output()
+    seen = len(shared_server.output())  # the server served other runs before: this run's lines come after
+    # 120 frames at 2 per second (about a minute to send): when the second frame is on disk the run is still going
+    # unless the server took that minute for two frames, and even then the client ends only after all 120 are
+    # processed (8 frames at 1 per second let a server that lagged 7 s finish the run before the cancel)
+    client = Client(shared_domain, long_sequence, rate=2.0, output_dir=str(work), map_dir=str(work / "map"))
+    assert wait_for(lambda: processed_frames(work) >= 2, 120), client.text() + shared_server.output()
+    assert client.proc.poll() is None, "the run ended before the cancel:\n" + client.text()
     client.proc.send_signal(signal.SIGINT)
     assert client.wait(120) == 130, client.text()
-    assert wait_for(lambda: "run finished: cancelled" in sup.get("run_gs_slam_server").output(), 60), sup.output()
+    assert wait_for(lambda: "run finished: cancelled" in shared_server.output()[seen:], 60), shared_server.output()
     assert (work / "map" / "params.npz").is_file()
+    assert processed_frames(work) < 120  # cancelled mid-run: not every frame was processed
 
 
 def test_resume_after_a_crash(launch_nodes, ros_domain, sequence, tmp_path):
@@ -158,11 +193,12 @@ def test_resume_after_a_crash(launch_nodes, ros_domain, sequence, tmp_path):
     assert len(indices) == len(set(indices)) and len(os.listdir(work / "frames")) == len(indices)
 
 
-def test_bad_output_directory_is_a_clear_error(launch_nodes, ros_domain, sequence, tmp_path):
+@pytest.mark.xdist_group("shared_slam_server")
+def test_bad_output_directory_is_a_clear_error(shared_server, shared_domain, sequence, tmp_path):
     blocker = tmp_path / "a_file"
     blocker.write_text("not a folder")
-    launch_nodes(nodes=[server_spec(blocker / "run", sequence)])
-    client = Client(ros_domain, sequence / "home")
+    client = Client(shared_domain, sequence / "home", output_dir=str(blocker / "run"),
+                    map_dir=str(blocker / "run" / "map"))
     assert client.wait(120) == 1, client.text()
     assert "run failed before it started" in client.text() and "not writable" in client.text()
 
