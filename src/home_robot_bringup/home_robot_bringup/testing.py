@@ -51,15 +51,14 @@ def ros_domain() -> Iterator[int]:
         yield lease.domain_id
 
 
-@pytest.fixture
-def launch_nodes(ros_domain: int, request: pytest.FixtureRequest) -> Iterator[Callable[..., Supervisor]]:
-    started: list[Supervisor] = []
+def _starter(domain: int, started: list[Supervisor]) -> Callable[..., Supervisor]:
+    """The ``start(nodeset=..., nodes=[...], set=[...], ...)`` of a fixture: nodes on ``domain``, kept in ``started``."""
 
     def start(nodeset: str | None = None, nodes: list[NodeSpec] | None = None, set: list[str] | None = None,
               ready_timeout: float = 60.0, env: dict[str, str] | None = None) -> Supervisor:
         specs = list(load_nodeset(nodeset) if nodeset else []) + list(nodes or [])
         specs = apply_overrides(specs, set or [])
-        node_env = node_environment(ros_domain)
+        node_env = node_environment(domain)
         node_env.update(env or {})
         sup = Supervisor(specs, node_env, echo=None)
         started.append(sup)
@@ -67,7 +66,13 @@ def launch_nodes(ros_domain: int, request: pytest.FixtureRequest) -> Iterator[Ca
         sup.wait_ready(ready_timeout)
         return sup
 
-    yield start
+    return start
+
+
+@pytest.fixture
+def launch_nodes(ros_domain: int, request: pytest.FixtureRequest) -> Iterator[Callable[..., Supervisor]]:
+    started: list[Supervisor] = []
+    yield _starter(ros_domain, started)
     for sup in started:
         sup.stop()
     if _failed(request):
@@ -85,20 +90,7 @@ def shared_domain() -> Iterator[int]:
 def launch_shared_nodes(shared_domain: int, request: pytest.FixtureRequest) -> Iterator[Callable[..., Supervisor]]:
     started: list[Supervisor] = []
     failed_before = request.session.testsfailed
-
-    def start(nodeset: str | None = None, nodes: list[NodeSpec] | None = None, set: list[str] | None = None,
-              ready_timeout: float = 60.0, env: dict[str, str] | None = None) -> Supervisor:
-        specs = list(load_nodeset(nodeset) if nodeset else []) + list(nodes or [])
-        specs = apply_overrides(specs, set or [])
-        node_env = node_environment(shared_domain)
-        node_env.update(env or {})
-        sup = Supervisor(specs, node_env, echo=None)
-        started.append(sup)
-        sup.start()
-        sup.wait_ready(ready_timeout)
-        return sup
-
-    yield start
+    yield _starter(shared_domain, started)
     for sup in started:
         sup.stop()
     if request.session.testsfailed > failed_before:
