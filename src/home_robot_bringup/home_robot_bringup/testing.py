@@ -52,7 +52,8 @@ def ros_domain() -> Iterator[int]:
 
 
 def _starter(domain: int, started: list[Supervisor]) -> Callable[..., Supervisor]:
-    """The ``start(nodeset=..., nodes=[...], set=[...], ...)`` of a fixture: nodes on ``domain``, kept in ``started``."""
+    """The ``start(nodeset=..., nodes=[...], set=[...], ...)`` of a fixture: nodes on ``domain``, kept in ``started``.
+    """
 
     def start(nodeset: str | None = None, nodes: list[NodeSpec] | None = None, set: list[str] | None = None,
               ready_timeout: float = 60.0, env: dict[str, str] | None = None) -> Supervisor:
