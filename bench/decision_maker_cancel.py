@@ -92,6 +92,18 @@ class Bench:
                 self.task_final[st.id] = (st.state, time.monotonic())
                 self.cond.notify_all()
 
+    def start_far_goal(self, trial: int, known: set[bytes]) -> bytes:
+        """Command a drive that no trial lasts long enough to finish; returns its goal id (added to ``known``)."""
+        target = "goto:5.0,4.0,0" if trial % 2 == 0 else "goto:4.0,0.5,0"  # far: never reached in a trial
+        self.cmd.publish(String(data=f"{target}; goto:1,1,0"))
+        with self.cond:
+            ok = self.cond.wait_for(lambda: self.active_goal(known) is not None, 10.0)
+            goal = self.active_goal(known)
+        if not ok or goal is None:
+            raise SystemExit(f"trial {trial}: no active nav goal")
+        known.add(goal)
+        return goal
+
     def active_goal(self, known: set[bytes]) -> bytes | None:
         for key, (status, _) in self.goal_status.items():
             if key not in known and status in (GoalStatus.STATUS_ACCEPTED, GoalStatus.STATUS_EXECUTING):
@@ -131,14 +143,7 @@ def main() -> int:
             failures = 0
             for i in range(opts.trials):
                 cid += 1
-                target = "goto:5.0,4.0,0" if i % 2 == 0 else "goto:4.0,0.5,0"  # far: never reached in a trial
-                bench.cmd.publish(String(data=f"{target}; goto:1,1,0"))
-                with bench.cond:
-                    ok = bench.cond.wait_for(lambda: bench.active_goal(known) is not None, 10.0)
-                    goal = bench.active_goal(known)
-                if not ok:
-                    raise SystemExit(f"trial {i}: no active nav goal")
-                known.add(goal)
+                goal = bench.start_far_goal(i, known)
                 time.sleep(0.02)  # let the goal run for a moment
                 via = opts.stop_via if opts.stop_via != "both" else ("cancel_command", "manual_command")[i % 2]
                 t0 = time.monotonic()

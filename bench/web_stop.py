@@ -88,14 +88,7 @@ def main() -> int:
             known: set[bytes] = set()
             failures = 0
             for i in range(opts.trials):
-                target = "goto:5.0,4.0,0" if i % 2 == 0 else "goto:4.0,0.5,0"  # far: never reached in a trial
-                bench.cmd.publish(String(data=f"{target}; goto:1,1,0"))
-                with bench.cond:
-                    ok = bench.cond.wait_for(lambda: bench.active_goal(known) is not None, 10.0)
-                    goal = bench.active_goal(known)
-                if not ok:
-                    raise SystemExit(f"trial {i}: no active nav goal")
-                known.add(goal)
+                goal = bench.start_far_goal(i, known)
                 cid = i + 1
                 time.sleep(0.05)  # let the goal run for a moment
                 via = ("browser", "terminal")[i % 2]
