@@ -290,7 +290,7 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking):
         unverified = source in ("odometry", "odometry_refused")
         unmapped = failed or (unverified and not self.cfg.tracking.odometry_map_unverified) or \
             source in ("relocalised", "confirming")
-        self._note_lost(idx, failed, unmapped)
+        self._note_lost(idx, failed or source == "relocalised", unmapped)
         is_kf = (idx % self.cfg.mapping.keyframe_every == 0 or self._new_view(self.poses[-1]) or
                  source == "recovered" or coverage < self.cfg.tracking.frontend_new_keyframe_coverage) and not unmapped
         if is_kf:
@@ -328,7 +328,8 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking):
             return self.poses[idx].copy()
 
     def _note_lost(self, idx: int, failed: bool, unmapped: bool) -> None:
-        """Record lost frames and lost -> recovered spans (stats(): lost_frames, recoveries)."""
+        """Record lost frames (tracking failed; a frame relocalised at once counts too) and lost -> recovered spans
+        (stats(): lost_frames, recoveries)."""
         if failed:
             self.lost_frames.append(idx)
             if self._lost_at is None:
