@@ -179,6 +179,7 @@ class MappingSteps:
             (the last loss, iterations done); (NaN, 0) when there is nothing to do. With ``poses`` the loss
             includes the pose prior (``mapping.refine_pose_prior``).
         """
+        self.drain(600.0)  # a mapping thread (SlamConfig.threaded) finishes first
         if not self.keyframes:
             return float("nan"), 0
         deltas = None
