@@ -28,8 +28,8 @@ from dataclasses import replace
 
 import numpy as np
 
-from semantic_gs_slam.io.datasets import frame_indices, load_dataset, parse_size
 from semantic_gs_slam.eval.metrics import ate_rmse, rpe_rmse
+from semantic_gs_slam.io.datasets import frame_indices, load_dataset, parse_size
 from semantic_gs_slam.tracking.frontend import FrameTracker, FrontendConfig, build_reference
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
