@@ -123,6 +123,17 @@ class TrackingConfig:
     odometry_gate_rot_deg: float = 3.0  # degrees, the same for rotation
     odometry_gate_fraction: float = 0.1  # of the odometry step's translation (m) and rotation (degrees)
     use_gt_pose: bool = False  # debugging / mapping-only runs: take the ground-truth pose given to add_frame
+    frontend: str = "render"  # "render": point-to-plane ICP against the map rendered at the guess (every frame
+    # renders the map); "keyframe": the frame-rate front end (tracking/frontend.py) against the latest keyframe's
+    # reference (its sensor depth and colour at its latest pose), with relocalisation when lost. It does not use
+    # add_frame's odom_c2w for tracking (only for the map frame); the odometry gate and prior are "render"'s
+    frontend_new_keyframe_coverage: float = 0.5  # "keyframe": a frame whose tracked points cover less of the
+    # reference than this becomes a keyframe (a new reference), besides mapping.keyframe_every / keyframe_motion_*
+    relocalise_every: int = 3  # "keyframe": a lost frame tries to relocalise on its first lost frame and then on
+    # every k-th (each try costs about 100 ms of CPU against three keyframes); the others stay lost
+    relocalise_candidates: int = 3  # keyframes tried per relocalisation: the best ranked by a 20x15 thumbnail of
+    # depth and intensity (cheap), plus the one nearest the last trusted pose
+    relocalise_confirm: int = 2  # trusted frames in a row (the relocalised one first) before mapping resumes
 
     def check(self) -> None:
         _check_device_dependent("tracking.icp_iters", self.icp_iters, int)
@@ -141,6 +152,12 @@ class TrackingConfig:
         for name in ("render_scale_shrink", "render_scale_shrink_odometry"):
             if not 0 < getattr(self, name) < math.inf:
                 raise ConfigError(f"tracking.{name} must be a finite number > 0, got {getattr(self, name)}")
+        if self.frontend not in ("render", "keyframe"):
+            raise ConfigError(f"tracking.frontend must be 'render' or 'keyframe', got {self.frontend!r}")
+        if min(self.relocalise_every, self.relocalise_candidates, self.relocalise_confirm) < 1:
+            raise ConfigError("tracking.relocalise_every, relocalise_candidates and relocalise_confirm must be >= 1")
+        if not 0 <= self.frontend_new_keyframe_coverage <= 1:
+            raise ConfigError("tracking.frontend_new_keyframe_coverage must be in [0, 1]")
 
 
 @dataclass
@@ -304,6 +321,13 @@ class SlamConfig:
     threads: int = 0  # torch.set_num_threads when > 0 (the CLI and benchmark use 2); 0 leaves torch's setting
     seed: int = 0
     device: str = "auto"  # torch device of every tensor: "auto" (CUDA when present, else CPU), "cpu", "cuda[:N]"
+    threaded: bool = False  # map in a worker thread (SLAM.finish drains it): add_frame returns once the frame is
+    # tracked; keyframes (and, with label votes or densify_every_frame, the other frames' map updates) wait in a
+    # bounded queue. Off: every frame is mapped inline (the reference: threaded runs that wait for each frame,
+    # SLAM.drain, give the same poses). Needs tracking.frontend "keyframe" (the render front end reads the map)
+    queue_size: int = 4  # mapping jobs the queue holds (threaded)
+    queue_timeout_s: float = 2.0  # seconds a keyframe waits for room in a full queue; then it is not mapped (the
+    # frame log's map_queue says "dropped", stats() counts it). Other frames' jobs never wait: dropped when full
 
     def check(self) -> None:
         """Validate all parts; raise :class:`ConfigError` naming the bad field."""
@@ -318,6 +342,11 @@ class SlamConfig:
             raise ConfigError("checkpoint_every > 0 needs checkpoint_dir")
         if self.threads < 0:
             raise ConfigError("threads must be >= 0")
+        if self.threaded and self.tracking.frontend != "keyframe":
+            raise ConfigError("threaded needs tracking.frontend 'keyframe' (the render front end reads the map "
+                              "the mapping thread writes)")
+        if self.queue_size < 1 or not self.queue_timeout_s >= 0:
+            raise ConfigError("queue_size must be >= 1 and queue_timeout_s >= 0")
         if not re.match(r"^(auto|cpu|cuda(:\d+)?)$", str(self.device)):
             raise ConfigError(f"device must be 'auto', 'cpu', 'cuda' or 'cuda:N', got {self.device!r}")
 

@@ -34,3 +34,7 @@ class TrackingError(SlamError):
 
 class BackendUnavailableError(SlamError):
     """A renderer back-end was requested that cannot run here (``gsplat`` without CUDA)."""
+
+
+class MappingError(SlamError):
+    """The mapping thread failed (the cause is chained) or did not drain within the deadline."""

@@ -160,6 +160,10 @@ def build_config(args: argparse.Namespace, intrinsics) -> SlamConfig:
         cfg.mapping.keyframe_every = args.keyframe_every
     if args.mapping_iters is not None:
         cfg.mapping.iters = args.mapping_iters
+    if args.frontend:
+        cfg.tracking.frontend = args.frontend
+    if args.threaded:
+        cfg.threaded = True
     return cfg
 
 
@@ -207,6 +211,8 @@ def main(argv: list[str] | None = None) -> int:
                     help="renderer: torch tiles (any device, the reference), numba (compiled, CPU), gsplat (CUDA), "
                          "auto (gsplat on CUDA when it imports, numba on the CPU when it is installed)")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--frontend", choices=["render", "keyframe"], help="tracking.frontend (default: the config's)")
+    ap.add_argument("--threaded", action="store_true", help="map in a worker thread (needs --frontend keyframe)")
     ap.add_argument("--refine-iters", type=int, default=0,
                     help="after the run, refine the map over all keyframes for N iterations (not counted in FPS)")
     ap.add_argument("--refine-poses", action="store_true",
@@ -272,6 +278,12 @@ def main(argv: list[str] | None = None) -> int:
                           f"loss {lg.map_loss:6.4f} track {lg.track_s:5.2f} s map {lg.map_s:5.2f} s{err}"
                           f"{' TRACKING LOST' if lg.tracking_failed else ''}", file=sys.stderr, flush=True)
             wall = time.perf_counter() - t0
+            t_drain = time.perf_counter()
+            eng.finish(timeout=600.0)  # SlamConfig.threaded: the mapping thread's queue (inline: nothing to wait for)
+            if eng.cfg.threaded:
+                print(f"mapping thread drained in {time.perf_counter() - t_drain:.1f} s after the last frame; "
+                      f"lost {eng.stats()['lost_frames']}, recoveries {eng.stats()['recoveries']}, "
+                      f"dropped {eng.stats()['dropped']}", file=sys.stderr)
             if interrupt.requested and not stopped:  # during the last frame
                 stopped = "stopped by Ctrl-C"
             if skipped:

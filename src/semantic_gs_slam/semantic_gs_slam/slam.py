@@ -16,6 +16,7 @@ import logging
 import math
 import os
 import shutil
+import threading
 import time
 from dataclasses import asdict, dataclass, replace
 
@@ -40,7 +41,9 @@ from semantic_gs_slam.mapping.gaussian_map import (
     save_semantic_json,
 )
 from semantic_gs_slam.mapping.steps import Keyframe, MappingSteps
+from semantic_gs_slam.mapping.worker import MappingWorker
 from semantic_gs_slam.render import Gaussians, RenderOutput, select_backend
+from semantic_gs_slam.tracking.keyframe_tracking import KeyframeTracking
 from semantic_gs_slam.tracking.tracker import (
     IcpGraphs,
     icp,
@@ -87,9 +90,15 @@ class FrameLog:
     # with odometry, odometry_refused or previous are not mapped (see tracking.odometry_map_unverified)
     track_agreement: float = float("nan")  # TrackResult.agreement (share of the frame on the map's surface)
     loop: str = ""  # keyframes: what loop detection found ("" = not checked; see SLAM._close_loop)
+    # tracking.frontend "keyframe" adds the pose sources lost (not trusted: the previous pose, not mapped),
+    # relocalised and confirming (trusted, not mapped until tracking.relocalise_confirm frames in a row) and recovered
+    track_coverage: float = float("nan")  # "keyframe" front end: share of the frame's points on the reference
+    map_queue: str = "inline"  # inline (mapped in add_frame) | queued (SlamConfig.threaded; added, pruned, map_loss
+    # and map_s are filled in when the mapping thread has run it) | dropped (the queue stayed full: not mapped) |
+    # none (nothing to map)
 
 
-class SLAM(MappingSteps, LoopClosing):
+class SLAM(MappingSteps, LoopClosing, KeyframeTracking):
     """Semantic Gaussian-splatting RGB-D SLAM, fed frame by frame.
 
     The map frame is the first frame's pose: ``initial_c2w`` if given, else the ``odom_c2w`` passed
@@ -129,6 +138,26 @@ class SLAM(MappingSteps, LoopClosing):
         self._agreement = float("nan")
         self._exposure: Tensor | None = None  # this frame's, once densification has fitted it
         self._icp_graphs = IcpGraphs()  # captured ICP steps on CUDA (tracking.IcpGraphs); unused elsewhere
+        # guards self.poses between the caller's thread (appends, reads of the last poses) and the mapping thread
+        # (loop closure moves every pose: _move_frames); every other field is written by one thread only
+        self._poses_lock = threading.RLock()
+        self._last_kf_index = -1  # the last frame made a keyframe (the caller's thread; the map may lag, threaded)
+        self.lost_frames: list[int] = []  # frames whose tracking was lost (not mapped)
+        self.recoveries: list[list[int]] = []  # [first lost frame, frame tracking was trusted and mapped again]
+        self.dropped_jobs: list[int] = []  # frames whose map update found the queue full (threaded)
+        self._lost_at: int | None = None
+        self._worker: MappingWorker | None = None
+        self._fe_init()
+
+    def __getstate__(self) -> dict:
+        """Copies (copy.deepcopy, pickle) take the engine's state without its lock and mapping thread."""
+        state = self.__dict__.copy()
+        state["_poses_lock"], state["_worker"] = None, None
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._poses_lock = threading.RLock()
 
     # ------------------------------------------------------------------ input
     def _tensors(self, rgb: np.ndarray, depth: np.ndarray, sem: np.ndarray | None
@@ -221,22 +250,36 @@ class SLAM(MappingSteps, LoopClosing):
         Raises:
             FrameError: bad shapes, NaN depth, almost no valid depth.
         """
+        if self._worker is not None:
+            self._worker.raise_if_failed()  # a mapping thread's failure surfaces on the next call
         t0 = time.perf_counter()
         rgb_t, depth_t, sem_t = self._tensors(rgb, depth, semantics)
         idx = len(self.poses)
         gt = None if gt_c2w is None else np.asarray(gt_c2w, np.float64)
         odom = None if odom_c2w is None else check_pose(odom_c2w, "odom_c2w")
         residual, inliers, failed, source = float("nan"), 0, False, "tracking"
+        coverage = float("nan")
         self._agreement = float("nan")
-        self._exposure = None
+        keyframe_fe = self.cfg.tracking.frontend == "keyframe"
+        if keyframe_fe:  # host copies the front end works on (views of the tensors on the CPU)
+            depth_np = depth_t.cpu().numpy().astype(np.float64)
+            rgb_np = rgb_t.cpu().numpy().astype(np.float64)
         if idx == 0:
             source = "first"
             c2w = next((p for p in (self.initial_c2w, odom, gt) if p is not None), np.eye(4))
         elif self.cfg.tracking.use_gt_pose and gt is not None:
             c2w, source = gt, "ground_truth"
+        elif keyframe_fe and self._fe_views:
+            c2w, residual, inliers, failed, source, coverage = self._track_keyframe(idx, rgb_np, depth_np)
         else:
             c2w, residual, inliers, failed, source = self._track(rgb_t, depth_t, self.odometry_guess(odom))
-        self.poses.append(np.asarray(c2w, np.float64))
+        with self._poses_lock:
+            if source != "lost" and keyframe_fe and idx > 0:  # the mapping thread may have moved the reference's
+                # keyframe (loop closure) while this frame was tracked against its old pose: move the frame with it
+                ref_idx, ref_c2w = self._fe_used
+                if not np.array_equal(self.poses[ref_idx], ref_c2w):
+                    c2w = self.poses[ref_idx] @ np.linalg.inv(ref_c2w) @ c2w
+            self.poses.append(np.asarray(c2w, np.float64))
         self.gt_poses.append(gt)
         self.odom_poses.append(odom)
         self.timestamps.append(float(idx if timestamp is None else timestamp))
@@ -245,28 +288,99 @@ class SLAM(MappingSteps, LoopClosing):
         # odometry gate) is not mapped unless tracking.odometry_map_unverified: measured on four exploration runs,
         # the labels and Gaussians such frames added put objects up to 19 cm off (6.2 cm at most without them)
         unverified = source in ("odometry", "odometry_refused")
-        unmapped = failed or (unverified and not self.cfg.tracking.odometry_map_unverified)
-        if sem_t is not None and self.cfg.mapping.label_votes and not unmapped:
-            w2c = torch.as_tensor(np.linalg.inv(self.poses[-1]), dtype=torch.float32, device=self.device)
+        unmapped = failed or (unverified and not self.cfg.tracking.odometry_map_unverified) or \
+            source in ("relocalised", "confirming")
+        self._note_lost(idx, failed or source == "relocalised", unmapped)
+        is_kf = (idx % self.cfg.mapping.keyframe_every == 0 or self._new_view(self.poses[-1]) or
+                 source == "recovered" or coverage < self.cfg.tracking.frontend_new_keyframe_coverage) and not unmapped
+        if is_kf:
+            self._last_kf_index = idx
+            if keyframe_fe:
+                self._fe_add_keyframe(idx, depth_np, rgb_np)
+        if not unmapped and source != "ground_truth":
+            self._fe_last_trusted = idx
+        # frames not densified (unmapped, or densify_every_frame off) keep the last exposure: it changes slowly
+        self.exposures.append(self.exposures[-1] if self.exposures else exposure_identity(self.device))
+        entry = FrameLog(idx, self.timestamps[-1], is_kf, len(self.map), 0, 0, residual, inliers, failed,
+                         float("nan"), t1 - t0, 0.0, source, self._agreement, "", coverage)
+        self.logs.append(entry)
+        wants_map = not unmapped and (is_kf or self.cfg.mapping.densify_every_frame or
+                                      (sem_t is not None and self.cfg.mapping.label_votes))
+        if not wants_map:
+            entry.map_queue = "none"
+        elif self._worker is None and not self.cfg.threaded:
+            self._map_frame(idx, rgb_t, depth_t, sem_t, is_kf, entry)
+        else:
+            if self._worker is None:
+                self._worker = MappingWorker(self.cfg.queue_size, self.cfg.queue_timeout_s)
+            job = lambda: self._map_frame(idx, rgb_t, depth_t, sem_t, is_kf, entry)  # noqa: E731
+            if self._worker.submit(job, wait=is_kf):
+                entry.map_queue = "queued"
+            else:
+                entry.map_queue = "dropped"
+                self.dropped_jobs.append(idx)
+                log.warning("frame %d: mapping queue full (%d jobs); %s not mapped", idx, self.cfg.queue_size,
+                            "keyframe" if is_kf else "frame")
+        ce = self.cfg.checkpoint_every
+        if ce > 0 and (idx + 1) % ce == 0:
+            self.checkpoint(self.cfg.checkpoint_dir)
+        with self._poses_lock:
+            return self.poses[idx].copy()
+
+    def _note_lost(self, idx: int, failed: bool, unmapped: bool) -> None:
+        """Record lost frames (tracking failed; a frame relocalised at once counts too) and lost -> recovered spans
+        (stats(): lost_frames, recoveries)."""
+        if failed:
+            self.lost_frames.append(idx)
+            if self._lost_at is None:
+                self._lost_at = idx
+        elif not unmapped and self._lost_at is not None:
+            self.recoveries.append([self._lost_at, idx])
+            log.warning("frame %d: tracking recovered (lost since frame %d)", idx, self._lost_at)
+            self._lost_at = None
+
+    def _map_frame(self, idx: int, rgb_t: Tensor, depth_t: Tensor, sem_t: Tensor | None, is_kf: bool,
+                   entry: FrameLog) -> None:
+        """Frame ``idx``'s map update (label votes, keyframe mapping or densification): in add_frame, or in the
+        mapping thread (SlamConfig.threaded), where it fills in ``entry``'s mapping fields."""
+        t1 = time.perf_counter()
+        self._exposure = None
+        with self._poses_lock:
+            c2w = self.poses[idx].copy()
+        if sem_t is not None and self.cfg.mapping.label_votes:
+            w2c = torch.as_tensor(np.linalg.inv(c2w), dtype=torch.float32, device=self.device)
             self.map.vote(sem_t, depth_t, w2c, self.k)
-        is_kf = (idx % self.cfg.mapping.keyframe_every == 0 or self._new_view(self.poses[-1])) and not unmapped
         added = pruned = 0
         loss = float("nan")
         if is_kf:
             added, pruned, loss = self._map_keyframe(idx, rgb_t, depth_t, sem_t)
-        elif self.cfg.mapping.densify_every_frame and not unmapped:
-            added = self._densify(idx, rgb_t, depth_t, sem_t, self.poses[-1])
-        # frames not densified (unmapped, or densify_every_frame off) keep the last exposure: it changes slowly
-        self.exposures.append(self._exposure if self._exposure is not None else
-                              self.exposures[-1] if self.exposures else exposure_identity(self.device))
-        t2 = time.perf_counter()
-        entry = FrameLog(idx, self.timestamps[-1], is_kf, len(self.map), added, pruned, residual, inliers, failed,
-                         loss, t1 - t0, t2 - t1, source, self._agreement, self._loop_note if is_kf else "")
-        self.logs.append(entry)
-        ce = self.cfg.checkpoint_every
-        if ce > 0 and (idx + 1) % ce == 0:
-            self.checkpoint(self.cfg.checkpoint_dir)
-        return self.poses[-1].copy()
+        elif self.cfg.mapping.densify_every_frame:
+            added = self._densify(idx, rgb_t, depth_t, sem_t, c2w)
+        if self._exposure is not None:
+            self.exposures[idx] = self._exposure
+        entry.added, entry.pruned, entry.map_loss, entry.n_gaussians = added, pruned, loss, len(self.map)
+        entry.loop = self._loop_note if is_kf else ""
+        entry.map_s = time.perf_counter() - t1
+
+    def drain(self, timeout: float = 60.0) -> None:
+        """Wait until the mapping thread (SlamConfig.threaded) has mapped every queued frame, at most ``timeout``
+        seconds (0: only check). Returns at once when mapping is inline.
+
+        Raises:
+            MappingError: the mapping thread failed (the cause chained) or jobs were pending at the deadline.
+        """
+        if self._worker is not None:
+            self._worker.drain(timeout)
+
+    def finish(self, timeout: float = 60.0) -> None:
+        """Drain the mapping thread (see :meth:`drain`) and stop it; a later add_frame starts a new one.
+
+        Raises:
+            MappingError: as :meth:`drain`.
+        """
+        w, self._worker = self._worker, None
+        if w is not None:
+            w.close(timeout)
 
     def exposure_of(self, n: int) -> Tensor | None:
         """Frame ``n``'s exposure [2, 3] (gain, bias) when compensation is on, else None (renders as they are)."""
@@ -284,9 +398,11 @@ class SLAM(MappingSteps, LoopClosing):
     def _new_view(self, c2w: np.ndarray) -> bool:
         """Whether ``c2w`` moved or turned past ``mapping.keyframe_motion_*`` from the last keyframe."""
         mc = self.cfg.mapping
-        if not self.keyframes or (mc.keyframe_motion_m <= 0 and mc.keyframe_motion_deg <= 0):
+        if self._last_kf_index < 0 or (mc.keyframe_motion_m <= 0 and mc.keyframe_motion_deg <= 0):
             return False
-        rel = np.linalg.inv(self.poses[self.keyframes[-1].index]) @ c2w  # numpy: no device round trip
+        with self._poses_lock:
+            last = self.poses[self._last_kf_index]
+        rel = np.linalg.inv(last) @ c2w  # numpy: no device round trip
         angle = math.degrees(math.acos(min(1.0, max(-1.0, (float(np.trace(rel[:3, :3])) - 1) / 2))))
         return bool((mc.keyframe_motion_m > 0 and np.linalg.norm(rel[:3, 3]) > mc.keyframe_motion_m) or
                     (mc.keyframe_motion_deg > 0 and angle > mc.keyframe_motion_deg))
@@ -392,14 +508,16 @@ class SLAM(MappingSteps, LoopClosing):
     def _map_keyframe(self, idx: int, rgb: Tensor, depth: Tensor, sem: Tensor | None) -> tuple[int, int, float]:
         mc = self.cfg.mapping
         self._loop_note = self._close_loop(idx, depth)
-        c2w = self.poses[-1]
+        with self._poses_lock:
+            c2w = self.poses[idx].copy()
         added = self._densify(idx, rgb, depth, sem, c2w, keyframe=True)
         if self._exposure is not None:
             rgb = to_map(rgb, self._exposure)
         kf = Keyframe(idx, torch.as_tensor(c2w, device=self.device), rgb, depth, sem)
         if self.keyframes:
             lc = self.cfg.loop
-            prev = self.poses[self.keyframes[-1].index]
+            with self._poses_lock:
+                prev = self.poses[self.keyframes[-1].index].copy()
             self.edges.append(Edge(len(self.keyframes) - 1, len(self.keyframes), np.linalg.inv(prev) @ c2w,
                                    lc.sigma_rot, lc.sigma_trans))
         self.keyframes.append(kf)
@@ -421,7 +539,9 @@ class SLAM(MappingSteps, LoopClosing):
         return self.map.class_ids()
 
     def save(self, out_dir: str, ply: bool = True) -> dict[str, str]:
-        """Write ``params.npz``, ``semantic.json`` (and ``map.ply``) into ``out_dir``; returns the paths."""
+        """Write ``params.npz``, ``semantic.json`` (and ``map.ply``) into ``out_dir``; returns the paths.
+        A mapping thread is drained first (:meth:`drain`, 60 s)."""
+        self.drain()
         os.makedirs(out_dir, exist_ok=True)
         paths = {"params": os.path.join(out_dir, "params.npz"), "semantic": os.path.join(out_dir, "semantic.json")}
         w2c = [np.linalg.inv(p) for p in self.poses]
@@ -440,6 +560,7 @@ class SLAM(MappingSteps, LoopClosing):
         checkpoint is kept as ``<ckpt_dir>.old`` until the swap is done), so a crash mid-write leaves
         a complete checkpoint behind; :meth:`resume` falls back to ``.old`` when needed.
         """
+        self.drain()
         final = ckpt_dir.rstrip("/")
         ckpt_dir = final + ".tmp"
         shutil.rmtree(ckpt_dir, ignore_errors=True)
@@ -520,6 +641,7 @@ class SLAM(MappingSteps, LoopClosing):
                                           None if (sem < 0).all() else
                                           torch.as_tensor(sem.astype(np.int64), device=dev)))
         eng._since_prune = int(st["since_prune"])
+        eng._last_kf_index = eng.keyframes[-1].index if eng.keyframes else -1
         ex = st["exposures"] if "exposures" in st and len(st["exposures"]) == len(eng.poses) else \
             np.tile(np.array(exposure_identity().tolist(), np.float32), (len(eng.poses), 1, 1))  # older checkpoints
         eng.exposures = [torch.as_tensor(e, dtype=torch.float32, device=dev) for e in ex]
@@ -538,6 +660,8 @@ class SLAM(MappingSteps, LoopClosing):
         return GaussianMap.from_arrays(arr), classes, arr
 
     def stats(self) -> dict:
-        """Summary for logs: frames, keyframes, Gaussians, last frame log."""
+        """Summary for logs: frames, keyframes, Gaussians, lost frames, lost -> recovered spans ([first lost frame,
+        frame mapped again]), frames whose map update the full queue dropped (threaded), last frame log."""
         return {"frames": len(self.poses), "keyframes": len(self.keyframes), "gaussians": len(self.map),
-                "last": asdict(self.logs[-1]) if self.logs else None}
+                "lost_frames": list(self.lost_frames), "recoveries": [list(r) for r in self.recoveries],
+                "dropped": list(self.dropped_jobs), "last": asdict(self.logs[-1]) if self.logs else None}

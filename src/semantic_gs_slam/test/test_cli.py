@@ -181,3 +181,13 @@ def test_ctrl_c_during_the_last_frame_skips_the_refinement_and_says_so(tiny_home
     assert "error: stopped by Ctrl-C; the map of the 3 frames mapped is saved, without --eval" in res.stderr
     assert "refined the map" not in res.stderr and "ATE" not in res.stdout
     assert SLAM.load_map(str(out))[2]["cam_trans"].shape == (1, 3, 3)
+
+
+def test_run_with_the_keyframe_front_end_and_the_mapping_thread(tiny_home, tmp_path, capsys):
+    out = str(tmp_path / "map")
+    assert main(["--dataset", str(tiny_home), "--out", out, "--threads", "1", "--mapping-iters", "3", "--frames", "6",
+                 "--frontend", "keyframe", "--threaded", "--eval"]) == 0
+    cap = capsys.readouterr()
+    assert "mapping thread drained in" in cap.err and "lost [], recoveries [], dropped [" in cap.err
+    assert "| ATE RMSE (cm, aligned) |" in cap.out
+    assert len(SLAM.load_map(out)[0]) > 0

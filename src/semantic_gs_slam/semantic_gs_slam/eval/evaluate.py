@@ -45,6 +45,7 @@ def evaluate(eng, ds: Dataset, frame_idx: list[int], every: int = 1) -> dict:
         class_iou (name -> IoU),
         gaussians, frames.
     """
+    eng.drain(600.0)  # a mapping thread (SlamConfig.threaded) finishes the map first
     res = {"frames": len(eng.poses), "gaussians": len(eng.map)}
     gts = [ds[i].gt_c2w for i in frame_idx]
     if all(g is not None for g in gts):

@@ -34,9 +34,9 @@ class LoopClosing:
         lc = self.cfg.loop
         n_kf = len(self.keyframes)
         if not lc.enabled or n_kf < 2 or n_kf % lc.check_every or \
-                (self.odom_poses[-1] is not None and not lc.with_odometry):
+                (self.odom_poses[idx] is not None and not lc.with_odometry):
             return ""
-        matches = find_loops(depth, self.poses[-1], idx, self.keyframes, self.k, lc, self.cfg.tracking,
+        matches = find_loops(depth, self.poses[idx], idx, self.keyframes, self.k, lc, self.cfg.tracking,
                              [self.poses[kf.index] for kf in self.keyframes], self._icp_graphs)
         notes, correct, usable = [], [], []
         for m in matches:
@@ -55,7 +55,7 @@ class LoopClosing:
     def _apply_loop(self, idx: int, matches: list[LoopMatch]) -> None:
         """Add the current keyframe and the loop edges to the pose graph, optimise it, move poses and Gaussians."""
         lc = self.cfg.loop
-        old = [self.poses[kf.index] for kf in self.keyframes] + [self.poses[-1]]  # host copies of the kf poses
+        old = [self.poses[kf.index] for kf in self.keyframes] + [self.poses[idx]]  # host copies of the kf poses
         cur = len(old) - 1
         loops = [Edge(m.candidate, cur, np.linalg.inv(old[m.candidate]) @ m.c2w, lc.loop_sigma_rot,
                       lc.loop_sigma_trans, "loop") for m in matches]

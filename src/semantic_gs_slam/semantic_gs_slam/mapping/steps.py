@@ -63,7 +63,8 @@ class MappingSteps:
             mask = valid & (empty | behind)
             if holes is not None:
                 mask = mask | (holes & empty)
-            if mc.exposure_compensation and (self.odom_poses[-1] is None or mc.exposure_with_odometry):
+            if mc.exposure_compensation and (self.odom_poses[min(idx, len(self.odom_poses) - 1)] is None or
+                                             mc.exposure_with_odometry):
                 # the frame's exposure against the map rendered at its pose; the new
                 # Gaussians (and a keyframe's stored colour, _map_keyframe) take the map's exposure
                 self._exposure = fit_exposure(out.rgb, out.silhouette, rgb, depth)
@@ -178,6 +179,7 @@ class MappingSteps:
             (the last loss, iterations done); (NaN, 0) when there is nothing to do. With ``poses`` the loss
             includes the pose prior (``mapping.refine_pose_prior``).
         """
+        self.drain(600.0)  # a mapping thread (SlamConfig.threaded) finishes first
         if not self.keyframes:
             return float("nan"), 0
         deltas = None
@@ -212,6 +214,7 @@ class MappingSteps:
     def _move_frames(self, starts: list[int], corr: list[np.ndarray]) -> None:
         """Frame ``f`` takes the world correction ``corr[k]`` ([4, 4]) of the last segment start ``starts[k] <= f``
         (frames before the first start take the first)."""
-        for f in range(len(self.poses)):
-            slot = int(np.searchsorted(starts, f, side="right")) - 1
-            self.poses[f] = corr[max(slot, 0)] @ self.poses[f]
+        with self._poses_lock:  # the caller's thread appends poses meanwhile (SlamConfig.threaded)
+            for f in range(len(self.poses)):
+                slot = int(np.searchsorted(starts, f, side="right")) - 1
+                self.poses[f] = corr[max(slot, 0)] @ self.poses[f]

@@ -1,0 +1,169 @@
+"""The frame-rate front end inside the engine (``tracking.frontend = "keyframe"``): a mixin of
+:class:`~semantic_gs_slam.slam.SLAM`.
+
+Every frame is tracked (:func:`~semantic_gs_slam.tracking.frontend.track`) against the latest keyframe's reference
+model: the keyframe's own sensor depth and colour at its latest pose (moved when the mapping back end corrects it:
+loop closure). Nothing here reads the Gaussian map, so tracking runs beside a mapping thread.
+
+A frame whose pose is not trusted (:class:`~semantic_gs_slam.tracking.frontend.TrackQuality`) is lost: it keeps the
+previous pose and is not mapped. Lost frames try to relocalise (the first, then every ``tracking.relocalise_every``-th)
+against the keyframes ranked by a thumbnail of depth and intensity plus the one nearest the last trusted pose, from
+their poses and perturbed guesses that widen after the first try. A relocalised pose must then be trusted on
+``tracking.relocalise_confirm`` frames in a row before mapping resumes; a frame that fails meanwhile is lost again.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import OrderedDict
+from dataclasses import dataclass
+
+import numpy as np
+
+from semantic_gs_slam.tracking.frontend import (
+    FrontendConfig,
+    ReferenceModel,
+    RelocalisationError,
+    TrackResult,
+    build_reference,
+    prepare_live,
+    relocalise,
+    track,
+)
+
+log = logging.getLogger("semantic_gs_slam")
+
+_THUMB = (15, 20)  # rows, columns of the relocalisation thumbnails
+
+
+@dataclass
+class KeyframeView:
+    """What the front end keeps of a keyframe (tracking thread only)."""
+
+    index: int  # frame index
+    depth: np.ndarray  # [H, W] float64 metres
+    rgb: np.ndarray  # [H, W, 3] float64 in [0, 1]
+    thumb: np.ndarray  # [2, 15, 20] depth (m) and intensity at a coarse grid
+
+
+def thumbnail(depth: np.ndarray, rgb: np.ndarray) -> np.ndarray:
+    """[2, 15, 20]: depth and intensity sampled on a 15 x 20 grid of pixel centres (a cheap place signature)."""
+    h, w = depth.shape
+    rows = ((np.arange(_THUMB[0]) + 0.5) * h / _THUMB[0]).astype(int)
+    cols = ((np.arange(_THUMB[1]) + 0.5) * w / _THUMB[1]).astype(int)
+    return np.stack([depth[np.ix_(rows, cols)], rgb[np.ix_(rows, cols)].mean(-1)])
+
+
+def thumbnail_distance(a: np.ndarray, b: np.ndarray) -> float:
+    """Mean depth difference (m) plus mean intensity difference where both have depth; 1 per pixel where one has."""
+    both = (a[0] > 0) & (b[0] > 0)
+    one = (a[0] > 0) != (b[0] > 0)
+    n = max(int(both.sum() + one.sum()), 1)
+    return float((np.abs(a[0] - b[0])[both].sum() + np.abs(a[1] - b[1])[both].sum() + one.sum()) / n)
+
+
+class KeyframeTracking:
+    """Per-frame tracking against keyframe references, lost / relocalised / recovered states (a mixin)."""
+
+    def _fe_init(self) -> None:
+        self._fe_cfg = FrontendConfig(depth_min=self.cfg.depth_min, depth_max=self.cfg.depth_max)
+        self._fe_views: dict[int, KeyframeView] = {}  # keyframe index -> its sensor view (tracking thread only)
+        self._fe_models: OrderedDict[int, ReferenceModel] = OrderedDict()  # built references, newest last (cache)
+        self._fe_ref_idx = -1  # the current reference's keyframe index
+        self._fe_state = "tracking"  # tracking | lost | confirming
+        self._fe_confirmed = 0  # trusted frames since the relocalisation (confirming)
+        self._fe_last_trusted = 0  # frame index of the last trusted, mapped pose
+        self._fe_after_reloc = False  # the previous frame was relocalised: no constant velocity yet
+
+    def _fe_model(self, index: int) -> ReferenceModel:
+        """The reference of keyframe ``index`` at its current pose (rebuilt when the back end moved it)."""
+        with self._poses_lock:
+            c2w = self.poses[index].copy()
+        m = self._fe_models.get(index)
+        if m is None or not np.allclose(m.c2w, c2w, atol=1e-9):
+            v = self._fe_views[index]
+            m = build_reference(v.depth, c2w, self.k, self._fe_cfg, rgb=v.rgb, keyframe_id=index)
+            self._fe_models[index] = m
+        self._fe_models.move_to_end(index)
+        while len(self._fe_models) > 6:
+            self._fe_models.popitem(last=False)
+        return m
+
+    def _fe_add_keyframe(self, index: int, depth: np.ndarray, rgb: np.ndarray) -> None:
+        """Make frame ``index`` (already posed) the reference for the next frames."""
+        self._fe_views[index] = KeyframeView(index, depth, rgb, thumbnail(depth, rgb))
+        self._fe_ref_idx = index
+        self._fe_model(index)
+
+    def _fe_candidates(self, live_thumb: np.ndarray) -> list[int]:
+        """Keyframes to relocalise against: the best by thumbnail, plus the one nearest the last trusted pose."""
+        n = self.cfg.tracking.relocalise_candidates
+        ranked = sorted(self._fe_views, key=lambda i: thumbnail_distance(live_thumb, self._fe_views[i].thumb))
+        with self._poses_lock:
+            last = self.poses[self._fe_last_trusted][:3, 3].copy()
+            near = min(self._fe_views, key=lambda i: float(np.linalg.norm(self.poses[i][:3, 3] - last)))
+        out = ranked[:max(1, n - 1)]
+        return out + ([near] if near not in out else ranked[n - 1:n])
+
+    def _track_keyframe(self, idx: int, rgb: np.ndarray, depth: np.ndarray
+                        ) -> tuple[np.ndarray, float, int, bool, str, float]:
+        """Track frame ``idx`` ([H, W, 3] in [0, 1], [H, W] metres, both float64).
+
+        Returns:
+            pose [4, 4], residual (m), correspondences, lost, pose source (tracking | lost | relocalised |
+            confirming | recovered), coverage of the reference.
+        """
+        tc = self.cfg.tracking
+        fe = self._fe_cfg
+        with self._poses_lock:
+            prev = self.poses[-1].copy()
+            prev2 = self.poses[-2].copy() if len(self.poses) >= 2 else prev
+        live = prepare_live(depth, self.k, fe, rgb)
+        res: TrackResult | None = None
+        if self._fe_state != "lost":
+            guess = prev if self._fe_after_reloc else prev @ (np.linalg.inv(prev2) @ prev)
+            model = self._fe_model(self._fe_ref_idx)
+            self._fe_used = (model.keyframe_id, model.c2w)
+            res = track(live, model, guess, fe)
+            self._fe_after_reloc = False
+            q = res.quality
+            if q.trusted:
+                if self._fe_state == "confirming":
+                    self._fe_confirmed += 1
+                    if self._fe_confirmed >= tc.relocalise_confirm:
+                        self._fe_state = "tracking"
+                        return res.c2w, q.residual, q.correspondences, False, "recovered", q.coverage
+                    return res.c2w, q.residual, q.correspondences, False, "confirming", q.coverage
+                return res.c2w, q.residual, q.correspondences, False, "tracking", q.coverage
+            log.warning("frame %d: tracking lost against the keyframe of frame %d (%s)", idx, self._fe_ref_idx,
+                        q.reason)
+            if self._fe_state == "tracking":
+                self._fe_lost_at = idx
+            self._fe_state = "lost"
+        tries = (idx - self._fe_lost_at) // tc.relocalise_every
+        if (idx - self._fe_lost_at) % tc.relocalise_every == 0 and self._fe_views:
+            wide = tries >= 1  # the camera has been away longer: reach farther
+            cands = self._fe_candidates(thumbnail(depth, rgb))
+            with self._poses_lock:
+                last = self.poses[self._fe_last_trusted].copy()
+            try:
+                r = relocalise(live, [self._fe_model(i) for i in cands], fe, extra_guesses=[last],
+                               angles_deg=(10.0, 20.0) if wide else (10.0,),
+                               shifts_m=(0.1, 0.25) if wide else (0.1,))
+            except RelocalisationError as exc:
+                log.warning("frame %d: relocalisation failed against frames %s: %s", idx, cands, exc)
+            else:
+                self._fe_ref_idx = r.keyframe_id
+                self._fe_used = (r.keyframe_id, self._fe_model(r.keyframe_id).c2w)
+                self._fe_after_reloc = True
+                self._fe_confirmed = 1
+                q = r.quality
+                if self._fe_confirmed >= tc.relocalise_confirm:
+                    self._fe_state = "tracking"
+                    return r.c2w, q.residual, q.correspondences, False, "recovered", q.coverage
+                self._fe_state = "confirming"
+                log.warning("frame %d: relocalised against the keyframe of frame %d; confirming", idx, r.keyframe_id)
+                return r.c2w, q.residual, q.correspondences, False, "relocalised", q.coverage
+        q = res.quality if res is not None else None
+        return (prev, float("nan") if q is None else q.residual, 0 if q is None else q.correspondences, True, "lost",
+                float("nan") if q is None else q.coverage)

@@ -1,0 +1,96 @@
+"""Lost -> recovered on the shared 7-Scenes kitchen (skipped when the sequence is not here), keyframe front end:
+a 60-frame gap and a kidnapped camera (frames from earlier in the sequence) are relocalised within a few frames,
+confirmed before mapping resumes, and tracked as well as before; a view never seen stays lost (no false pose)."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+
+from semantic_gs_slam.config import LoopConfig, MappingConfig, SlamConfig, TrackingConfig
+from semantic_gs_slam.geometry import pose_error
+from semantic_gs_slam.io.datasets import load_dataset
+from semantic_gs_slam.slam import SLAM
+
+
+def _shared_sequence() -> str:
+    """The shared sequence in the nearest folder above this file that has ``shared/data`` (a checkout or a worktree
+    of one), or ""."""
+    here = os.path.dirname(os.path.abspath(__file__))
+    while True:
+        cand = os.path.join(here, "shared", "data", "7scenes-redkitchen-0-499")
+        if os.path.isdir(cand):
+            return cand
+        up = os.path.dirname(here)
+        if up == here:
+            return ""
+        here = up
+
+
+SHARED_7SCENES = _shared_sequence()
+
+pytestmark = pytest.mark.skipif(not SHARED_7SCENES, reason="the shared 7-Scenes sequence is not here")
+
+# frame numbers of the sequence fed in this order (stride 2): a stretch, a 60-frame gap, a jump back to ground seen
+# at the start (kidnapped), then a part of the kitchen none of the earlier frames saw
+PARTS = {"start": range(0, 100, 2), "gap": range(158, 190, 2), "kidnapped": range(20, 52, 2),
+         "unseen": range(300, 316, 2)}
+
+
+@pytest.fixture(scope="module")
+def run():
+    ds = load_dataset(SHARED_7SCENES, size=(320, 240))
+    order = [i for part in PARTS.values() for i in part]
+    cfg = SlamConfig(intrinsics=ds.intrinsics, threads=2, tracking=TrackingConfig(frontend="keyframe"),
+                     mapping=MappingConfig(first_frame_iters=5, iters=1, densify_every_frame=False),
+                     loop=LoopConfig(enabled=False))
+    eng = SLAM(cfg, initial_c2w=ds[0].gt_c2w)
+    gts = []
+    for n, i in enumerate(order):
+        f = ds[i]
+        gts.append(f.gt_c2w)
+        eng.add_frame(f.rgb, f.depth, None, float(n))
+    err = np.array([pose_error(p, g)[0] for p, g in zip(eng.poses, gts, strict=True)])
+    starts = np.cumsum([0] + [len(p) for p in PARTS.values()])
+    return eng, err, dict(zip(PARTS, zip(starts[:-1], starts[1:], strict=True), strict=False))
+
+
+def _recovery(eng: SLAM, first: int, end: int) -> tuple[int, int]:
+    found = [r for r in eng.stats()["recoveries"] if first <= r[0] < end]
+    assert found, (eng.stats(), [(lg.index, lg.pose_source) for lg in eng.logs[first:end]])
+    return found[0][0], found[0][1]
+
+
+# the error allowed after the recovery: the kidnapped camera lands on keyframes of its own ground and tracks as well as
+# before (measured: 0.8-1.8 cm, before: up to 3.8 cm); after the gap the only keyframes are 40-60 cm away and the
+# relocalised pose keeps their partial view's offset (measured 5.6-7.3 cm): 8 cm, a figure to bring down
+AFTER_LIMIT_M = {"gap": 0.08, "kidnapped": None}  # None: the largest error before the camera was lost
+
+
+@pytest.mark.parametrize("part", ["gap", "kidnapped"])
+def test_a_lost_camera_is_relocalised_within_a_few_frames_and_tracks_as_well_as_before(run, part):
+    eng, err, span = run
+    a, b = span[part]
+    s0, s1 = span["start"]
+    assert not [i for i in eng.lost_frames if i < s1]  # the first stretch tracks throughout
+    lost_at, back_at = _recovery(eng, a, b)
+    assert lost_at == a and back_at - lost_at <= 4, eng.stats()
+    sources = [eng.logs[i].pose_source for i in range(a, back_at + 1)]
+    assert "relocalised" in sources and sources[-1] == "recovered"
+    # not mapped until confirmed: no keyframe between the first lost frame and the recovery
+    assert not any(eng.logs[i].keyframe for i in range(a, back_at))
+    before = err[s0:s1].max()
+    after = err[back_at:b]
+    limit = AFTER_LIMIT_M[part] or before
+    assert after.max() <= limit, (before, after)
+
+
+def test_a_view_never_seen_stays_lost(run):
+    eng, err, span = run
+    a, b = span["unseen"]
+    assert all(eng.logs[i].pose_source == "lost" for i in range(a, b)), \
+        [(lg.index, lg.pose_source, round(float(err[lg.index]), 3)) for lg in eng.logs[a:b]]
+    assert list(range(a, b)) == [i for i in eng.lost_frames if i >= a]
+    assert not any(eng.logs[i].keyframe for i in range(a, b))

@@ -1,0 +1,113 @@
+"""The keyframe front end in the engine and the mapping thread: a threaded run that waits for each frame gives the
+synchronous run's poses and map; finish drains; a mapping failure surfaces in the caller; a full queue drops
+frames by its documented policy and says so."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+
+from semantic_gs_slam.config import LoopConfig, MappingConfig, SlamConfig, TrackingConfig
+from semantic_gs_slam.errors import ConfigError, MappingError
+from semantic_gs_slam.geometry import pose_error
+from semantic_gs_slam.slam import SLAM
+from semantic_gs_slam.synthetic.scenes import HomeRenderer, default_intrinsics, trajectory
+
+
+@pytest.fixture(scope="module")
+def views():
+    k = default_intrinsics(120, 68)
+    poses = trajectory(9, span_deg=16.0)
+    ren = HomeRenderer(0)
+    return k, poses, [ren.render(p, k) for p in poses]
+
+
+def _cfg(k, threaded: bool, **kw) -> SlamConfig:
+    return SlamConfig(intrinsics=k, threads=1, threaded=threaded, tracking=TrackingConfig(frontend="keyframe"),
+                      mapping=MappingConfig(first_frame_iters=15, iters=3, keyframe_every=3),
+                      loop=LoopConfig(enabled=False), **kw)
+
+
+def _feed(eng: SLAM, frames, wait: bool = False) -> None:
+    for i, (rgb, depth, sem) in enumerate(frames):
+        eng.add_frame(rgb, depth, sem, float(i))
+        if wait:
+            eng.drain(120.0)
+
+
+def test_threaded_run_waiting_for_each_frame_gives_the_synchronous_poses_and_map(views):
+    k, poses, frames = views
+    sync = SLAM(_cfg(k, False), initial_c2w=poses[0])
+    _feed(sync, frames)
+    thr = SLAM(_cfg(k, True), initial_c2w=poses[0])
+    _feed(thr, frames, wait=True)
+    thr.finish(120.0)
+    np.testing.assert_array_equal(np.stack(thr.poses), np.stack(sync.poses))
+    assert [kf.index for kf in thr.keyframes] == [kf.index for kf in sync.keyframes]
+    assert len(thr.map) == len(sync.map)
+    assert all(lg.map_queue == "queued" for lg in thr.logs) and all(lg.map_queue == "inline" for lg in sync.logs)
+    assert [lg.added for lg in thr.logs] == [lg.added for lg in sync.logs]
+    for est, gt in zip(sync.poses, poses, strict=True):  # and the front end tracks the orbit
+        assert pose_error(est, gt)[0] < 0.02
+    assert sync.stats()["lost_frames"] == [] and sync.stats()["recoveries"] == []
+
+
+def test_finish_drains_every_queued_frame(views):
+    k, poses, frames = views
+    eng = SLAM(_cfg(k, True, queue_size=len(frames)), initial_c2w=poses[0])
+    _feed(eng, frames)  # no waiting: the tracker runs ahead of the mapping thread
+    eng.finish(120.0)
+    assert [lg.map_queue for lg in eng.logs] == ["queued"] * len(frames)
+    assert [kf.index for kf in eng.keyframes] == [lg.index for lg in eng.logs if lg.keyframe]
+    assert all(lg.n_gaussians > 0 and lg.map_s > 0 for lg in eng.logs)  # every job ran and filled its log
+
+
+class _FailingMap(SLAM):
+    def _map_keyframe(self, idx, rgb, depth, sem):
+        if idx >= 3:
+            raise RuntimeError("disk full")  # a failure inside the mapping thread
+        return super()._map_keyframe(idx, rgb, depth, sem)
+
+
+def test_a_mapping_thread_failure_surfaces_in_the_caller(views):
+    k, poses, frames = views
+    eng = _FailingMap(_cfg(k, True), initial_c2w=poses[0])
+    _feed(eng, frames[:4])
+    with pytest.raises(MappingError, match="disk full") as err:
+        eng.drain(120.0)
+    assert isinstance(err.value.__cause__, RuntimeError)
+    with pytest.raises(MappingError):  # and every later call says so, instead of tracking on an unmapped map
+        eng.add_frame(*frames[4][:2])
+
+
+class _SlowMap(SLAM):
+    gate: threading.Event
+
+    def _map_frame(self, *args):
+        self.gate.wait(60.0)  # the mapping thread is held until the test has queued every frame
+        super()._map_frame(*args)
+
+
+def test_a_full_queue_drops_frames_and_reports_them(views):
+    k, poses, frames = views
+    eng = _SlowMap(_cfg(k, True, queue_size=1, queue_timeout_s=0.01), initial_c2w=poses[0])
+    eng.gate = threading.Event()
+    _feed(eng, frames)
+    eng.gate.set()
+    eng.finish(120.0)
+    dropped = [lg.index for lg in eng.logs if lg.map_queue == "dropped"]
+    queued = [lg.index for lg in eng.logs if lg.map_queue == "queued"]
+    assert len(dropped) >= len(frames) - 2  # one job running, one waiting: the others found no room
+    assert sorted(dropped + queued) == list(range(len(frames))) and eng.stats()["dropped"] == dropped
+    assert {kf.index for kf in eng.keyframes} == {i for i in queued if eng.logs[i].keyframe}
+    assert len(eng.poses) == len(frames)  # tracking went on for every frame
+
+
+def test_threaded_needs_the_keyframe_front_end(views):
+    k = views[0]
+    with pytest.raises(ConfigError, match="threaded"):
+        SlamConfig(intrinsics=k, threaded=True).check()
+    with pytest.raises(ConfigError, match="frontend"):
+        SlamConfig(intrinsics=k, tracking=TrackingConfig(frontend="orb")).check()
