@@ -31,7 +31,9 @@ def _shared_sequence() -> str:
 
 SHARED_7SCENES = _shared_sequence()
 
-pytestmark = pytest.mark.skipif(not SHARED_7SCENES, reason="the shared 7-Scenes sequence is not here")
+# one mapped run serves every test here: one worker (xdist group), started first (slow)
+pytestmark = [pytest.mark.skipif(not SHARED_7SCENES, reason="the shared 7-Scenes sequence is not here"),
+              pytest.mark.xdist_group("recovery_real"), pytest.mark.slow]
 
 # frame numbers of the sequence fed in this order (stride 2): a stretch, a 60-frame gap, a jump back to ground seen
 # at the start (kidnapped), then a part of the kitchen none of the earlier frames saw
