@@ -200,7 +200,8 @@ def load_semantic_map(map_path: str, semantic_path: str) -> SemanticMap:
         if (votes is None or vote_ids is None or vote_ids.ndim != 1 or vote_ids.dtype.kind not in "iu"
                 or votes.shape != (len(means), len(vote_ids)) or votes.dtype.kind not in "fiu"):
             warnings.append(f"{map_path}: ignoring semantic_votes of shape {getattr(votes, 'shape', None)} with "
-                            f"semantic_feature_ids of shape {getattr(vote_ids, 'shape', None)} (expected [N, C] and [C])")
+                            f"semantic_feature_ids of shape {getattr(vote_ids, 'shape', None)} "
+                            "(expected [N, C] and [C])")
             votes = vote_ids = None
     classes = load_classes(semantic_path, warnings)
     return SemanticMap(means, ids, classes, opac, tuple(warnings), votes, vote_ids)
