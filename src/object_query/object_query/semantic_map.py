@@ -196,13 +196,13 @@ def load_semantic_map(map_path: str, semantic_path: str) -> SemanticMap:
             warnings.append(f"{map_path}: ignoring logit_opacities of shape {opac.shape} {opac.dtype} "
                             f"(expected [{len(means)}] or [{len(means)}, 1])")
             opac = None
-    if votes is not None or vote_ids is not None:
-        if (votes is None or vote_ids is None or vote_ids.ndim != 1 or vote_ids.dtype.kind not in "iu"
-                or votes.shape != (len(means), len(vote_ids)) or votes.dtype.kind not in "fiu"):
-            warnings.append(f"{map_path}: ignoring semantic_votes of shape {getattr(votes, 'shape', None)} with "
-                            f"semantic_feature_ids of shape {getattr(vote_ids, 'shape', None)} "
-                            "(expected [N, C] and [C])")
-            votes = vote_ids = None
+    if votes is None:  # (a map without votes, e.g. with only semantic_feature_ids: nothing to judge)
+        vote_ids = None
+    elif (vote_ids is None or vote_ids.ndim != 1 or vote_ids.dtype.kind not in "iu"
+            or votes.shape != (len(means), len(vote_ids)) or votes.dtype.kind not in "fiu"):
+        warnings.append(f"{map_path}: ignoring semantic_votes of shape {votes.shape} with semantic_feature_ids of "
+                        f"shape {getattr(vote_ids, 'shape', None)} (expected [N, C] and [C])")
+        votes = vote_ids = None
     classes = load_classes(semantic_path, warnings)
     return SemanticMap(means, ids, classes, opac, tuple(warnings), votes, vote_ids)
 
