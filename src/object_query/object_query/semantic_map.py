@@ -375,12 +375,12 @@ def _label_support(smap: SemanticMap, split, min_views: int) -> np.ndarray:
     n_inst = len(split.instance_count)
     if min_views <= 0 or smap.votes is None or smap.vote_ids is None or n_inst == 0:
         return np.ones(n_inst, bool)
-    ids = smap.semantic_ids.astype(np.int64)
     col_of = {int(s): j for j, s in enumerate(smap.vote_ids.tolist())}
-    uniq, inv = np.unique(ids, return_inverse=True)
-    cols = np.array([col_of.get(int(u), -1) for u in uniq], np.int64)[inv.reshape(-1)]  # [N] vote column or -1
     pi = split.point_instance
-    sel = np.flatnonzero(pi >= 0)
+    sel = np.flatnonzero(pi >= 0)  # the instances' points only
+    uniq, inv = np.unique(smap.semantic_ids[sel], return_inverse=True)  # few distinct ids
+    cols = np.full(len(pi), -1, np.int64)  # [N] vote column of each point's id, -1: none
+    cols[sel] = np.array([col_of.get(int(u), -1) for u in uniq.tolist()], np.int64)[inv.reshape(-1)]
     own = np.full(len(sel), np.inf)  # no column: not judged
     has = cols[sel] >= 0
     own[has] = smap.votes[sel[has], cols[sel[has]]]
