@@ -113,7 +113,9 @@ class DatabaseConfig:
         min_label_views: an instance is kept only when one of its points carried its class in at
             least this many views (the map's ``semantic_votes``: one vote per view that saw the
             Gaussian unoccluded and labelled it); instances below are dropped, and a class left
-            without instances is dropped (a warning names them). One-off detector errors name a
+            without instances is dropped (a warning names them). On a short map the threshold is
+            at most an eighth of the views of its best-seen Gaussian (``LABEL_VIEWS_SHARE``), and at
+            least 1. One-off detector errors name a
             place in a view or two, real objects are named in most views that see them. 0 turns
             the rule off; maps without ``semantic_votes`` are not filtered.
     """
@@ -369,12 +371,27 @@ def _robust_centres(means: np.ndarray, point_instance: np.ndarray, counts: np.nd
     return out
 
 
-def _label_support(smap: SemanticMap, split, min_views: int) -> np.ndarray:
-    """[I] bool: instances with a point whose votes for its own class reach ``min_views`` (all True when the rule is
-    off or the map has no votes; a class without a vote column is not judged)."""
+#: A short map cannot give ``min_label_views`` views: the threshold is at most this share of the views of the map's
+#: best-seen Gaussian (its total votes), and at least 1.
+LABEL_VIEWS_SHARE = 1 / 8
+
+
+def label_views_threshold(votes: np.ndarray, min_views: int) -> int:
+    """The views an instance needs on a map with these ``votes`` [N, C]: ``min_views``, or fewer on a short map."""
+    if min_views <= 0 or len(votes) == 0:
+        return 0
+    most = float(votes.sum(axis=1).max())
+    return int(max(1, min(min_views, math.floor(most * LABEL_VIEWS_SHARE))))
+
+
+def _label_support(smap: SemanticMap, split, min_views: int) -> tuple[np.ndarray, int]:
+    """([I] bool, threshold): instances with a point whose votes for its own class reach the threshold
+    (:func:`label_views_threshold`; all True when the rule is off or the map has no votes; a class without a vote
+    column is not judged)."""
     n_inst = len(split.instance_count)
     if min_views <= 0 or smap.votes is None or smap.vote_ids is None or n_inst == 0:
-        return np.ones(n_inst, bool)
+        return np.ones(n_inst, bool), 0
+    min_views = label_views_threshold(smap.votes, min_views)
     col_of = {int(s): j for j, s in enumerate(smap.vote_ids.tolist())}
     pi = split.point_instance
     sel = np.flatnonzero(pi >= 0)  # the instances' points only
@@ -386,7 +403,7 @@ def _label_support(smap: SemanticMap, split, min_views: int) -> np.ndarray:
     own[has] = smap.votes[sel[has], cols[sel[has]]]
     best = np.full(n_inst, -np.inf)
     np.maximum.at(best, pi[sel], own)
-    return best >= min_views
+    return best >= min_views, min_views
 
 
 @dataclass(frozen=True)
@@ -546,7 +563,7 @@ class ObjectDatabase:
         except ValueError as exc:  # e.g. far-away points: a map this database cannot grid
             raise MapLoadError(str(exc)) from exc
         counts = split.instance_count
-        supported = _label_support(semantic_map, split, config.min_label_views)  # [I] bool
+        supported, min_views = _label_support(semantic_map, split, config.min_label_views)  # [I] bool
         unsupported = int(counts[~supported].sum())
         if config.centre_method == "mean" or len(counts) == 0:
             centres = split.instance_sum / np.maximum(counts, 1)[:, None]
@@ -586,7 +603,7 @@ class ObjectDatabase:
                             f"small component(s), largest first ({int(small.instance_count[0])} points)")
         if dropped:
             gone = [nm for nm in dropped if nm not in by_class]
-            warnings.append(f"dropped {sum(dropped.values())} instance(s) named in fewer than {config.min_label_views} "
+            warnings.append(f"dropped {sum(dropped.values())} instance(s) named in fewer than {min_views} "
                             f"views ({unsupported} points): " + ", ".join(f"{nm} x{c}" for nm, c in dropped.items())
                             + (f"; class(es) left without instances: {', '.join(gone)}" if gone else ""))
         empty = [nm for nm in names if nm not in by_class and nm not in dropped]

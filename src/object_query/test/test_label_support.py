@@ -7,7 +7,13 @@ import json
 import numpy as np
 import pytest
 
-from object_query.semantic_map import DatabaseConfig, ObjectDatabase, SemanticMap, load_semantic_map
+from object_query.semantic_map import (
+    DatabaseConfig,
+    ObjectDatabase,
+    SemanticMap,
+    label_views_threshold,
+    load_semantic_map,
+)
 
 
 def _blob(centre, n, rng):
@@ -15,10 +21,10 @@ def _blob(centre, n, rng):
 
 
 def _map():
-    """Two cups (one named in 12 views, one in 2), an apple named in 1 view, a wall seen in 30: vote columns 1, 2, 3."""
+    """Two cups (one named in 12 views, one in 2), an apple named in 1 view, a wall seen in 40: vote columns 1, 2, 3."""
     rng = np.random.default_rng(0)
     parts = [(_blob((0, 0, 1), 60, rng), 1, 12), (_blob((2, 0, 1), 40, rng), 1, 2), (_blob((0, 2, 1), 50, rng), 2, 1),
-             (_blob((4, 4, 1), 80, rng), 3, 30)]
+             (_blob((4, 4, 1), 80, rng), 3, 40)]
     means = np.concatenate([p[0] for p in parts])
     ids = np.concatenate([np.full(len(p[0]), p[1], np.uint8) for p in parts])
     vote_ids = np.array([1, 2, 3], np.int64)
@@ -68,3 +74,16 @@ def test_votes_are_read_from_the_map_file_and_bad_ones_ignored(tmp_path):
     smap = load_semantic_map(str(bad), str(sem))
     assert smap.votes is None and any("ignoring semantic_votes" in w for w in smap.warnings)
     assert len(ObjectDatabase.from_map(smap).instances("cup").instances) == 2
+
+
+def test_a_short_map_needs_fewer_views():
+    """A map whose best-seen Gaussian has 16 votes (16 frames) asks for 16 / 8 = 2 views; 7 votes: 1 view."""
+    means, ids, votes, vote_ids, classes = _map()
+    assert label_views_threshold(votes, 5) == 5 and label_views_threshold(votes, 0) == 0
+    short = np.minimum(votes, 16)
+    assert label_views_threshold(short, 5) == 2
+    db = ObjectDatabase.from_map(SemanticMap(means, ids, classes, votes=short, vote_ids=vote_ids))
+    assert len(db.instances("cup").instances) == 2 and not db.query("apple").found
+    tiny = np.minimum(votes, 7)
+    db = ObjectDatabase.from_map(SemanticMap(means, ids, classes, votes=tiny, vote_ids=vote_ids))
+    assert label_views_threshold(tiny, 5) == 1 and db.query("apple").found
