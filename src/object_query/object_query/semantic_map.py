@@ -384,6 +384,17 @@ def label_views_threshold(votes: np.ndarray, min_views: int) -> int:
     return int(max(1, min(min_views, math.floor(most * LABEL_VIEWS_SHARE))))
 
 
+def _own_votes(smap: SemanticMap, sel: np.ndarray) -> np.ndarray:
+    """Votes of the points ``sel`` [M] for their own class [M] (inf where the id has no vote column: not judged)."""
+    col_of = {int(s): j for j, s in enumerate(smap.vote_ids.tolist())}
+    uniq, inv = np.unique(smap.semantic_ids[sel], return_inverse=True)  # few distinct ids
+    cols = np.array([col_of.get(int(u), -1) for u in uniq.tolist()], np.int64)[inv.reshape(-1)]  # [M], -1: none
+    own = np.full(len(sel), np.inf)
+    has = cols >= 0
+    own[has] = smap.votes[sel[has], cols[has]]
+    return own
+
+
 def _label_support(smap: SemanticMap, split, min_views: int) -> tuple[np.ndarray, int]:
     """([I] bool, threshold): instances with a point whose votes for its own class reach the threshold
     (:func:`label_views_threshold`; all True when the rule is off or the map has no votes; a class without a vote
@@ -392,15 +403,9 @@ def _label_support(smap: SemanticMap, split, min_views: int) -> tuple[np.ndarray
     if min_views <= 0 or smap.votes is None or smap.vote_ids is None or n_inst == 0:
         return np.ones(n_inst, bool), 0
     min_views = label_views_threshold(smap.votes, min_views)
-    col_of = {int(s): j for j, s in enumerate(smap.vote_ids.tolist())}
     pi = split.point_instance
     sel = np.flatnonzero(pi >= 0)  # the instances' points only
-    uniq, inv = np.unique(smap.semantic_ids[sel], return_inverse=True)  # few distinct ids
-    cols = np.full(len(pi), -1, np.int64)  # [N] vote column of each point's id, -1: none
-    cols[sel] = np.array([col_of.get(int(u), -1) for u in uniq.tolist()], np.int64)[inv.reshape(-1)]
-    own = np.full(len(sel), np.inf)  # no column: not judged
-    has = cols[sel] >= 0
-    own[has] = smap.votes[sel[has], cols[sel[has]]]
+    own = _own_votes(smap, sel)
     best = np.full(n_inst, -np.inf)
     np.maximum.at(best, pi[sel], own)
     return best >= min_views, min_views
@@ -564,7 +569,7 @@ class ObjectDatabase:
             raise MapLoadError(str(exc)) from exc
         counts = split.instance_count
         supported, min_views = _label_support(semantic_map, split, config.min_label_views)  # [I] bool
-        unsupported = int(counts[~supported].sum())
+        unsupported = inst_unsupported = int(counts[~supported].sum())
         if config.centre_method == "mean" or len(counts) == 0:
             centres = split.instance_sum / np.maximum(counts, 1)[:, None]
         else:
@@ -590,6 +595,10 @@ class ObjectDatabase:
         for j in np.flatnonzero(valid_count > 0):
             name = names[j]
             if name in by_class or name in dropped:
+                continue
+            if min_views and _own_votes(semantic_map, np.flatnonzero(labels == j)).max() < min_views:
+                dropped[name] = dropped.get(name, 0) + 1  # scattered points, none named in enough views
+                unsupported += int(valid_count[j])
                 continue
             pts = means[labels == j].astype(np.float64)
             small = split_instances(pts, np.zeros(len(pts), np.int64), None, 1, config.voxel_size, 1)
@@ -618,7 +627,7 @@ class ObjectDatabase:
             positions[name] = class_centroids[name] if config.query_position == "class" else group[0].centre
         if timings is not None:
             timings["centres and tables"] = time.perf_counter() - t0 - sum(timings.values())
-        stats = MapStats(points=n, used=int(counts.sum()) - unsupported, non_finite=non_finite,
+        stats = MapStats(points=n, used=int(counts.sum()) - inst_unsupported, non_finite=non_finite,
                          transparent=transparent, unlabelled=unlabelled, noise=split.noise_points,
                          unsupported=unsupported, build_s=time.perf_counter() - t0)
         instances = {name: tuple(group) for name, group in by_class.items()}

@@ -87,3 +87,23 @@ def test_a_short_map_needs_fewer_views():
     tiny = np.minimum(votes, 7)
     db = ObjectDatabase.from_map(SemanticMap(means, ids, classes, votes=tiny, vote_ids=vote_ids))
     assert label_views_threshold(tiny, 5) == 1 and db.query("apple").found
+
+
+def test_a_class_of_scattered_points_is_judged_too():
+    """A class with no component of min_instance_points (15 points) is dropped when named in 1 view, kept in 9."""
+    means, ids, votes, vote_ids, classes = _map()
+    rng = np.random.default_rng(1)
+    far = rng.uniform(-3, -2, (15, 3)).astype(np.float32)  # 15 points 0.1 m voxels apart or more: no component
+    far[:, 0] = -2 - 0.3 * np.arange(15)
+    means = np.vstack([means, far])
+    ids = np.r_[ids, np.full(15, 4, np.uint8)]
+    votes = np.hstack([votes, np.zeros((len(votes), 1), np.float32)])
+    votes = np.vstack([votes, np.zeros((15, 4), np.float32)])
+    votes[-15:, 3] = 1
+    vote_ids = np.r_[vote_ids, 4]
+    classes = {**classes, 4: "bottle"}
+    db = ObjectDatabase.from_map(SemanticMap(means, ids, classes, votes=votes, vote_ids=vote_ids))
+    assert not db.query("bottle").found and db.stats.unsupported == 105
+    votes[-1, 3] = 9
+    db = ObjectDatabase.from_map(SemanticMap(means, ids, classes, votes=votes, vote_ids=vote_ids))
+    assert db.query("bottle").found
