@@ -18,7 +18,7 @@ Topics (transient local: late subscribers get the last message):
 Parameters (see docs/object_query.md):
     map_path, semantic_path (str): the map; empty = the bundled sample map.
     synonyms_path (str): synonyms YAML; empty = the bundled one, ``none`` = no synonyms.
-    voxel_size, min_instance_points, min_opacity, centre_method, trim_fraction, query_position:
+    voxel_size, min_instance_points, min_opacity, centre_method, trim_fraction, query_position, min_label_views:
     how the database is built (:class:`object_query.semantic_map.DatabaseConfig`); changing any of
     them, or a path, at run time reloads the map.
     auto_reload (bool, true): reload when the files change on disk (polled every
@@ -70,7 +70,7 @@ OBJECT_LIST_QOS = QoSProfile(
 PROVISIONAL_MIN_POINTS = 500_000
 #: Parameters that change what the database holds: setting one reloads the map.
 _BUILD_PARAMS = ("map_path", "semantic_path", "synonyms_path", "voxel_size", "min_instance_points", "min_opacity",
-                 "centre_method", "trim_fraction", "query_position")
+                 "centre_method", "trim_fraction", "query_position", "min_label_views")
 
 
 def bundled_map_paths() -> tuple[str, str]:
@@ -141,6 +141,7 @@ class ObjectQueryServer(Node):
         self.declare_parameter("centre_method", defaults.centre_method)
         self.declare_parameter("trim_fraction", defaults.trim_fraction, number)
         self.declare_parameter("query_position", defaults.query_position)
+        self.declare_parameter("min_label_views", defaults.min_label_views, number)
         self.declare_parameter("auto_reload", True)
         self.declare_parameter("wait_for_map", False, ParameterDescriptor(
             read_only=True, description="a missing map at start: serve no objects and load it when it appears "
@@ -215,15 +216,17 @@ class ObjectQueryServer(Node):
         """The build configuration from the parameters (plus proposed ``overrides``); ValueError if bad."""
         values = {name: self.get_parameter(name).value for name in
                   ("voxel_size", "min_instance_points", "min_opacity", "centre_method", "trim_fraction",
-                   "query_position")}
+                   "query_position", "min_label_views")}
         values.update(overrides or {})
-        if isinstance(values["min_instance_points"], float) and not values["min_instance_points"].is_integer():
-            raise ValueError(f"min_instance_points must be an integer, got {values['min_instance_points']}")
+        for name in ("min_instance_points", "min_label_views"):
+            if isinstance(values[name], float) and not values[name].is_integer():
+                raise ValueError(f"{name} must be an integer, got {values[name]}")
         return DatabaseConfig(voxel_size=float(values["voxel_size"]),
                               min_instance_points=int(values["min_instance_points"]),
                               min_opacity=float(values["min_opacity"]), centre_method=str(values["centre_method"]),
                               trim_fraction=float(values["trim_fraction"]),
-                              query_position=str(values["query_position"]))
+                              query_position=str(values["query_position"]),
+                              min_label_views=int(values["min_label_views"]))
 
     def _validate_parameters(self, params: list[Parameter]) -> SetParametersResult:
         overrides = {p.name: p.value for p in params if p.name in _BUILD_PARAMS and not p.name.endswith("_path")}

@@ -53,6 +53,8 @@ class SemanticMap:
     classes: dict[int, str]  # semantic id -> normalised class name
     logit_opacities: np.ndarray | None = None  # [N] float, None when the map has none
     warnings: tuple[str, ...] = ()  # non-fatal problems found while loading
+    votes: np.ndarray | None = None  # [N, C] label votes over views (``semantic_votes``), None when the map has none
+    vote_ids: np.ndarray | None = None  # [C] semantic id of each vote column (``semantic_feature_ids``)
 
 
 @dataclass(frozen=True)
@@ -108,6 +110,14 @@ class DatabaseConfig:
         query_position: what ``/object_query`` answers for a class with several instances:
             ``largest`` (the instance with most points) or ``class`` (the centre of all of the
             class's instance points, as the seed did).
+        min_label_views: an instance is kept only when one of its points carried its class in at
+            least this many views (the map's ``semantic_votes``: one vote per view that saw the
+            Gaussian unoccluded and labelled it); instances below are dropped, and a class left
+            without instances is dropped (a warning names them). On a short map the threshold is
+            at most an eighth of the views of its best-seen Gaussian (``LABEL_VIEWS_SHARE``), and at
+            least 1. One-off detector errors name a
+            place in a view or two, real objects are named in most views that see them. 0 turns
+            the rule off; maps without ``semantic_votes`` are not filtered.
     """
 
     voxel_size: float = 0.1
@@ -116,6 +126,7 @@ class DatabaseConfig:
     centre_method: str = "mean"
     trim_fraction: float = 0.1
     query_position: str = "largest"
+    min_label_views: int = 5
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.voxel_size) and self.voxel_size > 0):
@@ -128,6 +139,9 @@ class DatabaseConfig:
             raise ValueError(f"centre_method must be one of {CENTRE_METHODS}, got {self.centre_method!r}")
         if not 0.0 <= self.trim_fraction < 0.5:
             raise ValueError(f"trim_fraction must be in [0, 0.5), got {self.trim_fraction}")
+        if isinstance(self.min_label_views, bool) or not isinstance(self.min_label_views, int) \
+                or self.min_label_views < 0:
+            raise ValueError(f"min_label_views must be an integer >= 0, got {self.min_label_views!r}")
         if self.query_position not in QUERY_POSITIONS:
             raise ValueError(f"query_position must be one of {QUERY_POSITIONS}, got {self.query_position!r}")
 
@@ -163,6 +177,8 @@ def load_semantic_map(map_path: str, semantic_path: str) -> SemanticMap:
             means = np.asarray(npz["means3D"])
             ids = np.asarray(npz["semantic_ids"])
             opac = np.asarray(npz["logit_opacities"]) if "logit_opacities" in npz.files else None
+            votes = np.asarray(npz["semantic_votes"]) if "semantic_votes" in npz.files else None
+            vote_ids = np.asarray(npz["semantic_feature_ids"]) if "semantic_feature_ids" in npz.files else None
     except MapLoadError:
         raise
     except (OSError, ValueError, zipfile.BadZipFile, EOFError, KeyError) as exc:
@@ -182,8 +198,15 @@ def load_semantic_map(map_path: str, semantic_path: str) -> SemanticMap:
             warnings.append(f"{map_path}: ignoring logit_opacities of shape {opac.shape} {opac.dtype} "
                             f"(expected [{len(means)}] or [{len(means)}, 1])")
             opac = None
+    if votes is None:  # (a map without votes, e.g. with only semantic_feature_ids: nothing to judge)
+        vote_ids = None
+    elif (vote_ids is None or vote_ids.ndim != 1 or vote_ids.dtype.kind not in "iu"
+            or votes.shape != (len(means), len(vote_ids)) or votes.dtype.kind not in "fiu"):
+        warnings.append(f"{map_path}: ignoring semantic_votes of shape {votes.shape} with semantic_feature_ids of "
+                        f"shape {getattr(vote_ids, 'shape', None)} (expected [N, C] and [C])")
+        votes = vote_ids = None
     classes = load_classes(semantic_path, warnings)
-    return SemanticMap(means, ids, classes, opac, tuple(warnings))
+    return SemanticMap(means, ids, classes, opac, tuple(warnings), votes, vote_ids)
 
 
 def load_classes(semantic_path: str, warnings: list[str] | None = None) -> dict[int, str]:
@@ -348,6 +371,46 @@ def _robust_centres(means: np.ndarray, point_instance: np.ndarray, counts: np.nd
     return out
 
 
+#: A short map cannot give ``min_label_views`` views: the threshold is at most this share of the views of the map's
+#: best-seen Gaussian (its total votes), and at least 1.
+LABEL_VIEWS_SHARE = 1 / 8
+
+
+def label_views_threshold(votes: np.ndarray, min_views: int) -> int:
+    """The views an instance needs on a map with these ``votes`` [N, C]: ``min_views``, or fewer on a short map."""
+    if min_views <= 0 or len(votes) == 0:
+        return 0
+    most = float(votes.sum(axis=1).max())
+    return int(max(1, min(min_views, math.floor(most * LABEL_VIEWS_SHARE))))
+
+
+def _own_votes(smap: SemanticMap, sel: np.ndarray) -> np.ndarray:
+    """Votes of the points ``sel`` [M] for their own class [M] (inf where the id has no vote column: not judged)."""
+    col_of = {int(s): j for j, s in enumerate(smap.vote_ids.tolist())}
+    uniq, inv = np.unique(smap.semantic_ids[sel], return_inverse=True)  # few distinct ids
+    cols = np.array([col_of.get(int(u), -1) for u in uniq.tolist()], np.int64)[inv.reshape(-1)]  # [M], -1: none
+    own = np.full(len(sel), np.inf)
+    has = cols >= 0
+    own[has] = smap.votes[sel[has], cols[has]]
+    return own
+
+
+def _label_support(smap: SemanticMap, split, min_views: int) -> tuple[np.ndarray, int]:
+    """([I] bool, threshold): instances with a point whose votes for its own class reach the threshold
+    (:func:`label_views_threshold`; all True when the rule is off or the map has no votes; a class without a vote
+    column is not judged)."""
+    n_inst = len(split.instance_count)
+    if min_views <= 0 or smap.votes is None or smap.vote_ids is None or n_inst == 0:
+        return np.ones(n_inst, bool), 0
+    min_views = label_views_threshold(smap.votes, min_views)
+    pi = split.point_instance
+    sel = np.flatnonzero(pi >= 0)  # the instances' points only
+    own = _own_votes(smap, sel)
+    best = np.full(n_inst, -np.inf)
+    np.maximum.at(best, pi[sel], own)
+    return best >= min_views, min_views
+
+
 @dataclass(frozen=True)
 class MapStats:
     """Counts of what a build used and skipped."""
@@ -358,6 +421,7 @@ class MapStats:
     transparent: int = 0
     unlabelled: int = 0
     noise: int = 0
+    unsupported: int = 0  # points of instances dropped by ``min_label_views``
     build_s: float = 0.0
 
 
@@ -504,6 +568,8 @@ class ObjectDatabase:
         except ValueError as exc:  # e.g. far-away points: a map this database cannot grid
             raise MapLoadError(str(exc)) from exc
         counts = split.instance_count
+        supported, min_views = _label_support(semantic_map, split, config.min_label_views)  # [I] bool
+        unsupported = inst_unsupported = int(counts[~supported].sum())
         if config.centre_method == "mean" or len(counts) == 0:
             centres = split.instance_sum / np.maximum(counts, 1)[:, None]
         else:
@@ -511,8 +577,12 @@ class ObjectDatabase:
 
         by_class: dict[str, list[ObjectInstance]] = {}
         class_sum: dict[str, np.ndarray] = {}
+        dropped: dict[str, int] = {}
         for i in range(len(counts)):
             name = names[int(split.instance_label[i])]
+            if not supported[i]:
+                dropped[name] = dropped.get(name, 0) + 1
+                continue
             group = by_class.setdefault(name, [])
             group.append(ObjectInstance(name, len(group) + 1, _tuple3(centres[i]), _tuple3(split.instance_min[i]),
                                         _tuple3(split.instance_max[i]), int(counts[i])))
@@ -524,7 +594,11 @@ class ObjectDatabase:
         valid_count = np.bincount(labels, minlength=k + 1)[:k]
         for j in np.flatnonzero(valid_count > 0):
             name = names[j]
-            if name in by_class:
+            if name in by_class or name in dropped:
+                continue
+            if min_views and _own_votes(semantic_map, np.flatnonzero(labels == j)).max() < min_views:
+                dropped[name] = dropped.get(name, 0) + 1  # scattered points, none named in enough views
+                unsupported += int(valid_count[j])
                 continue
             pts = means[labels == j].astype(np.float64)
             small = split_instances(pts, np.zeros(len(pts), np.int64), None, 1, config.voxel_size, 1)
@@ -536,7 +610,12 @@ class ObjectDatabase:
             warnings.append(f"class {name!r} has only {len(pts)} scattered point(s) (no component of "
                             f"{config.min_instance_points}+ points); answering with its {len(small.instance_count)} "
                             f"small component(s), largest first ({int(small.instance_count[0])} points)")
-        empty = [nm for nm in names if nm not in by_class]
+        if dropped:
+            gone = [nm for nm in dropped if nm not in by_class]
+            warnings.append(f"dropped {sum(dropped.values())} instance(s) named in fewer than {min_views} "
+                            f"views ({unsupported} points): " + ", ".join(f"{nm} x{c}" for nm, c in dropped.items())
+                            + (f"; class(es) left without instances: {', '.join(gone)}" if gone else ""))
+        empty = [nm for nm in names if nm not in by_class and nm not in dropped]
         if empty:
             warnings.append(f"class(es) in the table without (usable) points in the map: {', '.join(empty)}")
 
@@ -548,8 +627,9 @@ class ObjectDatabase:
             positions[name] = class_centroids[name] if config.query_position == "class" else group[0].centre
         if timings is not None:
             timings["centres and tables"] = time.perf_counter() - t0 - sum(timings.values())
-        stats = MapStats(points=n, used=int(counts.sum()), non_finite=non_finite, transparent=transparent,
-                         unlabelled=unlabelled, noise=split.noise_points, build_s=time.perf_counter() - t0)
+        stats = MapStats(points=n, used=int(counts.sum()) - inst_unsupported, non_finite=non_finite,
+                         transparent=transparent, unlabelled=unlabelled, noise=split.noise_points,
+                         unsupported=unsupported, build_s=time.perf_counter() - t0)
         instances = {name: tuple(group) for name, group in by_class.items()}
         return cls(positions, instances, synonyms, tuple(warnings), stats, class_centroids)
 
