@@ -3,6 +3,7 @@ their names reach the engine's classes; bad settings are a StreamingError."""
 
 from __future__ import annotations
 
+import threading
 import types
 
 import numpy as np
@@ -26,6 +27,7 @@ class _Recorder(SLAM):
         self.cfg = SlamConfig(intrinsics=default_intrinsics(96, 54),
                               mapping=MappingConfig(keyframe_every=keyframe_every))
         self.keyframes = []  # no keyframe yet: only the index says which frame will be one
+        self._last_kf_index, self._poses_lock = -1, threading.RLock()  # what keyframe_expected reads
         self.k, self.device = self.cfg.intrinsics, torch.device("cpu")  # what check_frame needs
 
     def add_frame(self, rgb, depth, semantics=None, timestamp=None, gt_c2w=None):
