@@ -129,6 +129,9 @@ class TrackingConfig:
     # add_frame's odom_c2w for tracking (only for the map frame); the odometry gate and prior are "render"'s
     frontend_new_keyframe_coverage: float = 0.5  # "keyframe": a frame whose tracked points cover less of the
     # reference than this becomes a keyframe (a new reference), besides mapping.keyframe_every / keyframe_motion_*
+    frontend_downsample: int = 1  # "keyframe": track on the frame shrunk by this factor (1, 2 or 4; edge-aware 2x2
+    # means of depth): a 640x480 camera tracked at 320x240 costs the front end a quarter; the map keeps every pixel.
+    # 0: auto, halved while the image stays at least 320 pixels wide
     relocalise_every: int = 3  # "keyframe": a lost frame tries to relocalise on its first lost frame and then on
     # every k-th (each try costs about 100 ms of CPU against three keyframes); the others stay lost
     relocalise_candidates: int = 3  # keyframes tried per relocalisation: the best ranked by a 20x15 thumbnail of
@@ -156,6 +159,9 @@ class TrackingConfig:
             raise ConfigError(f"tracking.frontend must be 'render' or 'keyframe', got {self.frontend!r}")
         if min(self.relocalise_every, self.relocalise_candidates, self.relocalise_confirm) < 1:
             raise ConfigError("tracking.relocalise_every, relocalise_candidates and relocalise_confirm must be >= 1")
+        if self.frontend_downsample not in (0, 1, 2, 4):
+            raise ConfigError(f"tracking.frontend_downsample must be 0 (auto), 1, 2 or 4, got "
+                              f"{self.frontend_downsample!r}")
         if not 0 <= self.frontend_new_keyframe_coverage <= 1:
             raise ConfigError("tracking.frontend_new_keyframe_coverage must be in [0, 1]")
 
@@ -167,6 +173,10 @@ class MappingConfig:
     keyframe_every: int = 4  # map on every k-th frame (and the first) ...
     keyframe_motion_m: float = 0.25  # ... and on any frame this far (m) or ...
     keyframe_motion_deg: float = 10.0  # ... this much turned from the last keyframe (a new view; 0 = off)
+    defer_keyframes: bool = False  # SlamConfig.threaded: while the mapping thread is busy, a frame due as a keyframe
+    # by keyframe_every / keyframe_motion_* is tracked but not made a keyframe; the next frame is due instead, so the
+    # map takes keyframes at the pace mapping keeps (as ORB-SLAM's local mapping does). Keyframes the front end needs
+    # (its reference covers too little, a recovered pose) are never deferred. Off: the synchronous run's keyframes
     densify_every_frame: bool | None = None  # also add Gaussians (without optimising) on non-keyframes (None: the
     # device's, DEVICE_DEFAULTS)
     iters: int | None = None  # Adam iterations per keyframe (None: the device's, DEVICE_DEFAULTS)
@@ -298,6 +308,17 @@ DEVICE_DEFAULTS: dict[str, dict[str, dict[str, Any]]] = {
 }
 
 
+# Named sets of overrides (SlamConfig.with_profile, the CLI's and benchmarks' --profile, the streaming server's
+# `profile` parameter). "realtime": every frame of a real camera at its rate on a robot's CPU: the frame-rate front end,
+# mapping in a thread on keyframes chosen by motion and coverage, no per-frame densification. Figures:
+# docs/figures.md "Real camera".
+PROFILES: dict[str, dict[str, Any]] = {
+    "default": {},
+    "realtime": {"tracking": {"frontend": "keyframe", "frontend_downsample": 0}, "threaded": True,
+                 "mapping": {"keyframe_every": 8, "densify_every_frame": False, "defer_keyframes": True}},
+}
+
+
 def device_default(section: str, name: str, device_type: str) -> Any:
     """The value of a device-dependent field (``DEVICE_DEFAULTS``) on ``device_type`` (other than cuda: the CPU's)."""
     return DEVICE_DEFAULTS.get(device_type, DEVICE_DEFAULTS["cpu"])[section][name]
@@ -358,6 +379,20 @@ class SlamConfig:
     def from_dict(d: dict[str, Any]) -> SlamConfig:
         """Inverse of :meth:`to_dict`; unknown keys raise :class:`ConfigError`."""
         return _build(SlamConfig, d)
+
+    def with_profile(self, name: str) -> SlamConfig:
+        """A copy with the overrides of profile ``name`` (:data:`PROFILES`) applied; fields a profile does not name
+        keep their values.
+
+        Raises:
+            ConfigError: unknown profile.
+        """
+        if name not in PROFILES:
+            raise ConfigError(f"unknown profile {name!r}; known: {', '.join(PROFILES)}")
+        d = self.to_dict()
+        for section, vals in PROFILES[name].items():
+            d[section] = {**d[section], **vals} if isinstance(vals, dict) else vals
+        return SlamConfig.from_dict(d)
 
     def resolved(self, device_type: str) -> SlamConfig:
         """A copy with every device-dependent field left at None set to ``device_type``'s value

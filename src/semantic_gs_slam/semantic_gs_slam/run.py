@@ -36,7 +36,7 @@ import time
 
 import numpy as np
 
-from semantic_gs_slam.config import MappingConfig, RendererConfig, SlamConfig, TrackingConfig
+from semantic_gs_slam.config import PROFILES, MappingConfig, RendererConfig, SlamConfig, TrackingConfig
 from semantic_gs_slam.errors import MAX_BAD_IN_A_ROW, DatasetError, FrameError, SlamError
 from semantic_gs_slam.geometry import pose_error
 from semantic_gs_slam.io.datasets import CAMERAS, LAYOUTS, frame_indices, load_dataset, parse_intrinsics, parse_size
@@ -146,6 +146,8 @@ def build_config(args: argparse.Namespace, intrinsics) -> SlamConfig:
                      checkpoint_every=args.checkpoint_every,
                      checkpoint_dir=os.path.join(args.out, "checkpoint") if args.checkpoint_every else "",
                      threads=args.threads)
+    if args.profile:
+        cfg = cfg.with_profile(args.profile)
     if args.config:
         with open(args.config) as fh:
             over = json.load(fh)
@@ -211,6 +213,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="renderer: torch tiles (any device, the reference), numba (compiled, CPU), gsplat (CUDA), "
                          "auto (gsplat on CUDA when it imports, numba on the CPU when it is installed)")
     ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--profile", default="", choices=["", *PROFILES],
+                    help="named config overrides (config.PROFILES); realtime: every frame of a camera at its rate "
+                         "on a CPU (frame-rate front end, mapping in a thread); --config and later flags outrank it")
     ap.add_argument("--frontend", choices=["render", "keyframe"], help="tracking.frontend (default: the config's)")
     ap.add_argument("--threaded", action="store_true", help="map in a worker thread (needs --frontend keyframe)")
     ap.add_argument("--refine-iters", type=int, default=0,

@@ -145,6 +145,8 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking):
         self.lost_frames: list[int] = []  # frames whose tracking was lost (not mapped)
         self.recoveries: list[list[int]] = []  # [first lost frame, frame tracking was trusted and mapped again]
         self.dropped_jobs: list[int] = []  # frames whose map update found the queue full (threaded)
+        self.deferred_keyframes = 0  # frames due as keyframes but deferred while mapping was busy (defer_keyframes)
+        self._kf_due = False  # a deferred keyframe is due on the next frame
         self._lost_at: int | None = None
         self._worker: MappingWorker | None = None
         self._fe_init()
@@ -262,8 +264,7 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking):
         self._agreement = float("nan")
         keyframe_fe = self.cfg.tracking.frontend == "keyframe"
         if keyframe_fe:  # host copies the front end works on (views of the tensors on the CPU)
-            depth_np = depth_t.cpu().numpy().astype(np.float64)
-            rgb_np = rgb_t.cpu().numpy().astype(np.float64)
+            depth_np, rgb_np = self._fe_frame(depth_t.cpu().numpy(), rgb_t.cpu().numpy())
         if idx == 0:
             source = "first"
             c2w = next((p for p in (self.initial_c2w, odom, gt) if p is not None), np.eye(4))
@@ -291,8 +292,14 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking):
         unmapped = failed or (unverified and not self.cfg.tracking.odometry_map_unverified) or \
             source in ("relocalised", "confirming")
         self._note_lost(idx, failed or source == "relocalised", unmapped)
-        is_kf = (idx % self.cfg.mapping.keyframe_every == 0 or self._new_view(self.poses[-1]) or
-                 source == "recovered" or coverage < self.cfg.tracking.frontend_new_keyframe_coverage) and not unmapped
+        due = idx % self.cfg.mapping.keyframe_every == 0 or self._new_view(self.poses[-1]) or self._kf_due
+        needed = source == "recovered" or coverage < self.cfg.tracking.frontend_new_keyframe_coverage
+        if due and not needed and not unmapped and idx > 0 and self._mapping_busy():
+            self._kf_due, due = True, False  # mapping.defer_keyframes: the next frame is due instead
+            self.deferred_keyframes += 1
+        is_kf = (due or needed) and not unmapped
+        if is_kf:
+            self._kf_due = False
         if is_kf:
             self._last_kf_index = idx
             if keyframe_fe:
@@ -326,6 +333,11 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking):
             self.checkpoint(self.cfg.checkpoint_dir)
         with self._poses_lock:
             return self.poses[idx].copy()
+
+    def _mapping_busy(self) -> bool:
+        """Whether keyframes are deferred now (mapping.defer_keyframes, threaded): the mapping thread has work."""
+        return bool(self.cfg.threaded and self.cfg.mapping.defer_keyframes and self._worker is not None
+                    and self._worker.pending > 0)
 
     def _note_lost(self, idx: int, failed: bool, unmapped: bool) -> None:
         """Record lost frames (tracking failed; a frame relocalised at once counts too) and lost -> recovered spans
@@ -393,7 +405,8 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking):
         constant-velocity or odometry guess): its index is a multiple of ``mapping.keyframe_every``, or the guess
         moved past ``mapping.keyframe_motion_*`` from the last keyframe. What the labelling stage asks before the
         frame is added (``LabelConfig.every``); the engine decides after tracking, with the tracked pose."""
-        return len(self.poses) % self.cfg.mapping.keyframe_every == 0 or self._new_view(np.asarray(guess_c2w))
+        return len(self.poses) % self.cfg.mapping.keyframe_every == 0 or self._kf_due or \
+            self._new_view(np.asarray(guess_c2w))
 
     def _new_view(self, c2w: np.ndarray) -> bool:
         """Whether ``c2w`` moved or turned past ``mapping.keyframe_motion_*`` from the last keyframe."""
@@ -664,4 +677,5 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking):
         frame mapped again]), frames whose map update the full queue dropped (threaded), last frame log."""
         return {"frames": len(self.poses), "keyframes": len(self.keyframes), "gaussians": len(self.map),
                 "lost_frames": list(self.lost_frames), "recoveries": [list(r) for r in self.recoveries],
-                "dropped": list(self.dropped_jobs), "last": asdict(self.logs[-1]) if self.logs else None}
+                "dropped": list(self.dropped_jobs), "deferred_keyframes": self.deferred_keyframes,
+                "last": asdict(self.logs[-1]) if self.logs else None}

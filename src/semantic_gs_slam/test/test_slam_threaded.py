@@ -111,3 +111,68 @@ def test_threaded_needs_the_keyframe_front_end(views):
         SlamConfig(intrinsics=k, threaded=True).check()
     with pytest.raises(ConfigError, match="frontend"):
         SlamConfig(intrinsics=k, tracking=TrackingConfig(frontend="orb")).check()
+
+
+def test_busy_mapping_defers_keyframes_and_the_next_free_frame_takes_it(views):
+    k, poses, frames = views
+    cfg = _cfg(k, True, queue_size=4)
+    cfg.mapping.defer_keyframes = True
+    eng = _SlowMap(cfg, initial_c2w=poses[0])
+    eng.gate = threading.Event()
+    _feed(eng, frames[:5])  # frame 0's map update holds the thread: frame 3, due by keyframe_every, is deferred
+    assert [lg.index for lg in eng.logs if lg.keyframe] == [0]
+    assert eng.stats()["deferred_keyframes"] == 2  # frames 3 and 4 (the due keyframe waits for a free thread)
+    assert eng.keyframe_expected(poses[5])  # the labelling stage is told the next frame is a keyframe
+    eng.gate.set()
+    eng.drain(120.0)
+    _feed_from(eng, frames, 5)
+    eng.finish(120.0)
+    kfs = [lg.index for lg in eng.logs if lg.keyframe]
+    assert kfs[:2] == [0, 5] and all(lg.map_queue != "dropped" for lg in eng.logs)
+    for est, gt in zip(eng.poses, poses, strict=True):  # deferring changes which frames map, not the tracking
+        assert pose_error(est, gt)[0] < 0.02
+
+
+def test_without_defer_a_busy_thread_still_gets_every_due_keyframe(views):
+    k, poses, frames = views
+    eng = _SlowMap(_cfg(k, True, queue_size=4), initial_c2w=poses[0])
+    eng.gate = threading.Event()
+    _feed(eng, frames[:5])
+    eng.gate.set()
+    eng.finish(120.0)
+    assert [lg.index for lg in eng.logs if lg.keyframe] == [0, 3] and eng.stats()["deferred_keyframes"] == 0
+
+
+def _feed_from(eng: SLAM, frames, start: int) -> None:
+    for i in range(start, len(frames)):
+        eng.add_frame(*frames[i], float(i))
+
+
+def test_frontend_downsample_tracks_the_orbit_on_a_quarter_of_the_pixels(views):
+    k, poses, frames = views
+    k2 = default_intrinsics(480, 272)
+    ren = HomeRenderer(0)
+    big = [ren.render(p, k2) for p in poses]
+    cfg = _cfg(k2, False)
+    cfg.tracking.frontend_downsample = 2
+    cfg.mapping.first_frame_iters, cfg.mapping.iters = 1, 1  # the front end tracks sensor depth, not the map
+    eng = SLAM(cfg, initial_c2w=poses[0])
+    _feed(eng, big)
+    assert eng._fe_k.width == 240 and eng._fe_k.height == 136
+    for est, gt in zip(eng.poses, poses, strict=True):
+        assert pose_error(est, gt)[0] < 0.02
+    auto = SLAM(SlamConfig(intrinsics=default_intrinsics(1280, 720), tracking=TrackingConfig(
+        frontend="keyframe", frontend_downsample=0)))
+    assert auto._fe_halvings == 2  # 1280 -> 320 pixels wide
+    with pytest.raises(ConfigError, match="frontend_downsample"):
+        SlamConfig(intrinsics=k, tracking=TrackingConfig(frontend="keyframe", frontend_downsample=3)).check()
+
+
+def test_profiles_apply_their_overrides_and_unknown_names_are_refused(views):
+    k = views[0]
+    rt = SlamConfig(intrinsics=k, threads=2).with_profile("realtime")
+    rt.check()
+    assert rt.threaded and rt.tracking.frontend == "keyframe" and rt.mapping.defer_keyframes and rt.threads == 2
+    assert SlamConfig(intrinsics=k).with_profile("default") == SlamConfig(intrinsics=k)
+    with pytest.raises(ConfigError, match="unknown profile 'fast'.*realtime"):
+        SlamConfig(intrinsics=k).with_profile("fast")

@@ -84,9 +84,10 @@ class EngineAdapter:
 
 
 def load_slam_config(path: str, intrinsics: tuple[float, float, float, float, int, int],
-                     overrides: dict[str, Any] | None = None) -> Any:
-    """SlamConfig from a YAML file (any subset of its fields; "" = defaults), top-level ``overrides``
-    (e.g. the server's ``device`` parameter) and the camera."""
+                     overrides: dict[str, Any] | None = None, profile: str = "") -> Any:
+    """SlamConfig from a named ``profile`` (``semantic_gs_slam.config.PROFILES``; "" = none), a YAML file over it
+    (any subset of its fields; "" = defaults), top-level ``overrides`` (e.g. the server's ``device`` parameter) and
+    the camera."""
     import yaml
 
     from semantic_gs_slam.config import Intrinsics, SlamConfig
@@ -100,8 +101,17 @@ def load_slam_config(path: str, intrinsics: tuple[float, float, float, float, in
         except (OSError, yaml.YAMLError) as exc:
             raise StreamingError(f"cannot read slam_config {path!r}: {exc}") from exc
     fx, fy, cx, cy, w, h = intrinsics
-    doc = {**doc, **(overrides or {}),
-           "intrinsics": {"width": int(w), "height": int(h), "fx": fx, "fy": fy, "cx": cx, "cy": cy}}
+    cam = {"width": int(w), "height": int(h), "fx": fx, "fy": fy, "cx": cx, "cy": cy}
+    if not isinstance(doc, dict):
+        raise StreamingError(f"bad slam_config {path!r}: a mapping of SlamConfig fields expected, got "
+                             f"{type(doc).__name__}")
+    try:
+        base = SlamConfig.from_dict({"intrinsics": cam}).with_profile(profile).to_dict() if profile else {}
+    except ConfigError as exc:
+        raise StreamingError(f"bad profile: {exc}") from exc
+    for key, val in doc.items():  # the YAML over the profile, field by field within a section
+        base[key] = {**base[key], **val} if isinstance(val, dict) and isinstance(base.get(key), dict) else val
+    doc = {**base, **(overrides or {}), "intrinsics": cam}
     try:
         cfg = SlamConfig.from_dict(doc)
         cfg.check()
@@ -174,7 +184,7 @@ def prepare_renderer(device: str, log: Callable[[str], None]) -> None:
 def make_engine(slam_config: str, wait_intrinsics: Callable[[], Any], cfg: Any,
                 classes: dict[int, str] | None = None, resume_dir: str | None = None,
                 overrides: dict[str, Any] | None = None,
-                labels: tuple[str, str] = ("dataset", ""), labels_every: int = 1) -> EngineAdapter:
+                labels: tuple[str, str] = ("dataset", ""), labels_every: int = 1, profile: str = "") -> EngineAdapter:
     """Create (or resume) the engine for a run.
 
     Args:
@@ -188,6 +198,7 @@ def make_engine(slam_config: str, wait_intrinsics: Callable[[], Any], cfg: Any,
             says whether labels are streamed).
         labels_every: computed labels on every k-th engine frame only (``LabelConfig.every``; checked in every
             mode, though only geometry and onnx use it).
+        profile: named SlamConfig overrides under the YAML (:func:`load_slam_config`; "" = none).
 
     Raises:
         StreamingError: no camera intrinsics, bad settings, unusable checkpoint.
@@ -203,7 +214,7 @@ def make_engine(slam_config: str, wait_intrinsics: Callable[[], Any], cfg: Any,
     k = wait_intrinsics()
     if k is None:
         raise StreamingError("no camera_info received: publish sensor_msgs/CameraInfo on 'camera_info'")
-    config, _ = load_slam_config(slam_config, scaled_intrinsics(k, cfg.width, cfg.height), overrides)
+    config, _ = load_slam_config(slam_config, scaled_intrinsics(k, cfg.width, cfg.height), overrides, profile)
     stage = None
     if labels[0] != "dataset":
         stage = make_labels(labels[0], labels[1], config.intrinsics, bool(getattr(cfg, "use_semantic", False)),

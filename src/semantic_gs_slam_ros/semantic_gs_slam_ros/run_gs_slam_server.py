@@ -79,6 +79,8 @@ class SlamServer(Node):
         p("refine_iters", 0)  # Adam iterations over all keyframes after the last frame, before the map is written
         p("refine_poses", False)  # the refinement also optimises the keyframes' poses
         p("slam_config", "")  # YAML of the engine's SlamConfig ("" = defaults)
+        p("profile", "")  # named engine settings under slam_config ("" = none; realtime: every frame of a real
+        # camera at its rate on a CPU, docs/slam.md)
         p("device", "auto")  # torch device of the engine: auto (CUDA when present), cpu, cuda, cuda:N;
         # overrides slam_config's device (with CUDA and gsplat installed, renderer backend auto picks gsplat)
         p("slam_enabled", True)  # false = record frames only (no map), e.g. for offline runs
@@ -275,7 +277,8 @@ class SlamServer(Node):
                                      resume_dir=os.path.join(cfg.work_dir, "checkpoint") if resume_state else None,
                                      labels=(self.get_parameter("labels").value,
                                              self.get_parameter("onnx_model").value),
-                                     labels_every=self.get_parameter("labels_every").value)
+                                     labels_every=self.get_parameter("labels_every").value,
+                                     profile=str(self.get_parameter("profile").value))
             session = StreamingSession(cfg, engine, on_map=self._request_reload,
                                        log=lambda line: self.get_logger().info(line))
         except StreamingError as exc:

@@ -24,6 +24,21 @@ def test_device_override_wins_over_the_yaml(tmp_path):
         load_slam_config("", CAM, {"device": "gpu"})
 
 
+def test_profile_sits_under_the_yaml_and_a_bad_one_is_named(tmp_path):
+    y = tmp_path / "slam.yaml"
+    y.write_text("mapping: {keyframe_every: 5}\n")
+    cfg, _ = load_slam_config(str(y), CAM, {"device": "cpu"}, profile="realtime")
+    assert cfg.threaded and cfg.tracking.frontend == "keyframe" and cfg.mapping.defer_keyframes
+    assert cfg.mapping.keyframe_every == 5  # the YAML wins over the profile, field by field
+    cfg, _ = load_slam_config(str(y), CAM)
+    assert not cfg.threaded and cfg.tracking.frontend == "render" and cfg.mapping.keyframe_every == 5
+    with pytest.raises(StreamingError, match="unknown profile 'fastest'"):
+        load_slam_config("", CAM, profile="fastest")
+    y.write_text("[1, 2]\n")
+    with pytest.raises(StreamingError, match="mapping of SlamConfig fields"):
+        load_slam_config(str(y), CAM)
+
+
 def test_make_engine_explains_a_missing_gpu():
     if torch.cuda.is_available():
         pytest.skip("this machine has CUDA")

@@ -37,8 +37,8 @@ from semantic_gs_slam.errors import ConfigError, FrameError, TrackingError
 from semantic_gs_slam.tracking.icp_numba import _se3_exp, _so3_log
 
 __all__ = ["FrameTracker", "FrontendConfig", "LiveFrame", "ModelLevel", "ReferenceModel", "RelocalisationError",
-           "TrackQuality", "TrackResult", "build_reference", "normal_equations", "normal_equations_reference",
-           "perturbed_guesses", "prepare_live", "relocalise", "track"]
+           "TrackQuality", "TrackResult", "build_reference", "downsample_frame", "normal_equations",
+           "normal_equations_reference", "perturbed_guesses", "prepare_live", "relocalise", "track"]
 
 
 class RelocalisationError(TrackingError):
@@ -211,6 +211,29 @@ def _half(depth: np.ndarray, jump: float, fast: bool) -> np.ndarray:
     out = np.empty((depth.shape[0] // 2, depth.shape[1] // 2))
     _fast().half_depth(depth, float(jump), out)
     return out
+
+
+def downsample_frame(depth: np.ndarray, rgb: np.ndarray | None, k: Intrinsics, times: int, cfg: FrontendConfig
+                     ) -> tuple[np.ndarray, np.ndarray | None, Intrinsics]:
+    """Halve a frame ``times`` times for the front end (e.g. a 640x480 camera tracked at 320x240).
+
+    Args:
+        depth: [H, W] metres (0: none); a 2x2 cell keeps the mean of its depths when all four agree within
+            ``cfg.depth_jump`` of it, else 0 (no averaging across an edge).
+        rgb: [H, W, 3] in [0, 1] or None; the mean of each 2x2 cell.
+        k: the camera of ``depth``.
+
+    Returns:
+        depth [H / 2^times, W / 2^times] float64, rgb likewise (or None), and their camera.
+    """
+    depth = np.ascontiguousarray(depth, dtype=np.float64)
+    cams = _pyramid_cameras(k, times + 1)
+    for _ in range(times):
+        depth = _half(depth, cfg.depth_jump, _use_numba(cfg))
+        if rgb is not None:
+            h, w = rgb.shape[0] // 2 * 2, rgb.shape[1] // 2 * 2
+            rgb = rgb[:h, :w].reshape(h // 2, 2, w // 2, 2, 3).mean(axis=(1, 3))
+    return depth, rgb, cams[-1]
 
 
 def _smooth_depth(depth: np.ndarray, size: int, jump: float) -> np.ndarray:

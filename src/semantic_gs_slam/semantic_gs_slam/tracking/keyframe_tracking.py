@@ -26,6 +26,7 @@ from semantic_gs_slam.tracking.frontend import (
     RelocalisationError,
     TrackResult,
     build_reference,
+    downsample_frame,
     prepare_live,
     relocalise,
     track,
@@ -34,6 +35,7 @@ from semantic_gs_slam.tracking.frontend import (
 log = logging.getLogger("semantic_gs_slam")
 
 _THUMB = (15, 20)  # rows, columns of the relocalisation thumbnails
+AUTO_MIN_WIDTH = 320  # tracking.frontend_downsample 0: the front end's image is halved while it stays this wide
 
 
 @dataclass
@@ -67,6 +69,13 @@ class KeyframeTracking:
 
     def _fe_init(self) -> None:
         self._fe_cfg = FrontendConfig(depth_min=self.cfg.depth_min, depth_max=self.cfg.depth_max)
+        ds = self.cfg.tracking.frontend_downsample
+        if ds == 0:  # auto: halve while the image stays at least AUTO_MIN_WIDTH wide
+            ds = 1
+            while self.k.width // (2 * ds) >= AUTO_MIN_WIDTH and ds < 4:
+                ds *= 2
+        self._fe_halvings = ds.bit_length() - 1  # 1 -> 0, 2 -> 1, 4 -> 2
+        self._fe_k = self.k  # the front end's camera (halved with tracking.frontend_downsample; set at first use)
         self._fe_views: dict[int, KeyframeView] = {}  # keyframe index -> its sensor view (tracking thread only)
         self._fe_models: OrderedDict[int, ReferenceModel] = OrderedDict()  # built references, newest last (cache)
         self._fe_ref_idx = -1  # the current reference's keyframe index
@@ -75,6 +84,15 @@ class KeyframeTracking:
         self._fe_last_trusted = 0  # frame index of the last trusted, mapped pose
         self._fe_after_reloc = False  # the previous frame was relocalised: no constant velocity yet
 
+    def _fe_frame(self, depth: np.ndarray, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The front end's copy of a frame ([H, W] metres, [H, W, 3] in [0, 1]): float64, halved
+        ``tracking.frontend_downsample``'s power of two times."""
+        if self._fe_halvings == 0:
+            return np.asarray(depth, np.float64), np.asarray(rgb, np.float64)
+        d, c, self._fe_k = downsample_frame(depth, np.asarray(rgb, np.float64), self.k, self._fe_halvings,
+                                            self._fe_cfg)
+        return d, c
+
     def _fe_model(self, index: int) -> ReferenceModel:
         """The reference of keyframe ``index`` at its current pose (rebuilt when the back end moved it)."""
         with self._poses_lock:
@@ -82,7 +100,7 @@ class KeyframeTracking:
         m = self._fe_models.get(index)
         if m is None or not np.allclose(m.c2w, c2w, atol=1e-9):
             v = self._fe_views[index]
-            m = build_reference(v.depth, c2w, self.k, self._fe_cfg, rgb=v.rgb, keyframe_id=index)
+            m = build_reference(v.depth, c2w, self._fe_k, self._fe_cfg, rgb=v.rgb, keyframe_id=index)
             self._fe_models[index] = m
         self._fe_models.move_to_end(index)
         while len(self._fe_models) > 6:
@@ -118,7 +136,7 @@ class KeyframeTracking:
         with self._poses_lock:
             prev = self.poses[-1].copy()
             prev2 = self.poses[-2].copy() if len(self.poses) >= 2 else prev
-        live = prepare_live(depth, self.k, fe, rgb)
+        live = prepare_live(depth, self._fe_k, fe, rgb)
         res: TrackResult | None = None
         if self._fe_state != "lost":
             guess = prev if self._fe_after_reloc else prev @ (np.linalg.inv(prev2) @ prev)
