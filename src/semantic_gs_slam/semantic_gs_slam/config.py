@@ -174,9 +174,12 @@ class MappingConfig:
     keyframe_motion_m: float = 0.25  # ... and on any frame this far (m) or ...
     keyframe_motion_deg: float = 10.0  # ... this much turned from the last keyframe (a new view; 0 = off)
     defer_keyframes: bool = False  # SlamConfig.threaded: while the mapping thread is busy, a frame due as a keyframe
-    # by keyframe_every / keyframe_motion_* is tracked but not made a keyframe; the next frame is due instead, so the
-    # map takes keyframes at the pace mapping keeps (as ORB-SLAM's local mapping does). Keyframes the front end needs
-    # (its reference covers too little, a recovered pose) are never deferred. Off: the synchronous run's keyframes
+    # is tracked but not mapped; the next frame is due instead, so the map takes keyframes at the pace mapping keeps
+    # (as ORB-SLAM's local mapping does) and add_frame never waits for the queue. A frame the front end needs as its
+    # new reference (tracking.frontend_new_keyframe_coverage) becomes one without being mapped. Off: the
+    # synchronous run's keyframes
+    backlog_max: int = 64  # deferred frames kept (keyframe_every apart, thinned to span the run when full) for
+    # SLAM.refine / catch_up to map after the run; 0: none. Memory: one frame's colour, depth and labels each
     densify_every_frame: bool | None = None  # also add Gaussians (without optimising) on non-keyframes (None: the
     # device's, DEVICE_DEFAULTS)
     iters: int | None = None  # Adam iterations per keyframe (None: the device's, DEVICE_DEFAULTS)
@@ -234,6 +237,8 @@ class MappingConfig:
             raise ConfigError("mapping.window_random must be >= 0")
         if self.keyframe_motion_m < 0 or self.keyframe_motion_deg < 0:
             raise ConfigError("mapping.keyframe_motion_m and keyframe_motion_deg must be >= 0 (0 = off)")
+        if self.backlog_max < 0:
+            raise ConfigError(f"mapping.backlog_max must be >= 0, got {self.backlog_max}")
         if self.keyframe_every < 1 or self.window < 1 or self.pixel_stride < 1:
             raise ConfigError("mapping.keyframe_every, window and pixel_stride must be >= 1")
         _check_device_dependent("mapping.iters", self.iters, int)

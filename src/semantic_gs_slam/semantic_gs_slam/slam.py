@@ -147,6 +147,9 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking):
         self.dropped_jobs: list[int] = []  # frames whose map update found the queue full (threaded)
         self.deferred_keyframes = 0  # frames due as keyframes but deferred while mapping was busy (defer_keyframes)
         self._kf_due = False  # a deferred keyframe is due on the next frame
+        self.backlog: list[tuple[int, Tensor, Tensor, Tensor | None]] = []  # deferred frames kept for catch_up
+        self._backlog_spacing = 1  # kept frames lie keyframe_every * this apart (doubles when the backlog fills)
+        self.caught_up = 0  # deferred frames mapped by catch_up
         self._lost_at: int | None = None
         self._worker: MappingWorker | None = None
         self._fe_init()
@@ -294,16 +297,18 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking):
         self._note_lost(idx, failed or source == "relocalised", unmapped)
         due = idx % self.cfg.mapping.keyframe_every == 0 or self._new_view(self.poses[-1]) or self._kf_due
         needed = source == "recovered" or coverage < self.cfg.tracking.frontend_new_keyframe_coverage
-        if due and not needed and not unmapped and idx > 0 and self._mapping_busy():
-            self._kf_due, due = True, False  # mapping.defer_keyframes: the next frame is due instead
+        new_reference = False  # the front end takes this frame as its reference without mapping it now
+        if (due or needed) and not unmapped and idx > 0 and self._mapping_busy():
+            # mapping.defer_keyframes: the next frame is due instead; a reference the front end needs is taken
+            self._kf_due, due, new_reference, needed = True, False, needed, False
             self.deferred_keyframes += 1
+            self._keep_deferred(idx, rgb_t, depth_t, sem_t)
         is_kf = (due or needed) and not unmapped
         if is_kf:
             self._kf_due = False
-        if is_kf:
             self._last_kf_index = idx
-            if keyframe_fe:
-                self._fe_add_keyframe(idx, depth_np, rgb_np)
+        if (is_kf or new_reference) and keyframe_fe:
+            self._fe_add_keyframe(idx, depth_np, rgb_np)
         if not unmapped and source != "ground_truth":
             self._fe_last_trusted = idx
         # frames not densified (unmapped, or densify_every_frame off) keep the last exposure: it changes slowly
@@ -333,6 +338,21 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking):
             self.checkpoint(self.cfg.checkpoint_dir)
         with self._poses_lock:
             return self.poses[idx].copy()
+
+    def _keep_deferred(self, idx: int, rgb_t: Tensor, depth_t: Tensor, sem_t: Tensor | None) -> None:
+        """Keep a deferred frame for :meth:`catch_up` when it lies ``backlog_every`` frames past the last keyframe
+        or kept frame; a full backlog (``mapping.backlog_max``) drops every second frame and keeps half as many
+        from then on, so it spans the whole run."""
+        mc = self.cfg.mapping
+        if mc.backlog_max <= 0:
+            return
+        last = max(self._last_kf_index, self.backlog[-1][0] if self.backlog else -1)
+        if idx - last < mc.keyframe_every * self._backlog_spacing:
+            return
+        if len(self.backlog) >= mc.backlog_max:
+            self.backlog = self.backlog[1::2]
+            self._backlog_spacing *= 2
+        self.backlog.append((idx, rgb_t, depth_t, sem_t))
 
     def _mapping_busy(self) -> bool:
         """Whether keyframes are deferred now (mapping.defer_keyframes, threaded): the mapping thread has work."""
@@ -678,4 +698,5 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking):
         return {"frames": len(self.poses), "keyframes": len(self.keyframes), "gaussians": len(self.map),
                 "lost_frames": list(self.lost_frames), "recoveries": [list(r) for r in self.recoveries],
                 "dropped": list(self.dropped_jobs), "deferred_keyframes": self.deferred_keyframes,
+                "backlog": len(self.backlog), "caught_up": self.caught_up,
                 "last": asdict(self.logs[-1]) if self.logs else None}

@@ -12,6 +12,7 @@ import pytest
 from semantic_gs_slam.config import LoopConfig, MappingConfig, SlamConfig, TrackingConfig
 from semantic_gs_slam.errors import ConfigError, MappingError
 from semantic_gs_slam.geometry import pose_error
+from semantic_gs_slam.mapping.steps import spread_order
 from semantic_gs_slam.slam import SLAM
 from semantic_gs_slam.synthetic.scenes import HomeRenderer, default_intrinsics, trajectory
 
@@ -176,3 +177,47 @@ def test_profiles_apply_their_overrides_and_unknown_names_are_refused(views):
     assert SlamConfig(intrinsics=k).with_profile("default") == SlamConfig(intrinsics=k)
     with pytest.raises(ConfigError, match="unknown profile 'fast'.*realtime"):
         SlamConfig(intrinsics=k).with_profile("fast")
+
+
+def test_spread_order_covers_the_run_evenly_at_every_prefix():
+    assert spread_order(7) == [3, 1, 5, 0, 2, 4, 6]
+    for n in range(0, 40):
+        order = spread_order(n)
+        assert sorted(order) == list(range(n))
+        if n >= 3:  # the middle, then the middles of the two halves
+            m = (n - 1) // 2
+            assert order[:3] == [m, (m - 1) // 2, (m + n) // 2]
+
+
+def test_deferred_frames_are_kept_and_mapped_by_the_refinement(views):
+    k, poses, frames = views
+    cfg = _cfg(k, True, queue_size=4)
+    cfg.mapping.defer_keyframes = True
+    eng = _SlowMap(cfg, initial_c2w=poses[0])
+    eng.gate = threading.Event()
+    _feed(eng, frames)  # frame 0's mapping holds the thread: every later due keyframe is deferred
+    assert [i for i, *_ in eng.backlog] == [3, 6]  # keyframe_every (3) apart, counted from the last keyframe
+    eng.gate.set()
+    n_before = len(eng.map)
+    loss, done = eng.refine(4)
+    assert done == 4 and np.isfinite(loss) and eng.backlog == [] and eng.stats()["caught_up"] == 2
+    assert len(eng.map) > n_before  # the deferred views seeded what frame 0 did not see
+    assert [kf.index for kf in eng.keyframes] == [0]  # not pose-graph keyframes
+    stop = SLAM(cfg, initial_c2w=poses[0])
+    stop.backlog = list(eng.backlog)
+    assert stop.catch_up(should_stop=lambda: True) == [] and stop.caught_up == 0
+
+
+def test_a_full_backlog_thins_out_to_span_the_run(views):
+    k, poses, frames = views
+    cfg = _cfg(k, True, queue_size=len(frames))
+    cfg.mapping.defer_keyframes, cfg.mapping.keyframe_every, cfg.mapping.backlog_max = True, 1, 3
+    eng = _SlowMap(cfg, initial_c2w=poses[0])
+    eng.gate = threading.Event()
+    _feed(eng, frames)
+    kept = [i for i, *_ in eng.backlog]
+    eng.gate.set()
+    eng.finish(120.0)
+    assert 1 <= len(kept) <= 3 and kept[-1] >= len(frames) - 2 and kept == sorted(kept)
+    with pytest.raises(ConfigError, match="backlog_max"):
+        SlamConfig(intrinsics=k, mapping=MappingConfig(backlog_max=-1)).check()

@@ -8,6 +8,7 @@ steps from ``add_frame`` on keyframes); the methods use the engine's state: ``cf
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -31,6 +32,21 @@ class Keyframe:
     rgb: Tensor  # [H, W, 3]
     depth: Tensor  # [H, W]
     sem: Tensor | None  # [H, W] int64
+
+
+def spread_order(n: int) -> list[int]:
+    """0..n-1 in an order that covers the range evenly at every prefix: the middle, then the middles of the two
+    halves, of the four quarters, ... (e.g. 7 -> [3, 1, 5, 0, 2, 4, 6])."""
+    out: list[int] = []
+    spans = deque([(0, n - 1)])
+    while spans:
+        lo, hi = spans.popleft()
+        if lo > hi:
+            continue
+        mid = (lo + hi) // 2
+        out.append(mid)
+        spans.extend(((lo, mid - 1), (mid + 1, hi)))
+    return out
 
 
 class MappingSteps:
@@ -164,16 +180,44 @@ class MappingSteps:
             done += 1
         return (float(loss.detach()) if loss is not None else float("nan")), done  # one host copy per keyframe
 
+    def catch_up(self, should_stop: Callable[[], bool] | None = None) -> list[Keyframe]:
+        """Map the frames deferred during the run (``mapping.defer_keyframes``; :attr:`backlog`): each seeds
+        Gaussians where the map lacks them, at its current pose (loop closures included), and becomes a view of
+        the refinement. Not keyframes of the pose graph. Spread order (the middle of the run, then the quarters, ...),
+        so a deadline leaves gaps spread out; the backlog is emptied.
+
+        Returns:
+            The views made, ready for :meth:`_optimise`.
+        """
+        backlog, self.backlog = self.backlog, []
+        views = []
+        for j in spread_order(len(backlog)):
+            if should_stop is not None and should_stop():
+                break
+            idx, rgb, depth, sem = backlog[j]
+            with self._poses_lock:
+                c2w = self.poses[idx].copy()
+            self._exposure = None
+            self._densify(idx, rgb, depth, sem, c2w, keyframe=True)
+            if self._exposure is not None:
+                self.exposures[idx] = self._exposure
+                rgb = to_map(rgb, self._exposure)
+            views.append(Keyframe(idx, torch.as_tensor(c2w, device=self.device), rgb, depth, sem))
+        self.caught_up += len(views)
+        return views
+
     def refine(self, iters: int, poses: bool = False,
-               should_stop: Callable[[], bool] | None = None) -> tuple[float, int]:
-        """Offline map refinement after the run: ``iters`` Adam steps cycling over all keyframes.
+               should_stop: Callable[[], bool] | None = None, backlog: bool = True) -> tuple[float, int]:
+        """Map refinement after the run: ``iters`` Adam steps cycling over all keyframes (and the deferred frames).
 
         Args:
             poses: also optimise the keyframes' poses (a bundle adjustment through the renderer; the first
                 keyframe stays where it is). Each keyframe's correction then moves the frames it starts, as a
-                loop closure moves them. False: poses fixed.
-            should_stop: asked before each iteration (a cancel request); True ends the refinement there,
-                and what is done is kept.
+                loop closure moves them. False: poses fixed. The deferred frames' poses stay fixed.
+            should_stop: asked before each deferred frame and each iteration (a cancel request, a deadline); True
+                ends the refinement there, and what is done is kept.
+            backlog: first map the frames deferred while the mapping thread was busy (:meth:`catch_up`) and
+                refine over them too.
 
         Returns:
             (the last loss, iterations done); (NaN, 0) when there is nothing to do. With ``poses`` the loss
@@ -182,15 +226,18 @@ class MappingSteps:
         self.drain(600.0)  # a mapping thread (SlamConfig.threaded) finishes first
         if not self.keyframes:
             return float("nan"), 0
+        extra = self.catch_up(should_stop) if backlog else []
+        views = self.keyframes + sorted(extra, key=lambda v: v.index)
         deltas = None
         if poses:
-            deltas = [(torch.zeros(3, device=self.device, requires_grad=True),
-                       torch.zeros(3, device=self.device, requires_grad=True)) for _ in self.keyframes]
+            deltas = [(torch.zeros(3, device=self.device, requires_grad=n < len(self.keyframes)),
+                       torch.zeros(3, device=self.device, requires_grad=n < len(self.keyframes)))
+                      for n in range(len(views))]
         try:
-            loss, done = self._optimise(self.keyframes, iters, deltas, should_stop)
+            loss, done = self._optimise(views, iters, deltas, should_stop)
         finally:  # the map was fitted at the moved poses: they go with it, also when an iteration raised
             if deltas is not None:
-                self._apply_keyframe_deltas(deltas)
+                self._apply_keyframe_deltas(deltas[:len(self.keyframes)])
         self.map.prune(self.cfg.mapping.prune_opacity, self.cfg.mapping.prune_max_scale)
         return loss, done
 
