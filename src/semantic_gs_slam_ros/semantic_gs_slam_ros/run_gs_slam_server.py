@@ -78,6 +78,7 @@ class SlamServer(Node):
         p("export_every", 0)
         p("refine_iters", 0)  # Adam iterations over all keyframes after the last frame, before the map is written
         p("refine_poses", False)  # the refinement also optimises the keyframes' poses
+        p("refine_seconds", 0.0)  # the refinement's time budget in s (0 = none; with refine_iters 0: this long)
         p("slam_config", "")  # YAML of the engine's SlamConfig ("" = defaults)
         p("profile", "")  # named engine settings under slam_config ("" = none; realtime: every frame of a real
         # camera at its rate on a CPU, docs/slam.md)
@@ -242,7 +243,8 @@ class SlamServer(Node):
             lag_high=g("lag_high").value, lag_low=g("lag_low").value,
             checkpoint_every=g("checkpoint_every").value, export_every=g("export_every").value,
             refine_iters=int(g("refine_iters").value),
-            refine_poses=bool(g("refine_poses").value), max_frames=goal.max_frames, clean_start=not goal.resume)
+            refine_poses=bool(g("refine_poses").value), refine_seconds=float(g("refine_seconds").value),
+            max_frames=goal.max_frames, clean_start=not goal.resume)
 
     def _execute(self, goal_handle) -> RunSlam.Result:
         result = RunSlam.Result()

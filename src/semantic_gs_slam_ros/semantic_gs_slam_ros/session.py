@@ -91,6 +91,9 @@ class SessionConfig:
             over all keyframes (what ``semantic_gs_slam.run --refine-iters`` does). 0 = none; a cancelled run
             skips it, and a cancel during it keeps what is done and writes the map.
         refine_poses: the refinement also optimises the keyframes' poses (``--refine-poses``).
+        refine_seconds: the refinement ends after this many seconds at most (0 = no limit; with refine_iters 0,
+            it runs for exactly this long). It first maps the frames deferred while the mapping thread was busy
+            (the engine's ``mapping.defer_keyframes``).
         clean_start: remove frames of an earlier run from work_dir at start.
         frames_before: frames processed by the run this one resumes (checkpoint bookkeeping).
     """
@@ -113,14 +116,18 @@ class SessionConfig:
     max_frames: int = 0
     refine_iters: int = 0
     refine_poses: bool = False
+    refine_seconds: float = 0.0
     clean_start: bool = True
     frames_before: int = 0
 
     def __post_init__(self) -> None:
         if self.refine_iters < 0:
             raise StreamingError(f"refine_iters must be >= 0 (0 = no refinement), got {self.refine_iters}")
-        if self.refine_poses and self.refine_iters == 0:
-            raise StreamingError("refine_poses needs refine_iters > 0: it says what the refinement also optimises")
+        if not self.refine_seconds >= 0:
+            raise StreamingError(f"refine_seconds must be >= 0 (0 = no limit), got {self.refine_seconds}")
+        if self.refine_poses and self.refine_iters == 0 and self.refine_seconds == 0:
+            raise StreamingError("refine_poses needs refine_iters > 0 or refine_seconds > 0: it says what the "
+                                 "refinement also optimises")
 
     def resolved_map_dir(self) -> str:
         return self.map_dir or os.path.join(self.work_dir, "map")
@@ -445,27 +452,34 @@ class StreamingSession:
         """``refine_iters`` iterations of the engine's map refinement, which looks at a cancel request before each
         iteration; returns the summary's note ("" when none ran)."""
         refine = getattr(self.engine, "refine", None)
-        total = self.cfg.refine_iters
-        if total <= 0 or refine is None:
+        total, seconds = self.cfg.refine_iters, self.cfg.refine_seconds
+        if (total <= 0 and seconds <= 0) or refine is None:
             return ""
         what = "the map and the keyframes' poses" if self.cfg.refine_poses else "the map"
         count = getattr(self.engine, "num_keyframes", None)
         over = f"all {count} keyframes" if count is not None else "all keyframes"
-        self._log(f"refining {what}: {total} iterations over {over} in turn before the map is written")
+        budget = (f"{total} iterations" if total > 0 else "iterations") + (f" (at most {seconds:g} s)" if seconds > 0
+                                                                           else "")
+        self._log(f"refining {what}: {budget} over {over} in turn before the map is written")
+        total = total if total > 0 else 10 ** 9
+        t0 = time.monotonic()
+        deadline = t0 + seconds if seconds > 0 else float("inf")
 
         def cancelled() -> bool:
             with self._lock:
-                return self._cancelled
+                return self._cancelled or time.monotonic() > deadline
 
-        t0 = time.monotonic()
         try:
             done = int(refine(total, poses=self.cfg.refine_poses, should_stop=cancelled))
         except Exception as exc:  # noqa: BLE001  (the map as it is is still written)
             self._log(f"map refinement failed: {exc}; the map is written as it is")
             note = f"map refinement failed ({exc})"
         else:
-            note = f"refined {done} of {total} iterations in {time.monotonic() - t0:.1f} s"
-            self._log(f"map {note}" + ("" if done == total else " (cancelled)"))
+            of = f" of {total}" if total < 10 ** 9 else ""
+            note = f"refined {done}{of} iterations in {time.monotonic() - t0:.1f} s"
+            with self._lock:
+                why = " (cancelled)" if self._cancelled else " (time budget)" if done < total else ""
+            self._log(f"map {note}{why}")
         with self._lock:
             self._progress.gaussians = int(self.engine.num_gaussians)
         return f", {note}"

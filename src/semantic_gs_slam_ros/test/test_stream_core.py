@@ -363,7 +363,8 @@ def _short_fits(cfg):
     return cfg
 
 
-def _engine_session(tmp_path, refine_iters: int, log: list[str], refine_poses: bool = False):
+def _engine_session(tmp_path, refine_iters: int, log: list[str], refine_poses: bool = False,
+                    refine_seconds: float = 0.0):
     """A session around the real engine (EngineAdapter + SLAM) fed four frames of the synthetic home."""
     from semantic_gs_slam.config import SlamConfig
     from semantic_gs_slam.slam import SLAM
@@ -376,7 +377,8 @@ def _engine_session(tmp_path, refine_iters: int, log: list[str], refine_poses: b
     cfg.mapping.keyframe_every = 2  # frames 0 and 2 are keyframes: a pose to refine besides the gauge
     engine = EngineAdapter(SLAM(cfg))
     session = StreamingSession(SessionConfig(work_dir=str(tmp_path / "work"), width=0, height=0, checkpoint_every=0,
-                                             refine_iters=refine_iters, refine_poses=refine_poses),
+                                             refine_iters=refine_iters, refine_poses=refine_poses,
+                                             refine_seconds=refine_seconds),
                                engine, log=log.append)
     r = HomeRenderer(0)
     for i, c2w in enumerate(trajectory(4, 6.0)):
@@ -439,6 +441,19 @@ def test_session_cancel_during_the_refinement_still_writes_the_map(tmp_path):
     assert any("(cancelled)" in line for line in log) and not any("failed" in line for line in log)
 
 
+def test_session_refinement_ends_at_its_time_budget(tmp_path):
+    import re
+
+    log: list[str] = []
+    session, engine = _engine_session(tmp_path, 0, log, refine_seconds=0.5)
+    result = session.run()
+    assert result.success and os.path.isfile(result.map_path)
+    m = re.search(r"refined (\d+) iterations in ([\d.]+) s", result.message)
+    assert m and int(m.group(1)) > 0, result.message
+    assert any("refining the map: iterations (at most 0.5 s)" in line for line in log), log
+    assert any("(time budget)" in line for line in log), log
+
+
 def test_session_refinement_failure_is_reported_and_the_map_still_written(tmp_path):
     log: list[str] = []
     session, engine = _engine_session(tmp_path, 50, log)
@@ -459,8 +474,11 @@ def test_session_refuses_bad_refinement_settings(tmp_path):
 
     with pytest.raises(StreamingError, match="refine_iters must be >= 0"):
         SessionConfig(work_dir=str(tmp_path), refine_iters=-1)
-    with pytest.raises(StreamingError, match="refine_poses needs refine_iters > 0"):
+    with pytest.raises(StreamingError, match="refine_poses needs refine_iters > 0 or refine_seconds > 0"):
         SessionConfig(work_dir=str(tmp_path), refine_poses=True)
+    with pytest.raises(StreamingError, match="refine_seconds must be >= 0"):
+        SessionConfig(work_dir=str(tmp_path), refine_seconds=-1.0)
+    SessionConfig(work_dir=str(tmp_path), refine_poses=True, refine_seconds=5.0)
 
 
 def _labelled_engine_session(tmp_path, bad: set[int], n: int, log: list[str]):
