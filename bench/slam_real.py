@@ -253,7 +253,9 @@ def main() -> int:
                      ("SSIM", f"{ours['ssim']:.3f} (refined: {r['ssim']:.3f})"),
                      ("depth L1 (cm)", f"{ours['depth_l1_cm']:.2f} (refined: {r['depth_l1_cm']:.2f})")]
         masked += f" (refined: {r['psnr_masked']:.2f})"
-        print(f"refined: {ours['refine_done']} Adam iterations over all {ours['keyframes']} keyframes after the run"
+        views = f" and {ours['stats'].get('caught_up', 0)} deferred frames" if ours["stats"].get("caught_up") else ""
+        print(f"refined: {ours['refine_done']} Adam iterations over all {ours['keyframes']} keyframes{views} after the "
+              "run"
               f"{', their poses too' if args.refine_poses else ''}, {ours['refine_s']:.0f} s (not counted in FPS; "
               "the per-frame error curve is the online run's)")
     rows.insert(2, ("PSNR (dB), SplaTAM's protocol (pixels without depth zeroed)", masked))
