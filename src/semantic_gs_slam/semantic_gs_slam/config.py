@@ -320,7 +320,8 @@ DEVICE_DEFAULTS: dict[str, dict[str, dict[str, Any]]] = {
 PROFILES: dict[str, dict[str, Any]] = {
     "default": {},
     "realtime": {"tracking": {"frontend": "keyframe", "frontend_downsample": 0}, "threaded": True,
-                 "mapping": {"keyframe_every": 8, "densify_every_frame": False, "defer_keyframes": True}},
+                 "mapping": {"keyframe_every": 8, "densify_every_frame": False, "defer_keyframes": True,
+                             "first_frame_iters": 15, "iters": 5}},
 }
 
 

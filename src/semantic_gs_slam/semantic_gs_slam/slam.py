@@ -214,6 +214,45 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking):
                     self.classes.setdefault(int(i), f"class_{int(i)}")
         return rgb_t, torch.where(valid, depth_t, torch.zeros_like(depth_t)), sem_t
 
+    def _host_frame(self, rgb: np.ndarray, depth: np.ndarray, sem: np.ndarray | None
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """:meth:`_tensors`' checks on the host, for the keyframe front end (which works on host arrays): returns
+        our own copies, rgb [H, W, 3] float32 in [0, 1], depth [H, W] float32 metres (0 outside depth_min..max),
+        labels [H, W] int64 or None. No device round trip: a frame that is not mapped never goes to the device,
+        and on a GPU the tracker never waits behind the mapping thread's kernels."""
+        k = self.k
+        rgb, depth = np.asarray(rgb), np.asarray(depth)
+        if rgb.shape != (k.height, k.width, 3):
+            raise FrameError(f"rgb must be [{k.height}, {k.width}, 3] (intrinsics), got {list(rgb.shape)}")
+        if depth.shape != (k.height, k.width):
+            raise FrameError(f"depth must be [{k.height}, {k.width}] metres, got {list(depth.shape)}")
+        if sem is not None and np.asarray(sem).shape != (k.height, k.width):
+            raise FrameError(f"semantics must be [{k.height}, {k.width}] ids, got {list(np.asarray(sem).shape)}")
+        try:
+            rgb_f = rgb.astype(np.float32) / 255.0 if rgb.dtype == np.uint8 else rgb.astype(np.float32)
+            depth_f = depth.astype(np.float32)
+            sem_i = None if sem is None else np.asarray(sem).astype(np.int64)
+        except (TypeError, ValueError) as exc:
+            raise FrameError(f"frame arrays must be numeric: {exc}") from exc
+        if not np.isfinite(rgb_f).all():
+            raise FrameError("rgb contains NaN or inf")
+        finite = np.isfinite(depth_f)
+        if not finite.all():
+            raise FrameError(f"depth contains {int((~finite).sum())} NaN/inf values (use 0 for missing)")
+        if (depth_f < 0).any():
+            raise FrameError("depth has negative values")
+        valid = (depth_f >= self.cfg.depth_min) & (depth_f <= self.cfg.depth_max)
+        frac = float(valid.mean())
+        if frac < 0.05:
+            raise FrameError(f"only {frac * 100:.1f} % of depth pixels are valid "
+                             f"(in [{self.cfg.depth_min}, {self.cfg.depth_max}] m); is the depth in metres?")
+        depth_f[~valid] = 0.0
+        if sem_i is not None:
+            for i in np.unique(sem_i).tolist():
+                if i > 0:  # unknown labels get a placeholder name in semantic.json
+                    self.classes.setdefault(int(i), f"class_{int(i)}")
+        return rgb_f, depth_f, sem_i
+
     def check_frame(self, rgb: np.ndarray, depth: np.ndarray, semantics: np.ndarray | None = None) -> None:
         """Refuse what :meth:`add_frame` would refuse (shapes, non-numeric arrays, NaN, negative or almost no
         valid depth) without changing anything, e.g. before a labelling stage that keeps state across frames.
@@ -258,16 +297,20 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking):
         if self._worker is not None:
             self._worker.raise_if_failed()  # a mapping thread's failure surfaces on the next call
         t0 = time.perf_counter()
-        rgb_t, depth_t, sem_t = self._tensors(rgb, depth, semantics)
+        keyframe_fe = self.cfg.tracking.frontend == "keyframe"
+        if keyframe_fe:  # checked on the host; on the device only when the frame is mapped or kept (lazily)
+            host = self._host_frame(rgb, depth, semantics)
+            rgb_t = depth_t = sem_t = None
+            depth_np, rgb_np = self._fe_frame(host[1], host[0])
+        else:
+            rgb_t, depth_t, sem_t = self._tensors(rgb, depth, semantics)
+        has_sem = semantics is not None
         idx = len(self.poses)
         gt = None if gt_c2w is None else np.asarray(gt_c2w, np.float64)
         odom = None if odom_c2w is None else check_pose(odom_c2w, "odom_c2w")
         residual, inliers, failed, source = float("nan"), 0, False, "tracking"
         coverage = float("nan")
         self._agreement = float("nan")
-        keyframe_fe = self.cfg.tracking.frontend == "keyframe"
-        if keyframe_fe:  # host copies the front end works on (views of the tensors on the CPU)
-            depth_np, rgb_np = self._fe_frame(depth_t.cpu().numpy(), rgb_t.cpu().numpy())
         if idx == 0:
             source = "first"
             c2w = next((p for p in (self.initial_c2w, odom, gt) if p is not None), np.eye(4))
@@ -276,6 +319,8 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking):
         elif keyframe_fe and self._fe_views:
             c2w, residual, inliers, failed, source, coverage = self._track_keyframe(idx, rgb_np, depth_np)
         else:
+            if rgb_t is None:  # the keyframe front end before its first reference (e.g. use_gt_pose on frame 0)
+                rgb_t, depth_t, sem_t = self._device_frame(host)
             c2w, residual, inliers, failed, source = self._track(rgb_t, depth_t, self.odometry_guess(odom))
         with self._poses_lock:
             if source != "lost" and keyframe_fe and idx > 0:  # the mapping thread may have moved the reference's
@@ -302,6 +347,8 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking):
             # mapping.defer_keyframes: the next frame is due instead; a reference the front end needs is taken
             self._kf_due, due, new_reference, needed = True, False, needed, False
             self.deferred_keyframes += 1
+            if keyframe_fe and self._keeps(idx):
+                rgb_t, depth_t, sem_t = self._device_frame(host)
             self._keep_deferred(idx, rgb_t, depth_t, sem_t)
         is_kf = (due or needed) and not unmapped
         if is_kf:
@@ -317,7 +364,9 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking):
                          float("nan"), t1 - t0, 0.0, source, self._agreement, "", coverage)
         self.logs.append(entry)
         wants_map = not unmapped and (is_kf or self.cfg.mapping.densify_every_frame or
-                                      (sem_t is not None and self.cfg.mapping.label_votes))
+                                      (has_sem and self.cfg.mapping.label_votes))
+        if wants_map and rgb_t is None:
+            rgb_t, depth_t, sem_t = self._device_frame(host)
         if not wants_map:
             entry.map_queue = "none"
         elif self._worker is None and not self.cfg.threaded:
@@ -339,15 +388,27 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking):
         with self._poses_lock:
             return self.poses[idx].copy()
 
-    def _keep_deferred(self, idx: int, rgb_t: Tensor, depth_t: Tensor, sem_t: Tensor | None) -> None:
-        """Keep a deferred frame for :meth:`catch_up` when it lies ``backlog_every`` frames past the last keyframe
-        or kept frame; a full backlog (``mapping.backlog_max``) drops every second frame and keeps half as many
-        from then on, so it spans the whole run."""
+    def _device_frame(self, host: tuple[np.ndarray, np.ndarray, np.ndarray | None]
+                      ) -> tuple[Tensor, Tensor, Tensor | None]:
+        """:meth:`_host_frame`'s arrays on the engine's device (on the CPU they share the arrays' memory, our own)."""
+        rgb, depth, sem = host
+        dev = self.device
+        return (torch.as_tensor(rgb, device=dev), torch.as_tensor(depth, device=dev),
+                None if sem is None else torch.as_tensor(sem, device=dev))
+
+    def _keeps(self, idx: int) -> bool:
+        """Whether deferred frame ``idx`` goes into the backlog: ``mapping.backlog_max`` > 0 and it lies
+        ``keyframe_every`` (times the thinning factor) frames past the last keyframe or kept frame."""
         mc = self.cfg.mapping
-        if mc.backlog_max <= 0:
-            return
         last = max(self._last_kf_index, self.backlog[-1][0] if self.backlog else -1)
-        if idx - last < mc.keyframe_every * self._backlog_spacing:
+        return mc.backlog_max > 0 and idx - last >= mc.keyframe_every * self._backlog_spacing
+
+    def _keep_deferred(self, idx: int, rgb_t: Tensor | None, depth_t: Tensor | None, sem_t: Tensor | None) -> None:
+        """Keep a deferred frame for :meth:`catch_up` when :meth:`_keeps` says so; a full backlog
+        (``mapping.backlog_max``) drops every second frame and keeps half as many from then on, so it spans the
+        whole run."""
+        mc = self.cfg.mapping
+        if not self._keeps(idx) or rgb_t is None or depth_t is None:
             return
         if len(self.backlog) >= mc.backlog_max:
             self.backlog = self.backlog[1::2]
