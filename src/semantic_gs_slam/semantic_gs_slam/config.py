@@ -176,7 +176,8 @@ class MappingConfig:
     defer_keyframes: bool = False  # SlamConfig.threaded: while the mapping thread is busy, a frame due as a keyframe
     # is tracked but not mapped; the next frame is due instead, so the map takes keyframes at the pace mapping keeps
     # (as ORB-SLAM's local mapping does) and add_frame never waits for the queue. A frame the front end needs as its
-    # new reference (tracking.frontend_new_keyframe_coverage) becomes one without being mapped. Off: the
+    # new reference (tracking.frontend_new_keyframe_coverage, or the reference keyframe_every frames old) becomes
+    # one without being mapped. Off: the
     # synchronous run's keyframes
     backlog_max: int = 64  # deferred frames kept (keyframe_every apart, thinned to span the run when full) for
     # SLAM.refine / catch_up to map after the run; 0: none. Memory: one frame's colour, depth and labels each

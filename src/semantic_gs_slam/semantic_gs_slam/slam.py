@@ -345,7 +345,9 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking):
         new_reference = False  # the front end takes this frame as its reference without mapping it now
         if (due or needed) and not unmapped and idx > 0 and self._mapping_busy():
             # mapping.defer_keyframes: the next frame is due instead; a reference the front end needs is taken
-            self._kf_due, due, new_reference, needed = True, False, needed, False
+            # (or one keyframe_every frames old: a stale reference makes the front end drift)
+            stale = keyframe_fe and idx - self._fe_ref_idx >= self.cfg.mapping.keyframe_every
+            self._kf_due, due, new_reference, needed = True, False, needed or stale, False
             self.deferred_keyframes += 1
             if keyframe_fe and self._keeps(idx):
                 rgb_t, depth_t, sem_t = self._device_frame(host)
