@@ -16,7 +16,6 @@ from semantic_gs_slam.io.datasets import load_dataset
 from semantic_gs_slam.slam import SLAM
 
 
-
 def _shared_sequence() -> str:
     """The shared sequence in the nearest folder above this file that has ``shared/data``, or ""."""
     here = os.path.dirname(os.path.abspath(__file__))
