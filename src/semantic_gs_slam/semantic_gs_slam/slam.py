@@ -95,6 +95,7 @@ class FrameLog:
     loop: str = ""  # keyframes: what loop detection found ("" = not checked; see SLAM._close_loop)
     # tracking.frontend "keyframe" adds the pose sources lost (not trusted: the previous pose, not mapped),
     # relocalised and confirming (trusted, not mapped until tracking.relocalise_confirm frames in a row) and recovered
+    # (with either front end too while a start on a saved map is not confirmed: SLAM.from_map)
     track_coverage: float = float("nan")  # "keyframe" front end: share of the frame's points on the reference
     map_queue: str = "inline"  # inline (mapped in add_frame) | queued (SlamConfig.threaded; added, pruned, map_loss
     # and map_s are filled in when the mapping thread has run it) | dropped (the queue stayed full: not mapped) |
