@@ -22,7 +22,7 @@ K = default_intrinsics(128, 72)
 
 
 def _cfg() -> SlamConfig:
-    return SlamConfig(intrinsics=K, threads=1, mapping=MappingConfig(first_frame_iters=20, iters=5),
+    return SlamConfig(intrinsics=K, threads=1, mapping=MappingConfig(first_frame_iters=10, iters=3),
                       loop=LoopConfig(enabled=False))
 
 
