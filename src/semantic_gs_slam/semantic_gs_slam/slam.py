@@ -494,30 +494,34 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
     def _plane_depth_on(self) -> bool:
         return self.cfg.plane_depth and self.map.has_normals
 
-    def _render(self, g: Gaussians, w2c: Tensor, plane: bool = True) -> RenderOutput:
-        """Render ``g``; with ``plane`` and ``plane_depth`` the depth output blends each Gaussian's surface
-        plane (:func:`~semantic_gs_slam.tracking.tracker.plane_depth_features`) instead of its centre depth."""
+    def _render(self, g: Gaussians, w2c: Tensor, plane: bool = True, k: Intrinsics | None = None) -> RenderOutput:
+        """Render ``g`` with camera ``k`` (default: the engine's); with ``plane`` and ``plane_depth`` the depth output
+        blends each Gaussian's surface plane (:func:`~semantic_gs_slam.tracking.tracker.plane_depth_features`)
+        instead of its centre depth."""
+        k = self.k if k is None else k
         if not (plane and self._plane_depth_on()):
-            return self.backend(g, w2c, self.k, self.cfg.renderer)
+            return self.backend(g, w2c, k, self.cfg.renderer)
         means_c = g.means @ w2c[:3, :3].T + w2c[:3, 3]
-        pf = plane_depth_features(means_c, self.map.normals.to(means_c) @ w2c[:3, :3].T, self.k)
+        pf = plane_depth_features(means_c, self.map.normals.to(means_c) @ w2c[:3, :3].T, k)
         c = 0 if g.semantic is None else g.semantic.shape[1]
         feats = pf if g.semantic is None else torch.cat([g.semantic, pf], -1)
-        out = self.backend(Gaussians(g.means, g.quats, g.log_scales, g.logit_opacities, g.rgb, feats), w2c, self.k,
+        out = self.backend(Gaussians(g.means, g.quats, g.log_scales, g.logit_opacities, g.rgb, feats), w2c, k,
                            self.cfg.renderer)
         depth = plane_depth_image(out.semantic[..., c:])  # sum w_i z_i(u, v), like the centre-depth channel
         return replace(out, depth=depth, semantic=out.semantic[..., :c] if c else None)
 
-    def render_view(self, c2w: np.ndarray, scale_shrink: float = 1.0, semantic: bool = True) -> RenderOutput:
+    def render_view(self, c2w: np.ndarray, scale_shrink: float = 1.0, semantic: bool = True,
+                    k: Intrinsics | None = None) -> RenderOutput:
         """Render the map at a camera-to-world pose (gradients off); ``scale_shrink`` multiplies all radii;
-        ``semantic=False`` skips the class columns (cheaper: tracking and densification do not need them)."""
+        ``semantic=False`` skips the class columns (cheaper: tracking and densification do not need them); ``k``:
+        the camera (default: the engine's)."""
         w2c = torch.as_tensor(np.linalg.inv(c2w), dtype=torch.float32, device=self.device)
         with torch.no_grad():
             g = self.map.gaussians()
             ls = g.log_scales.detach() + math.log(scale_shrink)
             g = Gaussians(g.means.detach(), g.quats.detach(), ls, g.logit_opacities.detach(), g.rgb.detach(),
                           None if g.semantic is None or not semantic else g.semantic.detach())
-            return self._render(g, w2c)
+            return self._render(g, w2c, k=k)
 
     # ------------------------------------------------------------------ mapping (the steps: mapping/, loop/)
     def _map_keyframe(self, idx: int, rgb: Tensor, depth: Tensor, sem: Tensor | None) -> tuple[int, int, float]:

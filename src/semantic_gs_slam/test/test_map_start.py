@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import logging
 import os
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -120,3 +121,19 @@ def test_bad_saved_maps_are_typed_errors(saved, tmp_path):
     assert len(SLAM.from_map(str(tmp_path / "noposes"), _cfg(), views=[poses[0]]).start_views) == 1
     with pytest.raises(FrameError, match="views\\[0\\]"):
         SLAM.from_map(out, _cfg(), views=[np.ones((4, 4))])
+
+
+def test_a_wide_camera_is_relocalised_on_subsampled_images_and_refined_at_full_size(saved, monkeypatch):
+    """A 256x144 camera on the map a 128x72 one saved (the camera may change), relocalised at 128x72."""
+    from semantic_gs_slam.tracking import map_start
+
+    out, first, poses, ren = saved
+    monkeypatch.setattr(map_start, "MAX_START_WIDTH", 128)  # every 2nd pixel of every 2nd row
+    wide = default_intrinsics(256, 144)
+    eng = SLAM.from_map(out, replace(_cfg(), intrinsics=wide))
+    assert eng._ms_step == 2 and (eng._ms_k.width, eng._ms_k.height) == (128, 72)
+    for n, i in enumerate((3, 4)):
+        rgb, depth, sem = ren.render(poses[i], wide)
+        eng.add_frame(rgb, depth, sem, float(n))
+    assert [lg.pose_source for lg in eng.logs] == ["relocalised", "recovered"]
+    assert all(pose_error(p, poses[i])[0] < 0.02 for p, i in zip(eng.poses, (3, 4), strict=True))

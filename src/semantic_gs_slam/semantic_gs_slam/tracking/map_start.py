@@ -4,9 +4,11 @@ A saved map (``params.npz``) keeps the Gaussians and the poses it was seen from 
 poses, else every frame's), but no images. The engine renders the map's depth and colour at those poses once, on the
 first frame, and makes each render a reference model of the front end (:func:`~semantic_gs_slam.tracking.frontend.
 build_reference`). Until a frame is relocalised against them its pose is not trusted: it keeps the prior pose (where
-the saved run ended), is reported ``lost`` and is not mapped. A frame is relocalised like a lost frame of the keyframe
+the saved run ended), is reported ``lost`` and is not mapped. The first frame, then every
+``tracking.relocalise_every``-th, is relocalised like a lost frame of the keyframe
 front end (:func:`~semantic_gs_slam.tracking.frontend.relocalise`) against the renders ranked best by a thumbnail of
-depth and intensity, plus the one nearest the prior; the relocalised pose must then be tracked against the map
+depth and intensity, plus the one nearest the prior, on images at most ``MAX_START_WIDTH`` wide; the pose is refined
+by the render front end's ICP against the map at full size, and must then be tracked against the map
 (``tracking.frontend`` "render"'s ICP) on ``tracking.relocalise_confirm`` frames in a row, the relocalised one first,
 before mapping starts (pose sources ``relocalised``, ``confirming``, ``recovered``). A confirming frame that fails
 starts the relocalisation over. From then on the engine runs as usual, in the saved map's frame.
@@ -15,10 +17,12 @@ starts the relocalisation over. From then on the engine runs as usual, in the sa
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, replace
 
 import numpy as np
 
+from semantic_gs_slam.config import Intrinsics
 from semantic_gs_slam.tracking.frontend import (
     ReferenceModel,
     RelocalisationError,
@@ -33,6 +37,9 @@ log = logging.getLogger("semantic_gs_slam")
 #: metres; the front end's ``sigma_geo`` against the map's renders (its default, 1 cm, is a sensor's depth against
 #: another's): a rendered surface is blurrier (RMS point-to-plane residual of a true pose on the kitchen map: 1.6 cm)
 MAP_SIGMA_GEO = 0.015
+#: relocalisation works on images at most this wide: the engine's, subsampled by a whole factor (a 1200x680 stream:
+#: every 4th pixel of every 4th row), so the renders and the guesses cost the same at any camera size
+MAX_START_WIDTH = 320
 #: at most this many saved views are rendered as references (evenly spread over the saved ones): the start's cost
 #: (one render each, on the first frame) stays bounded on a long map
 MAX_START_VIEWS = 64
@@ -62,6 +69,11 @@ class MapStart:
         self._ms_fe = replace(self._fe_cfg, sigma_geo=MAP_SIGMA_GEO)  # the front end's settings against the renders
         self._ms_state = "relocalising"  # relocalising | confirming | done
         self._ms_confirmed = 0
+        self._ms_lost = 0  # frames not relocalised since the last try began (relocalise_every)
+        f = max(1, math.ceil(self.k.width / MAX_START_WIDTH))
+        self._ms_step = f  # the working camera takes every f-th pixel of every f-th row
+        self._ms_k = self.k if f == 1 else Intrinsics(-(-self.k.width // f), -(-self.k.height // f), self.k.fx / f,
+                                                      self.k.fy / f, self.k.cx / f, self.k.cy / f)
 
     @property
     def localised(self) -> bool:
@@ -75,7 +87,7 @@ class MapStart:
         if self._ms_refs is None:
             refs = []
             for i, c2w in enumerate(self.start_views):
-                out = self.render_view(c2w, semantic=False)
+                out = self.render_view(c2w, semantic=False, k=self._ms_k)
                 sil = out.silhouette
                 d = (out.depth / sil.clamp_min(1e-6)) * (sil > self.cfg.tracking.min_silhouette)
                 depth = d.cpu().numpy().astype(np.float64)
@@ -83,7 +95,7 @@ class MapStart:
                 rgb = rgb * (depth > 0)[..., None]
                 if (depth > 0).mean() < 0.05:  # the map hardly covers this view (pruned, or a pose off the map)
                     continue
-                model = build_reference(depth, c2w, self.k, self._ms_fe, rgb=rgb, keyframe_id=i)
+                model = build_reference(depth, c2w, self._ms_k, self._ms_fe, rgb=rgb, keyframe_id=i)
                 refs.append(MapStartView(c2w, model, thumbnail(depth, rgb)))
             self._ms_refs = refs
             log.info("start on a saved map: %d of its %d views rendered as references", len(refs),
@@ -114,11 +126,17 @@ class MapStart:
                 return c2w, residual, inliers, False, "confirming", float("nan")
             log.warning("frame %d: the pose relocalised in the saved map did not track; relocalising again", idx)
             self._ms_state = "relocalising"
+            self._ms_lost = 0
+        self._ms_lost += 1
+        if (self._ms_lost - 1) % tc.relocalise_every:  # between tries: lost at once
+            return self._ms_prior.copy(), float("nan"), 0, True, "lost", float("nan")
         refs = self._ms_references()
         if not refs:
             log.warning("frame %d: the saved map renders nothing at its saved views; cannot relocalise", idx)
             return self._ms_prior.copy(), float("nan"), 0, True, "lost", float("nan")
-        live = prepare_live(depth, self.k, self._ms_fe, rgb)
+        f = self._ms_step
+        depth, rgb = np.ascontiguousarray(depth[::f, ::f]), np.ascontiguousarray(rgb[::f, ::f])
+        live = prepare_live(depth, self._ms_k, self._ms_fe, rgb)
         n = max(3, tc.relocalise_candidates)
         th = thumbnail(depth, rgb)
         ranked = sorted(range(len(refs)), key=lambda i: thumbnail_distance(th, refs[i].thumb))
