@@ -293,9 +293,12 @@ class SlamServer(Node):
             session.cancel()
         done_before = cfg.frames_before
         start_map = str(self.get_parameter("start_map").value)
-        what = f"resuming after frame {done_before}" if resume_state else \
-            f"continuing the saved map {start_map}: mapping starts once a frame is relocalised in it" \
-            if start_map and engine is not None else "fresh start"
+        if resume_state:
+            what = f"resuming after frame {done_before}"
+        elif start_map and engine is not None:
+            what = f"continuing the saved map {start_map}: mapping starts once a frame is relocalised in it"
+        else:
+            what = "fresh start"
         self._goal_id = goal_key(goal_handle).hex()
         self._start_pub.publish(String(data=json.dumps({"goal": self._goal_id, "frames_done": done_before,
                                                         "dataset": goal.dataset_name})))
