@@ -2,14 +2,15 @@
 
 A saved map (``params.npz``) keeps the Gaussians and the poses it was seen from (``view_c2w``, else the keyframes'
 poses, else every frame's), but no images. The engine renders the map's depth and colour at those poses once, on the
-first frame, and makes each render a reference model of the front end (:func:`~semantic_gs_slam.tracking.frontend.
-build_reference`). Until a frame is relocalised against them its pose is not trusted: it keeps the prior pose (where
-the saved run ended), is reported ``lost`` and is not mapped. The first frame, then every
-``tracking.relocalise_every``-th, is relocalised like a lost frame of the keyframe
-front end (:func:`~semantic_gs_slam.tracking.frontend.relocalise`) against the renders ranked best by a thumbnail of
-depth and intensity, plus the one nearest the prior, on images at most ``MAX_START_WIDTH`` wide; the pose is refined
-by the render front end's ICP against the map at full size, and must then be tracked against the map
-(``tracking.frontend`` "render"'s ICP) on ``tracking.relocalise_confirm`` frames in a row, the relocalised one first,
+first frame, at most ``MAX_START_WIDTH`` wide, and makes the renders it tries reference models of the front end
+(:func:`~semantic_gs_slam.tracking.frontend.build_reference`).
+
+Until a frame is relocalised against them, its pose is not trusted: it keeps the prior pose (where the saved run
+ended), is reported ``lost`` and is not mapped. The first frame, then every ``tracking.relocalise_every``-th, is
+relocalised like a lost frame of the keyframe front end (:func:`~semantic_gs_slam.tracking.frontend.relocalise`)
+against the renders ranked best by a thumbnail of depth and intensity, plus the one nearest the prior, on images at
+most ``MAX_START_WIDTH`` wide. The pose is refined by the render front end's ICP against the map at full size, and
+must then track against the map on ``tracking.relocalise_confirm`` frames in a row, the relocalised one first,
 before mapping starts (pose sources ``relocalised``, ``confirming``, ``recovered``). A confirming frame that fails
 starts the relocalisation over. From then on the engine runs as usual, in the saved map's frame.
 """
@@ -50,8 +51,10 @@ class MapStartView:
     """A view of the saved map rendered at one of its saved poses (caller's thread only)."""
 
     c2w: np.ndarray  # [4, 4] float64
-    model: ReferenceModel
+    depth: np.ndarray  # [h, w] float32 metres (0: the map is not opaque there), the working camera's size
+    rgb: np.ndarray  # [h, w, 3] float32 in [0, 1]
     thumb: np.ndarray  # [2, 15, 20] depth (m) and intensity (keyframe_tracking.thumbnail)
+    model: ReferenceModel | None = None  # built when first tried (a 320x240 model is ~7 MB: not one per view)
 
 
 class MapStart:
@@ -86,7 +89,7 @@ class MapStart:
         least ``tracking.min_silhouette``, and colour."""
         if self._ms_refs is None:
             refs = []
-            for i, c2w in enumerate(self.start_views):
+            for c2w in self.start_views:
                 out = self.render_view(c2w, semantic=False, k=self._ms_k)
                 sil = out.silhouette
                 d = (out.depth / sil.clamp_min(1e-6)) * (sil > self.cfg.tracking.min_silhouette)
@@ -95,12 +98,22 @@ class MapStart:
                 rgb = rgb * (depth > 0)[..., None]
                 if (depth > 0).mean() < 0.05:  # the map hardly covers this view (pruned, or a pose off the map)
                     continue
-                model = build_reference(depth, c2w, self._ms_k, self._ms_fe, rgb=rgb, keyframe_id=i)
-                refs.append(MapStartView(c2w, model, thumbnail(depth, rgb)))
+                refs.append(MapStartView(c2w, depth.astype(np.float32), rgb.astype(np.float32), thumbnail(depth, rgb)))
             self._ms_refs = refs
             log.info("start on a saved map: %d of its %d views rendered as references", len(refs),
                      len(self.start_views))
         return self._ms_refs
+
+    def _ms_model(self, i: int) -> ReferenceModel:
+        """The reference model of render ``i`` (built once; at most 8 kept)."""
+        v = self._ms_refs[i]
+        if v.model is None:
+            built = [r for r in self._ms_refs if r.model is not None]
+            if len(built) >= 8:
+                built[0].model = None
+            v.model = build_reference(v.depth.astype(np.float64), v.c2w, self._ms_k, self._ms_fe,
+                                      rgb=v.rgb.astype(np.float64), keyframe_id=i)
+        return v.model
 
     def _ms_track(self, idx: int, rgb_t, depth_t, rgb: np.ndarray, depth: np.ndarray
                   ) -> tuple[np.ndarray, float, int, bool, str, float]:
@@ -143,7 +156,7 @@ class MapStart:
         near = min(range(len(refs)), key=lambda i: float(np.linalg.norm(refs[i].c2w[:3, 3] - self._ms_prior[:3, 3])))
         cands = ranked[:n] + ([near] if near not in ranked[:n] else [])
         try:
-            r = relocalise(live, [refs[i].model for i in cands], self._ms_fe, extra_guesses=[self._ms_prior],
+            r = relocalise(live, [self._ms_model(i) for i in cands], self._ms_fe, extra_guesses=[self._ms_prior],
                            angles_deg=(10.0, 20.0), shifts_m=(0.1, 0.25))
         except RelocalisationError as exc:
             log.warning("frame %d: not relocalised in the saved map yet (%s); not mapped", idx, exc)
