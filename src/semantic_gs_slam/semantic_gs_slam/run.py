@@ -5,6 +5,8 @@ Usage::
     python -m semantic_gs_slam.run --dataset /tmp/home --out /tmp/home_map [--frames 60] [--eval]
     python -m semantic_gs_slam.run --dataset /tmp/home --out /tmp/home_map --checkpoint-every 10
     python -m semantic_gs_slam.run --dataset /tmp/home --out /tmp/home_map --resume   # after a crash
+    python -m semantic_gs_slam.run --dataset /tmp/home --start 30 --out /tmp/home_map2 --start-map /tmp/home_map
+        # continue a saved map in its frame (the first frames are relocalised in it)
     python -m semantic_gs_slam.run --dataset /tmp/home --out /tmp/home_map --device cuda --backend gsplat
     python -m semantic_gs_slam.run --dataset ../shared/data/7scenes-redkitchen-0-499 --out /tmp/kitchen \
         --size 320x240 --stride 2 --frames 120 --labels auto --eval   # a real camera (7-Scenes)
@@ -205,6 +207,9 @@ def main(argv: list[str] | None = None) -> int:
                          "(faster, fewer Gaussians labelled)")
     ap.add_argument("--checkpoint-every", type=int, default=0, help="checkpoint into <out>/checkpoint every N frames")
     ap.add_argument("--resume", action="store_true", help="continue from <out>/checkpoint")
+    ap.add_argument("--start-map", metavar="DIR", default="",
+                    help="continue the saved map in DIR (params.npz, semantic.json) in its frame: frames are mapped "
+                         "once one is relocalised in it (SLAM.from_map); the grown map is written to --out")
     ap.add_argument("--config", help="JSON file of config overrides, e.g. {\"mapping\": {\"iters\": 20}}")
     ap.add_argument("--keyframe-every", type=int, default=0)
     ap.add_argument("--mapping-iters", type=int)
@@ -230,6 +235,8 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--refine-poses needs --refine-iters N (N > 0): it says what the refinement also optimises")
     if args.labels_every < 1:
         ap.error("--labels-every must be >= 1")
+    if args.start_map and args.resume:
+        ap.error("--start-map and --resume exclude each other: a checkpoint already holds the map it started on")
     try:
         ds = load_dataset(args.dataset, args.layout, size=parse_size(args.size) if args.size else None,
                           colour_calib=args.colour_calib, **camera_kwargs(args))
@@ -242,6 +249,10 @@ def main(argv: list[str] | None = None) -> int:
         if args.resume:
             eng = SLAM.resume(ckpt)
             print(f"resumed from {ckpt} at frame {len(eng.poses)}", file=sys.stderr)
+        elif args.start_map:
+            eng = SLAM.from_map(args.start_map, cfg, ds.classes)
+            print(f"continuing the saved map {args.start_map} ({len(eng.map)} Gaussians, {len(eng.start_views)} "
+                  "views): frames are mapped once one is relocalised in it", file=sys.stderr)
         else:
             eng = SLAM(cfg, ds.classes)
         stage.reserve_ids(eng.classes)  # after a resume: new instances must not reuse the map's ids
@@ -281,7 +292,9 @@ def main(argv: list[str] | None = None) -> int:
                           f"gaussians {lg.n_gaussians:7d} (+{lg.added} -{lg.pruned}) "
                           f"icp {lg.track_residual_m * 1000:5.2f} mm "
                           f"loss {lg.map_loss:6.4f} track {lg.track_s:5.2f} s map {lg.map_s:5.2f} s{err}"
-                          f"{' TRACKING LOST' if lg.tracking_failed else ''}", file=sys.stderr, flush=True)
+                          f"{' TRACKING LOST' if lg.tracking_failed else ''}"
+                          f"{' (not relocalised in the saved map yet)' if not eng.localised else ''}",
+                          file=sys.stderr, flush=True)
             wall = time.perf_counter() - t0
             t_drain = time.perf_counter()
             eng.finish(timeout=600.0)  # SlamConfig.threaded: the mapping thread's queue (inline: nothing to wait for)

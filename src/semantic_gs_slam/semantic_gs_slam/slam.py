@@ -37,13 +37,16 @@ from semantic_gs_slam.mapping.gaussian_map import (
     export_ply,
     load_params,
     load_semantic_json,
+    map_views,
     save_params,
     save_semantic_json,
+    trajectory_from_params,
 )
 from semantic_gs_slam.mapping.steps import Keyframe, MappingSteps
 from semantic_gs_slam.mapping.worker import MappingWorker
 from semantic_gs_slam.render import Gaussians, RenderOutput, select_backend
 from semantic_gs_slam.tracking.keyframe_tracking import KeyframeTracking
+from semantic_gs_slam.tracking.map_start import MapStart
 from semantic_gs_slam.tracking.tracker import (
     IcpGraphs,
     icp,
@@ -92,18 +95,20 @@ class FrameLog:
     loop: str = ""  # keyframes: what loop detection found ("" = not checked; see SLAM._close_loop)
     # tracking.frontend "keyframe" adds the pose sources lost (not trusted: the previous pose, not mapped),
     # relocalised and confirming (trusted, not mapped until tracking.relocalise_confirm frames in a row) and recovered
+    # (with either front end too while a start on a saved map is not confirmed: SLAM.from_map)
     track_coverage: float = float("nan")  # "keyframe" front end: share of the frame's points on the reference
     map_queue: str = "inline"  # inline (mapped in add_frame) | queued (SlamConfig.threaded; added, pruned, map_loss
     # and map_s are filled in when the mapping thread has run it) | dropped (the queue stayed full: not mapped) |
     # none (nothing to map)
 
 
-class SLAM(MappingSteps, LoopClosing, KeyframeTracking):
+class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
     """Semantic Gaussian-splatting RGB-D SLAM, fed frame by frame.
 
     The map frame is the first frame's pose: ``initial_c2w`` if given, else the ``odom_c2w`` passed
     with the first frame (so a robot's map is in its odometry frame), else the ``gt_c2w`` passed with
-    the first frame, else the identity.
+    the first frame, else the identity. An engine started on a saved map (:meth:`from_map`) keeps that
+    map's frame instead: its first frames are relocalised in the map.
     """
 
     def __init__(self, config: SlamConfig, classes: dict[int, str] | None = None,
@@ -153,6 +158,8 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking):
         self._lost_at: int | None = None
         self._worker: MappingWorker | None = None
         self._fe_init()
+        self.start_views: list[np.ndarray] = []  # from_map: the saved map's views, relocalised against, kept by save()
+        self._ms_state = "done"  # from_map: relocalising | confirming | done (tracking/map_start.py)
 
     def __getstate__(self) -> dict:
         """Copies (copy.deepcopy, pickle) take the engine's state without its lock and mapping thread."""
@@ -311,19 +318,28 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking):
         residual, inliers, failed, source = float("nan"), 0, False, "tracking"
         coverage = float("nan")
         self._agreement = float("nan")
-        if idx == 0:
+        fe_tracked = False  # tracked by the keyframe front end (against a keyframe the back end may move)
+        if self._ms_state != "done":  # started on a saved map and not relocalised in it yet (tracking/map_start.py)
+            if rgb_t is None:
+                rgb_t, depth_t, sem_t = self._device_frame(host)
+            c2w, residual, inliers, failed, source, coverage = self._ms_track(
+                idx, rgb_t, depth_t,
+                host[0].astype(np.float64) if keyframe_fe else rgb_t.cpu().numpy().astype(np.float64),
+                host[1].astype(np.float64) if keyframe_fe else depth_t.cpu().numpy().astype(np.float64))
+        elif idx == 0:
             source = "first"
             c2w = next((p for p in (self.initial_c2w, odom, gt) if p is not None), np.eye(4))
         elif self.cfg.tracking.use_gt_pose and gt is not None:
             c2w, source = gt, "ground_truth"
         elif keyframe_fe and self._fe_views:
             c2w, residual, inliers, failed, source, coverage = self._track_keyframe(idx, rgb_np, depth_np)
+            fe_tracked = True
         else:
             if rgb_t is None:  # the keyframe front end before its first reference (e.g. use_gt_pose on frame 0)
                 rgb_t, depth_t, sem_t = self._device_frame(host)
             c2w, residual, inliers, failed, source = self._track(rgb_t, depth_t, self.odometry_guess(odom))
         with self._poses_lock:
-            if source != "lost" and keyframe_fe and idx > 0:  # the mapping thread may have moved the reference's
+            if source != "lost" and fe_tracked:  # the mapping thread may have moved the reference's
                 # keyframe (loop closure) while this frame was tracked against its old pose: move the frame with it
                 ref_idx, ref_c2w = self._fe_used
                 if not np.array_equal(self.poses[ref_idx], ref_c2w):
@@ -512,12 +528,14 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking):
                 return est @ (np.linalg.inv(prev_odom) @ odom)
         return None
 
-    def _track(self, rgb: Tensor, depth: Tensor, odom_guess: np.ndarray | None = None
-               ) -> tuple[np.ndarray, float, int, bool, str]:
-        prev = self.poses[-1]
+    def _track(self, rgb: Tensor, depth: Tensor, odom_guess: np.ndarray | None = None,
+               guess: np.ndarray | None = None) -> tuple[np.ndarray, float, int, bool, str]:
+        """ICP against the map rendered at ``odom_guess`` (tight prior, see add_frame), else at ``guess``, else at
+        the constant-velocity guess."""
+        prev = self.poses[-1] if self.poses else guess  # no pose yet: a start on a saved map (map_start.py)
         if odom_guess is not None:
             guess = odom_guess
-        else:
+        elif guess is None:
             guess = prev @ (np.linalg.inv(self.poses[-2]) @ prev) if len(self.poses) >= 2 else prev
         g = torch.as_tensor(guess, device=self.device)
         tc = self.cfg.tracking
@@ -575,30 +593,34 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking):
     def _plane_depth_on(self) -> bool:
         return self.cfg.plane_depth and self.map.has_normals
 
-    def _render(self, g: Gaussians, w2c: Tensor, plane: bool = True) -> RenderOutput:
-        """Render ``g``; with ``plane`` and ``plane_depth`` the depth output blends each Gaussian's surface
-        plane (:func:`~semantic_gs_slam.tracking.tracker.plane_depth_features`) instead of its centre depth."""
+    def _render(self, g: Gaussians, w2c: Tensor, plane: bool = True, k: Intrinsics | None = None) -> RenderOutput:
+        """Render ``g`` with camera ``k`` (default: the engine's); with ``plane`` and ``plane_depth`` the depth output
+        blends each Gaussian's surface plane (:func:`~semantic_gs_slam.tracking.tracker.plane_depth_features`)
+        instead of its centre depth."""
+        k = self.k if k is None else k
         if not (plane and self._plane_depth_on()):
-            return self.backend(g, w2c, self.k, self.cfg.renderer)
+            return self.backend(g, w2c, k, self.cfg.renderer)
         means_c = g.means @ w2c[:3, :3].T + w2c[:3, 3]
-        pf = plane_depth_features(means_c, self.map.normals.to(means_c) @ w2c[:3, :3].T, self.k)
+        pf = plane_depth_features(means_c, self.map.normals.to(means_c) @ w2c[:3, :3].T, k)
         c = 0 if g.semantic is None else g.semantic.shape[1]
         feats = pf if g.semantic is None else torch.cat([g.semantic, pf], -1)
-        out = self.backend(Gaussians(g.means, g.quats, g.log_scales, g.logit_opacities, g.rgb, feats), w2c, self.k,
+        out = self.backend(Gaussians(g.means, g.quats, g.log_scales, g.logit_opacities, g.rgb, feats), w2c, k,
                            self.cfg.renderer)
         depth = plane_depth_image(out.semantic[..., c:])  # sum w_i z_i(u, v), like the centre-depth channel
         return replace(out, depth=depth, semantic=out.semantic[..., :c] if c else None)
 
-    def render_view(self, c2w: np.ndarray, scale_shrink: float = 1.0, semantic: bool = True) -> RenderOutput:
+    def render_view(self, c2w: np.ndarray, scale_shrink: float = 1.0, semantic: bool = True,
+                    k: Intrinsics | None = None) -> RenderOutput:
         """Render the map at a camera-to-world pose (gradients off); ``scale_shrink`` multiplies all radii;
-        ``semantic=False`` skips the class columns (cheaper: tracking and densification do not need them)."""
+        ``semantic=False`` skips the class columns (cheaper: tracking and densification do not need them); ``k``:
+        the camera (default: the engine's)."""
         w2c = torch.as_tensor(np.linalg.inv(c2w), dtype=torch.float32, device=self.device)
         with torch.no_grad():
             g = self.map.gaussians()
             ls = g.log_scales.detach() + math.log(scale_shrink)
             g = Gaussians(g.means.detach(), g.quats.detach(), ls, g.logit_opacities.detach(), g.rgb.detach(),
                           None if g.semantic is None or not semantic else g.semantic.detach())
-            return self._render(g, w2c)
+            return self._render(g, w2c, k=k)
 
     # ------------------------------------------------------------------ mapping (the steps: mapping/, loop/)
     def _map_keyframe(self, idx: int, rgb: Tensor, depth: Tensor, sem: Tensor | None) -> tuple[int, int, float]:
@@ -620,7 +642,7 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking):
         window = self._window(kf)
         if mc.label_votes:
             self.map.voted_features(mc.min_votes)
-        iters = mc.first_frame_iters if idx == 0 else mc.iters
+        iters = mc.first_frame_iters if idx == 0 and not self.start_views else mc.iters
         loss_v = self.optimise(window, iters)
         pruned = 0
         self._since_prune += 1
@@ -636,13 +658,20 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking):
 
     def save(self, out_dir: str, ply: bool = True) -> dict[str, str]:
         """Write ``params.npz``, ``semantic.json`` (and ``map.ply``) into ``out_dir``; returns the paths.
-        A mapping thread is drained first (:meth:`drain`, 60 s)."""
+        A mapping thread is drained first (:meth:`drain`, 60 s).
+
+        ``params.npz`` keeps this run's trajectory and keyframes, and in ``view_c2w`` the poses the map was seen
+        from (the views of the map this run started on, if any, then this run's keyframes'): what :meth:`from_map`
+        relocalises against."""
         self.drain()
         os.makedirs(out_dir, exist_ok=True)
         paths = {"params": os.path.join(out_dir, "params.npz"), "semantic": os.path.join(out_dir, "semantic.json")}
-        w2c = [np.linalg.inv(p) for p in self.poses]
+        with self._poses_lock:
+            w2c = [np.linalg.inv(p) for p in self.poses]
+            views = list(self.start_views) + [self.poses[kf.index].copy() for kf in self.keyframes]
         gt = [None if g is None else np.linalg.inv(g) for g in self.gt_poses]
-        save_params(paths["params"], self.map, self.k, w2c, gt, [kf.index for kf in self.keyframes], self.timestamps)
+        save_params(paths["params"], self.map, self.k, w2c, gt, [kf.index for kf in self.keyframes], self.timestamps,
+                    views)
         save_semantic_json(paths["semantic"], {i: c for i, c in self.classes.items() if i > 0})
         if ply:
             paths["ply"] = os.path.join(out_dir, "map.ply")
@@ -684,7 +713,8 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking):
         np.savez_compressed(os.path.join(ckpt_dir, "state.npz"), **state)
         meta = {"config": self.given_cfg.to_dict(), "classes": {str(k): v for k, v in self.classes.items()},
                 "frames": len(self.poses), "initial_c2w": None if self.initial_c2w is None else
-                self.initial_c2w.tolist()}
+                self.initial_c2w.tolist(), "start_views": len(self.start_views),
+                "start_pending": None if self.localised else self._ms_prior.tolist()}
         with open(os.path.join(ckpt_dir, "checkpoint.json"), "w") as fh:
             json.dump(meta, fh)
         old = final + ".old"
@@ -745,6 +775,68 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking):
             eng.edges = [Edge(int(ij[0]), int(ij[1]), rel, float(sg[0]), float(sg[1]), "loop" if lp else "sequential")
                          for ij, rel, sg, lp in zip(st["edge_ij"], st["edge_rel"], st["edge_sigma"], st["edge_loop"],
                                                     strict=True)]
+        n_start = int(meta.get("start_views", 0))  # started on a saved map: its views lead params.npz's view_c2w
+        if n_start:
+            views = map_views(arr)[:n_start]
+            if meta.get("start_pending") is not None:  # not relocalised in it yet: relocalise again
+                eng._ms_init(views, np.asarray(meta["start_pending"], np.float64))
+            else:
+                eng.start_views = views
+        return eng
+
+    @classmethod
+    def from_map(cls, map_dir: str, config: SlamConfig, classes: dict[int, str] | None = None,
+                 views: list[np.ndarray] | None = None, prior_c2w: np.ndarray | None = None) -> SLAM:
+        """An engine that continues a saved map (:meth:`save`'s ``params.npz`` + ``semantic.json``, or a SplaTAM /
+        SGS-SLAM one) in that map's frame, e.g. after a reboot, so positions in it (objects, a robot's ``map``
+        frame) stay valid.
+
+        The first frames are relocalised in the map (tracking/map_start.py): until a frame is relocalised against
+        the map rendered at its saved views and confirmed on ``tracking.relocalise_confirm`` frames in a row, frames
+        keep ``prior_c2w``, are logged ``lost`` (``tracking_failed``) and are not mapped, and :attr:`localised` is
+        False; a view the map never saw stays lost (a warning per frame). Then every frame tracks and maps into the
+        same Gaussians. ``gt_c2w`` / ``odom_c2w`` given with the first frame do not fix the frame here.
+
+        Args:
+            map_dir: folder holding ``params.npz`` (``semantic.json`` optional).
+            config: the engine's settings (the camera may differ from the saved run's).
+            classes: class names; the saved ``semantic.json``'s are added to them.
+            views: [4, 4] camera-to-world poses to relocalise against (e.g. from a trajectory file); default: the
+                map's own (:func:`~semantic_gs_slam.mapping.gaussian_map.map_views`).
+            prior_c2w: [4, 4] the pose kept until relocalised (and one more guess); default: the saved run's last
+                pose, else the first view.
+
+        Raises:
+            MapFormatError: no such folder, a missing or unreadable ``params.npz`` or ``semantic.json``, rows that do
+                not agree, no poses to relocalise against.
+            FrameError: ``views`` or ``prior_c2w`` are not rigid [4, 4] poses.
+        """
+        if not os.path.isdir(map_dir):
+            raise MapFormatError(f"no saved map at {map_dir!r} (not a folder)")
+        arr = load_params(os.path.join(map_dir, "params.npz"))
+        sp = os.path.join(map_dir, "semantic.json")
+        names = load_semantic_json(sp) if os.path.isfile(sp) else {}
+        if views is None:
+            views = map_views(arr)
+        else:
+            views = [check_pose(v, f"views[{i}]") for i, v in enumerate(views)]
+            if not views:
+                raise MapFormatError("views is empty: nothing to relocalise against")
+        if prior_c2w is not None:
+            prior = check_pose(prior_c2w, "prior_c2w")
+        else:
+            traj = trajectory_from_params(arr) if "cam_trans" in arr else []
+            prior = traj[-1] if traj and np.all(np.isfinite(traj[-1])) else views[0]
+        eng = cls(config, {**names, **(classes or {})})
+        try:
+            eng.map = GaussianMap.from_arrays(arr, eng.device)
+        except (ValueError, TypeError) as exc:
+            raise MapFormatError(f"{map_dir}/params.npz: malformed map arrays ({exc})") from exc
+        # the saved Gaussians belong to no frame of this run: a loop closure's corrections (anchored at this run's
+        # first keyframe, which stays put) leave them where they are
+        eng.map.timestep = torch.full_like(eng.map.timestep, -1)
+        eng._ms_init(views, prior)
+        log.info("started on the saved map %s: %d Gaussians, %d views", map_dir, len(eng.map), len(eng.start_views))
         return eng
 
     @staticmethod
@@ -757,8 +849,10 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking):
 
     def stats(self) -> dict:
         """Summary for logs: frames, keyframes, Gaussians, lost frames, lost -> recovered spans ([first lost frame,
-        frame mapped again]), frames whose map update the full queue dropped (threaded), last frame log."""
+        frame mapped again]), frames whose map update the full queue dropped (threaded), whether the frames are in
+        the map's frame (:attr:`localised`: False while a start on a saved map is not relocalised), last frame log."""
         return {"frames": len(self.poses), "keyframes": len(self.keyframes), "gaussians": len(self.map),
+                "localised": self.localised,
                 "lost_frames": list(self.lost_frames), "recoveries": [list(r) for r in self.recoveries],
                 "dropped": list(self.dropped_jobs), "deferred_keyframes": self.deferred_keyframes,
                 "backlog": len(self.backlog), "caught_up": self.caught_up,

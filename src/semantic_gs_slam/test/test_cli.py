@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import os
 
+import pytest
+
 from semantic_gs_slam.run import main
 from semantic_gs_slam.slam import SLAM
 
@@ -191,3 +193,21 @@ def test_run_with_the_keyframe_front_end_and_the_mapping_thread(tiny_home, tmp_p
     assert "mapping thread drained in" in cap.err and "lost [], recoveries [], dropped [" in cap.err
     assert "| ATE RMSE (cm, aligned) |" in cap.out
     assert len(SLAM.load_map(out)[0]) > 0
+
+
+def test_start_map_continues_a_saved_map_and_bad_ones_are_clear_errors(tiny_home, tmp_path, capsys):
+    first, second = str(tmp_path / "first"), str(tmp_path / "second")
+    args = ["--dataset", str(tiny_home), "--threads", "1", "--mapping-iters", "3", "--quiet", *_fast(tmp_path)]
+    assert main(args + ["--out", first, "--frames", "4"]) == 0
+    assert main(args + ["--out", second, "--start", "3", "--start-map", first]) == 0
+    assert "continuing the saved map" in capsys.readouterr().err
+    saved, grown = SLAM.load_map(first), SLAM.load_map(second)
+    assert len(grown[0]) > len(saved[0]) and grown[2]["cam_trans"].shape == (1, 3, 7)  # frames 3-9, mapped on
+    # the new file keeps the views it started from and its own keyframes: a later restart relocalises in either
+    assert len(grown[2]["view_c2w"]) > len(saved[2]["view_c2w"])
+    assert main(args + ["--out", second, "--start-map", str(tmp_path / "nowhere")]) == 2
+    assert "error: no saved map at" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as exc:
+        main(args + ["--out", second, "--start-map", first, "--resume"])
+    assert exc.value.code == 2
+    assert "--start-map and --resume exclude each other" in capsys.readouterr().err

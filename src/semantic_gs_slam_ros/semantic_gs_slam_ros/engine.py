@@ -70,6 +70,11 @@ class EngineAdapter:
         return len(self.slam.map)
 
     @property
+    def localised(self) -> bool:
+        """False while a run started on a saved map has not relocalised in it (its frames are not mapped)."""
+        return bool(self.slam.localised)
+
+    @property
     def num_keyframes(self) -> int:
         return len(self.slam.keyframes)
 
@@ -183,7 +188,7 @@ def prepare_renderer(device: str, log: Callable[[str], None]) -> None:
 
 def make_engine(slam_config: str, wait_intrinsics: Callable[[], Any], cfg: Any,
                 classes: dict[int, str] | None = None, resume_dir: str | None = None,
-                overrides: dict[str, Any] | None = None,
+                overrides: dict[str, Any] | None = None, start_map: str = "",
                 labels: tuple[str, str] = ("dataset", ""), labels_every: int = 1, profile: str = "") -> EngineAdapter:
     """Create (or resume) the engine for a run.
 
@@ -192,7 +197,10 @@ def make_engine(slam_config: str, wait_intrinsics: Callable[[], Any], cfg: Any,
         wait_intrinsics: returns (fx, fy, cx, cy, width, height) of the streamed images, or None.
         cfg: the session config (its width/height are the resize target).
         classes: semantic id → class name.
-        resume_dir: checkpoint folder to resume from, or None.
+        resume_dir: checkpoint folder to resume from, or None (it wins over ``start_map``: a checkpoint of a run
+            that started on a saved map holds that map and where the run got to).
+        start_map: folder of a saved map (``params.npz``, ``semantic.json``) to continue in its frame
+            (:meth:`semantic_gs_slam.slam.SLAM.from_map`: frames are mapped once one is relocalised in it), or "".
         overrides: top-level SlamConfig fields that win over the YAML (e.g. ``{"device": "cuda"}``).
         labels: (mode, onnx model path) of the labelling stage (:func:`make_labels`; ``cfg.use_semantic``
             says whether labels are streamed).
@@ -201,7 +209,8 @@ def make_engine(slam_config: str, wait_intrinsics: Callable[[], Any], cfg: Any,
         profile: named SlamConfig overrides under the YAML (:func:`load_slam_config`; "" = none).
 
     Raises:
-        StreamingError: no camera intrinsics, bad settings, unusable checkpoint.
+        StreamingError: no camera intrinsics, bad settings, unusable checkpoint, a ``start_map`` that is not a
+            readable saved map.
     """
     from semantic_gs_slam.errors import ConfigError, SlamError
     from semantic_gs_slam.labels import LabelConfig
@@ -222,9 +231,13 @@ def make_engine(slam_config: str, wait_intrinsics: Callable[[], Any], cfg: Any,
     try:
         if resume_dir and os.path.isdir(resume_dir):
             return EngineAdapter(SLAM.resume(os.path.join(resume_dir, "engine"), config), stage)
+        if start_map:
+            return EngineAdapter(SLAM.from_map(start_map, config, classes), stage)
         return EngineAdapter(SLAM(config, classes), stage)
     except SlamError as exc:
-        raise StreamingError(f"cannot start the SLAM engine: {exc}") from exc
+        what = f"cannot continue the saved map {start_map!r}" if start_map and not (
+            resume_dir and os.path.isdir(resume_dir)) else "cannot start the SLAM engine"
+        raise StreamingError(f"{what}: {exc}") from exc
 
 
 def pose_msg_fields(c2w: list[list[float]]) -> tuple[float, float, float, float, float, float, float]:

@@ -66,6 +66,7 @@ class SlamServer(Node):
         p = self.declare_parameter
         p("work_dir", "")  # "" = DEFAULT_WORK_DIR (the params file cannot spell the home directory)
         p("map_dir", "")
+        p("start_map", "")  # folder of a saved map (params.npz) to continue, relocalised in its frame; "" = a new map
         p("width", 1200)
         p("height", 680)
         p("depth_scale", 1000.0)
@@ -277,6 +278,7 @@ class SlamServer(Node):
                                      overrides={"device": str(self.get_parameter("device").value)},
                                      classes=parse_classes(goal.semantic_classes),
                                      resume_dir=os.path.join(cfg.work_dir, "checkpoint") if resume_state else None,
+                                     start_map=str(self.get_parameter("start_map").value),
                                      labels=(self.get_parameter("labels").value,
                                              self.get_parameter("onnx_model").value),
                                      labels_every=self.get_parameter("labels_every").value,
@@ -295,7 +297,13 @@ class SlamServer(Node):
         if not self._cancels.start(goal_key(goal_handle), session) and goal_handle.is_cancel_requested:
             session.cancel()
         done_before = cfg.frames_before
-        what = f"resuming after frame {done_before}" if resume_state else "fresh start"
+        start_map = str(self.get_parameter("start_map").value)
+        if resume_state:
+            what = f"resuming after frame {done_before}"
+        elif start_map and engine is not None:
+            what = f"continuing the saved map {start_map}: mapping starts once a frame is relocalised in it"
+        else:
+            what = "fresh start"
         self._goal_id = goal_key(goal_handle).hex()
         self._start_pub.publish(String(data=json.dumps({"goal": self._goal_id, "frames_done": done_before,
                                                         "dataset": goal.dataset_name})))

@@ -63,7 +63,8 @@ class SlamEngine(Protocol):
 
     # optional: ``refine(iters, poses, should_stop) -> iterations done`` (Adam steps over all keyframes),
     # ``num_keyframes`` (logged with the refinement) and
-    # ``frame_report() -> (lost, corrected, note)``; the session asks with getattr
+    # ``frame_report() -> (lost, corrected, note)`` and ``localised`` (False while a run started on a saved map
+    # is not relocalised in it); the session asks with getattr
 
 
 @dataclass
@@ -386,7 +387,10 @@ class StreamingSession:
             refused_in_a_row = 0
             report = getattr(self.engine, "frame_report", None)
             lost, corrected, loop = report() if report is not None else (False, False, "")
-            if lost:
+            if lost and not getattr(self.engine, "localised", True):
+                self._log(f"frame {frame.index}: not relocalised in the saved map yet (not mapped; the next frames "
+                          "try again)")
+            elif lost:
                 self._log(f"frame {frame.index}: tracking lost (not mapped; the next frames try again from the "
                           "last good pose)")
             if corrected:

@@ -573,3 +573,53 @@ def test_session_reports_an_engine_failure_whose_map_cannot_be_saved(tmp_path):
     assert not result.success and result.frames_processed == 1 and result.map_path == ""
     assert result.message == ("SLAM failed on frame 1 (RuntimeError: CUDA error: an illegal memory access); the map "
                               "could not be written (ValueError: inconsistent state)"), result.message
+
+
+def test_session_continues_a_saved_map_given_as_start_map_in_its_frame(tmp_path):
+    """The server's ``start_map``: the engine made by make_engine continues the saved map; a first frame the map never
+    saw is reported lost (not mapped), the next ones are relocalised in the map's frame and mapped into it."""
+    from semantic_gs_slam.config import SlamConfig
+    from semantic_gs_slam.geometry import pose_error
+    from semantic_gs_slam.mapping.gaussian_map import load_params
+    from semantic_gs_slam.slam import SLAM
+    from semantic_gs_slam.synthetic.scenes import HomeRenderer, default_intrinsics, trajectory
+    from semantic_gs_slam_ros.engine import make_engine
+    from semantic_gs_slam_ros.errors import StreamingError
+    from semantic_gs_slam_ros.session import SessionConfig, StreamingSession
+
+    k = default_intrinsics(128, 72)
+    cfg = _short_fits(SlamConfig(intrinsics=k, threads=1))
+    poses = trajectory(9, 40.0)
+    r = HomeRenderer(0)
+    first = SLAM(cfg, initial_c2w=poses[0])  # the saved map's frame: the world's
+    for i in range(4):
+        rgb, depth, _ = r.render(poses[i], k)
+        first.add_frame(rgb, depth, None, float(i))
+    saved = str(tmp_path / "saved")
+    first.save(saved, ply=False)
+    n_saved = len(first.map)
+    camera = (k.fx, k.fy, k.cx, k.cy, k.width, k.height)
+    session_cfg = SessionConfig(work_dir=str(tmp_path / "work"), width=0, height=0, checkpoint_every=0)
+    # a bad start_map is a clear error (the goal aborts with it; the server keeps running)
+    (tmp_path / "corrupt").mkdir()
+    (tmp_path / "corrupt" / "params.npz").write_bytes(b"not a zip")
+    for bad, why in ((str(tmp_path / "nowhere"), "not a folder"), (str(tmp_path / "corrupt"), "not a readable .npz")):
+        with pytest.raises(StreamingError, match=f"cannot continue the saved map .*{why}"):
+            make_engine("", lambda: camera, session_cfg, start_map=bad)
+    engine = make_engine("", lambda: camera, session_cfg, start_map=saved, overrides={"threads": 1})
+    engine.slam.cfg.mapping.first_frame_iters, engine.slam.cfg.mapping.iters = 5, 3
+    log: list[str] = []
+    session = StreamingSession(session_cfg, engine, log=log.append)
+    views = [poses[2] @ np.diag([-1.0, 1.0, -1.0, 1.0])] + poses[1:7]  # first the wall behind the camera
+    for i, c2w in enumerate(views):
+        rgb, depth, _ = r.render(c2w, k)
+        session.on_image("depth", float(i), depth.astype(np.float32))
+        session.on_image("rgb", float(i), np.round(rgb * 255).astype(np.uint8))
+    session.data_transfer_done()
+    result = session.run()
+    assert result.success and result.frames_processed == 7, result.message
+    assert any(line.startswith("frame 0: not relocalised in the saved map yet") for line in log), log
+    # relocalisation is tried on the first frame, then on every tracking.relocalise_every-th (3): frame 3
+    assert [lg.pose_source for lg in engine.slam.logs][:5] == ["lost"] * 3 + ["relocalised", "recovered"]
+    assert pose_error(engine.slam.poses[3], poses[3])[0] < 0.02  # in the saved map's frame
+    assert len(load_params(result.map_path)["means3D"]) > n_saved  # the saved map, grown

@@ -347,7 +347,8 @@ class GaussianMap:
 
 
 def save_params(path: str, gmap: GaussianMap, k: Intrinsics, est_w2c: list[np.ndarray],
-                gt_w2c: list[np.ndarray | None], keyframes: list[int], timestamps: list[float] | None = None) -> None:
+                gt_w2c: list[np.ndarray | None], keyframes: list[int], timestamps: list[float] | None = None,
+                views: list[np.ndarray] | None = None) -> None:
     """Write ``params.npz`` with the full SplaTAM / SGS-SLAM key set.
 
     Args:
@@ -359,6 +360,9 @@ def save_params(path: str, gmap: GaussianMap, k: Intrinsics, est_w2c: list[np.nd
         keyframes: keyframe frame indices.
         timestamps: each frame's time stamp (s), stored as ``timestamps`` [T] float64 (an extra key
             SplaTAM's readers ignore), so a trajectory can be matched to another clock's poses.
+        views: camera-to-world poses [4, 4] the map was seen from (its keyframes', and those of the map a run
+            started on), stored as ``view_c2w`` [K, 4, 4] float64 (another extra key): what
+            :meth:`~semantic_gs_slam.slam.SLAM.from_map` relocalises against (:func:`map_views`).
     """
 
     a = gmap.to_arrays()
@@ -378,6 +382,8 @@ def save_params(path: str, gmap: GaussianMap, k: Intrinsics, est_w2c: list[np.nd
         "keyframe_time_indices": np.array(keyframes, np.int64)})
     if timestamps is not None:
         a["timestamps"] = np.asarray(timestamps, np.float64)
+    if views is not None:
+        a["view_c2w"] = np.asarray(views, np.float64).reshape(-1, 4, 4)
     os.makedirs(os.path.dirname(os.path.abspath(path)), exist_ok=True)
     np.savez_compressed(path, **a)
 
@@ -414,6 +420,31 @@ def trajectory_from_params(arrays: dict[str, np.ndarray]) -> list[np.ndarray]:
     w2c[:, :3, :3] = quat_to_rotmat(torch.as_tensor(q)).numpy()
     w2c[:, :3, 3] = t
     return list(np.linalg.inv(w2c))
+
+
+def map_views(arrays: dict[str, np.ndarray]) -> list[np.ndarray]:
+    """The camera-to-world poses [4, 4] a saved map (:func:`load_params`) was seen from: ``view_c2w`` when the file
+    has it, else the keyframes' poses (``keyframe_time_indices`` into the trajectory), else every frame's pose
+    (a SplaTAM / SGS-SLAM file, or ours before ``view_c2w``). Rows that are not finite rigid poses are dropped.
+
+    Raises:
+        MapFormatError: no poses at all, or keys of the wrong shape.
+    """
+    if "view_c2w" in arrays:
+        v = np.asarray(arrays["view_c2w"], np.float64)
+        if v.ndim != 3 or v.shape[1:] != (4, 4):
+            raise MapFormatError(f"'view_c2w' is {list(v.shape)}, expected [K, 4, 4]")
+        views = list(v)
+    else:
+        traj = trajectory_from_params(arrays) if "cam_trans" in arrays else []
+        kf = [int(i) for i in np.asarray(arrays.get("keyframe_time_indices", []), np.int64).reshape(-1)
+              if 0 <= int(i) < len(traj)]
+        views = [traj[i] for i in kf] if kf else traj
+    ok = [v for v in views if np.all(np.isfinite(v)) and abs(np.linalg.det(v[:3, :3]) - 1.0) < 1e-2]
+    if not ok:
+        raise MapFormatError("the map has no camera poses to relocalise against (no 'view_c2w', keyframes or "
+                             "trajectory): pass the views explicitly")
+    return ok
 
 
 def save_semantic_json(path: str, classes: dict[int, str]) -> None:
