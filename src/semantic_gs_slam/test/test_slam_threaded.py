@@ -124,6 +124,7 @@ def test_busy_mapping_defers_keyframes_and_the_next_free_frame_takes_it(views):
     assert [lg.index for lg in eng.logs if lg.keyframe] == [0]
     assert eng.stats()["deferred_keyframes"] == 2  # frames 3 and 4 (the due keyframe waits for a free thread)
     assert eng.keyframe_expected(poses[5])  # the labelling stage is told the next frame is a keyframe
+    assert eng._fe_ref_idx == 3  # the front end renewed its reference, keyframe_every frames old, without mapping
     eng.gate.set()
     eng.drain(120.0)
     _feed_from(eng, frames, 5)
