@@ -94,7 +94,7 @@ class SessionConfig:
         refine_poses: the refinement also optimises the keyframes' poses (``--refine-poses``).
         refine_seconds: the refinement ends after this many seconds at most (0 = no limit; with refine_iters 0,
             it runs for exactly this long). It first maps the frames deferred while the mapping thread was busy
-            (the engine's ``mapping.defer_keyframes``).
+            (the engine's ``mapping.defer_keyframes``), for at most half of this time.
         clean_start: remove frames of an earlier run from work_dir at start.
         frames_before: frames processed by the run this one resumes (checkpoint bookkeeping).
     """
@@ -474,7 +474,9 @@ class StreamingSession:
                 return self._cancelled or time.monotonic() > deadline
 
         try:
-            done = int(refine(total, poses=self.cfg.refine_poses, should_stop=cancelled))
+            half = t0 + seconds / 2  # the deferred frames get at most half of a time budget, the iterations the rest
+            extra = {"backlog_stop": lambda: time.monotonic() > half} if seconds > 0 else {}
+            done = int(refine(total, poses=self.cfg.refine_poses, should_stop=cancelled, **extra))
         except Exception as exc:  # noqa: BLE001  (the map as it is is still written)
             self._log(f"map refinement failed: {exc}; the map is written as it is")
             note = f"map refinement failed ({exc})"

@@ -184,15 +184,17 @@ class MappingSteps:
         """Map the frames deferred during the run (``mapping.defer_keyframes``; :attr:`backlog`): each seeds
         Gaussians where the map lacks them, at its current pose (loop closures included), and becomes a view of
         the refinement. Not keyframes of the pose graph. Spread order (the middle of the run, then the quarters, ...),
-        so a deadline leaves gaps spread out; the backlog is emptied.
+        so a deadline leaves gaps spread out; what a stop leaves stays in the backlog.
 
         Returns:
             The views made, ready for :meth:`_optimise`.
         """
         backlog, self.backlog = self.backlog, []
         views = []
-        for j in spread_order(len(backlog)):
+        order = spread_order(len(backlog))
+        for n, j in enumerate(order):
             if should_stop is not None and should_stop():
+                self.backlog = [backlog[i] for i in sorted(order[n:])]  # kept for a later refinement
                 break
             idx, rgb, depth, sem = backlog[j]
             with self._poses_lock:
@@ -206,8 +208,8 @@ class MappingSteps:
         self.caught_up += len(views)
         return views
 
-    def refine(self, iters: int, poses: bool = False,
-               should_stop: Callable[[], bool] | None = None, backlog: bool = True) -> tuple[float, int]:
+    def refine(self, iters: int, poses: bool = False, should_stop: Callable[[], bool] | None = None,
+               backlog: bool = True, backlog_stop: Callable[[], bool] | None = None) -> tuple[float, int]:
         """Map refinement after the run: ``iters`` Adam steps cycling over all keyframes (and the deferred frames).
 
         Args:
@@ -218,6 +220,8 @@ class MappingSteps:
                 ends the refinement there, and what is done is kept.
             backlog: first map the frames deferred while the mapping thread was busy (:meth:`catch_up`) and
                 refine over them too.
+            backlog_stop: asked before each deferred frame as well (e.g. half of a time budget, so that the
+                iterations get the rest); None: only ``should_stop``.
 
         Returns:
             (the last loss, iterations done); (NaN, 0) when there is nothing to do. With ``poses`` the loss
@@ -226,7 +230,9 @@ class MappingSteps:
         self.drain(600.0)  # a mapping thread (SlamConfig.threaded) finishes first
         if not self.keyframes:
             return float("nan"), 0
-        extra = self.catch_up(should_stop) if backlog else []
+        stop = should_stop if backlog_stop is None else (
+            backlog_stop if should_stop is None else lambda: should_stop() or backlog_stop())
+        extra = self.catch_up(stop) if backlog else []
         views = self.keyframes + sorted(extra, key=lambda v: v.index)
         deltas = None
         if poses:
