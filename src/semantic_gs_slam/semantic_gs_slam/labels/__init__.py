@@ -63,7 +63,7 @@ class LabelConfig:
     # least this share of the box's pixels with depth: an object fills much of its own box, while the box of a larger
     # object (a table, its top a plane) also holds other things under or behind it. Kitchen frames 0-249
     # (docs/detector.md): the named instances filled 0.30-0.76 of their boxes, the table's underside in a 'dining
-    # table' box 0.04-0.10, a chair's leg in a frame-wide 'bench' box 0.09-0.16; 0: off
+    # table' box 0.04-0.10, a chair and the table's leg in a frame-wide 'bench' box 0.09-0.16; 0: off
     onnx_label_space: str = "coco91"  # "coco91" (category ids 1-90, torchvision) or "coco80" (indices 0-79)
     map_ids: str = "class"  # "class": every geometry instance goes to the map as class OBJECT_ID ("object",
     # one class column; the object-query server splits instances in space); "instance": each tracked instance
