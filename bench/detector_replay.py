@@ -16,8 +16,12 @@ each frame's labels vote with :meth:`GaussianMap.vote` for the Gaussians that ex
 ``timestep``), as the run's mapping does; each Gaussian's class is then its votes' majority (``min_votes`` or more
 votes, as :meth:`GaussianMap.voted_features` sets them at keyframes; else the saved class). Not replayed: the
 semantic loss that refines the classes after the last keyframe, and Gaussians that a run with other labels would
-seed differently. ``--check``: replay with the saved run's own settings and print how many Gaussians change class
-(the replay's error against the run it replays).
+seed differently. ``--check``: only print how many Gaussians change class.
+
+``--fills N`` (no map needed): for N frames from ``--start`` (every ``--stride``-th, the dataset's own poses), each
+detection's share of its box's depth pixels that the instance it would name fills (the instance that fills most of
+the box and lies 60 % inside it: what ``LabelConfig.box_min_fill`` judges), printed per class as a range with the
+count at or above ``--box-min-fill``.
 """
 
 from __future__ import annotations
@@ -73,9 +77,37 @@ def replay(map_dir: str, dataset: str, size: tuple[int, int], start: int, stride
     return out, classes, counts
 
 
+def box_fills(dataset: str, size: tuple[int, int], start: int, stride: int, frames: int) -> dict[str, list[float]]:
+    """Class -> the box fill of each of its detections that names an instance (see ``--fills``)."""
+    from semantic_gs_slam.labels.geometry import FIRST_INSTANCE_ID
+    from semantic_gs_slam.labels.onnx_model import COCO_BASE, COCO_NAMES
+
+    ds = load_dataset(dataset, size=size)
+    stage = LabelStage(LabelConfig(mode="onnx"), ds.intrinsics)
+    out: dict[str, list[float]] = {}
+    for j in range(frames):
+        f = ds[start + stride * j]
+        detections = stage.model(f.rgb)
+        geo = stage.geometry.label(f.rgb, f.depth, f.gt_c2w).ids
+        h, w = geo.shape
+        for sem_id, _score, _mask, box in detections:
+            x1, y1, x2, y2 = np.clip(np.round(box), 0, [w, h, w, h]).astype(int)
+            inside = geo[y1:y2, x1:x2]
+            cand = inside[inside >= FIRST_INSTANCE_ID]
+            if cand.size == 0:
+                continue
+            vals, cnt = np.unique(cand, return_counts=True)
+            k = int(np.argmax(cnt))
+            if cnt[k] < 0.6 * int((geo == vals[k]).sum()):
+                continue
+            seen = max(int(np.count_nonzero(f.depth[y1:y2, x1:x2] > 0)), 1)
+            out.setdefault(COCO_NAMES[sem_id - COCO_BASE], []).append(float(cnt[k]) / seen)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--map", required=True, help="map folder of a run (params.npz, semantic.json)")
+    ap.add_argument("--map", default="", help="map folder of a run (params.npz, semantic.json)")
     ap.add_argument("--dataset", required=True, help="the run's sequence")
     ap.add_argument("--out", default="", help="folder for the replayed map (a copy with new classes and votes)")
     ap.add_argument("--size", default="320x240")
@@ -84,9 +116,23 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--box-min-fill", type=float, default=LabelConfig().box_min_fill,
                     help="LabelConfig.box_min_fill (0: off, the labelling before the rule)")
     ap.add_argument("--check", action="store_true", help="only print how many Gaussians change class")
+    ap.add_argument("--fills", type=int, default=0, metavar="N",
+                    help="print the box fills of the detections in N frames from --start instead (no map needed)")
     args = ap.parse_args(argv)
     w, h = (int(x) for x in args.size.split("x"))
     t0 = time.perf_counter()
+    if args.fills:
+        fills = box_fills(args.dataset, (w, h), args.start, args.stride, args.fills)
+        last = args.start + args.stride * (args.fills - 1)
+        print(f"box fills, frames {args.start}-{last} (every {args.stride}), the dataset's poses:")
+        for name, v in sorted(fills.items()):
+            a = np.array(v)
+            print(f"  {name:13s} {len(a):4d} detections  fill {a.min():.2f}-{a.max():.2f}  "
+                  f">= {args.box_min_fill}: {int((a >= args.box_min_fill).sum())}")
+        print(f"({time.perf_counter() - t0:.0f} s)")
+        return 0
+    if not args.map:
+        ap.error("--map is required (except with --fills)")
     cfg = LabelConfig(mode="onnx", box_min_fill=args.box_min_fill)
     out, classes, counts = replay(args.map, args.dataset, (w, h), args.start, args.stride, cfg)
     print(f"replayed {counts['frames']} frames (box_min_fill {args.box_min_fill}): {counts['changed']} of "
