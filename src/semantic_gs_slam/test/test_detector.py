@@ -185,7 +185,8 @@ def test_a_nanodet_head_names_the_geometry_instance_in_its_box(tmp_path):
 
 def test_a_detected_dining_table_names_the_table_plane_in_its_box():
     """The top of a dining table is the geometry's "table" plane, not an instance: the detection names the plane's
-    pixels inside its box (and only those), and the instance that fills its box as before."""
+    pixels inside its box (and only those); a leg in the box, a small part of it, is not the table and stays
+    unnamed."""
     from semantic_gs_slam.labels import FIRST_INSTANCE_ID, LabelConfig, LabelStage
     from semantic_gs_slam.labels.geometry import TABLE, WALL
     from semantic_gs_slam.synthetic.scenes import default_intrinsics
@@ -196,10 +197,38 @@ def test_a_detected_dining_table_names_the_table_plane_in_its_box():
     geo[:15, :] = WALL
     geo[20:25, 5:10] = FIRST_INSTANCE_ID  # a leg
     out = st._apply_model([(10 + 67, 0.7, None, np.array([0.0, 10.0, 20.0, 30.0]))], geo)
-    assert (out[15:, :20][geo[15:, :20] == TABLE] == 77).all() and (out[20:25, 5:10] == 77).all()
+    assert (out[15:, :20][geo[15:, :20] == TABLE] == 77).all() and (out[20:25, 5:10] == FIRST_INSTANCE_ID).all()
     assert (out[15:, 20:] == TABLE).all() and (out[:15] == WALL).all()  # outside the box, and not the wall
     cup = st._apply_model([(10 + 47, 0.7, None, np.array([0.0, 10.0, 20.0, 30.0]))], geo)
     assert (cup[geo == TABLE] == TABLE).all()  # other classes leave the plane alone
+
+
+def test_a_box_names_only_an_instance_that_fills_enough_of_it():
+    """``box_min_fill``: the instance a box names must fill a quarter of the box's pixels with depth. A cup filling
+    its box is named; a chair's leg in a frame-wide box is not; pixels without depth (a screen) do not count against
+    the instance; 0 turns the rule off."""
+    from semantic_gs_slam.errors import ConfigError
+    from semantic_gs_slam.labels import FIRST_INSTANCE_ID, LabelConfig, LabelStage
+    from semantic_gs_slam.synthetic.scenes import default_intrinsics
+
+    k = default_intrinsics(40, 30)
+    st = LabelStage(LabelConfig(mode="geometry"), k)
+    geo = np.zeros((30, 40), np.int64)
+    geo[10:20, 10:20] = FIRST_INSTANCE_ID  # 100 pixels
+    depth = np.full((30, 40), 2.0)
+    tight = (10 + 47, 0.6, None, np.array([8.0, 8.0, 22.0, 22.0]))  # 196 pixels: fill 0.51
+    wide = (10 + 13, 0.5, None, np.array([0.0, 0.0, 40.0, 30.0]))  # 1200 pixels: fill 0.08 ('bench')
+    assert (st._apply_model([tight], geo, depth)[10:20, 10:20] == 57).all()
+    assert (st._apply_model([wide], geo, depth) == geo).all()
+    assert (st._apply_model([wide], geo) == geo).all()  # without depth: every pixel of the box counts
+    screen = depth.copy()
+    screen[:, :] = 0.0
+    screen[9:21, 9:21] = 2.0  # only the frame around a screen has depth: 144 pixels seen, 100 of them the instance
+    assert (st._apply_model([wide], geo, screen)[10:20, 10:20] == 23).all()
+    off = LabelStage(LabelConfig(mode="geometry", box_min_fill=0.0), k)
+    assert (off._apply_model([wide], geo, depth)[10:20, 10:20] == 23).all()
+    with pytest.raises(ConfigError, match="box_min_fill"):
+        LabelConfig(box_min_fill=1.5).check()
 
 
 def test_instances_are_named_after_two_detections_and_keep_their_name():

@@ -59,6 +59,11 @@ class LabelConfig:
     # detected as one class in this many labelled frames (the class detected most often; then also in frames that miss
     # it); 1: each detection names the instance in its own frame, and the map's votes decide. Kitchen, docs/detector.md:
     # 2 made the 'tv' answer right but lost the printed mug and grew false instances; a model given by path: always 1
+    box_min_fill: float = 0.25  # a detection box names the geometry instance it holds only when that instance fills at
+    # least this share of the box's pixels with depth: an object fills much of its own box, while the box of a larger
+    # object (a table, its top a plane) also holds other things under or behind it. Kitchen frames 0-249
+    # (docs/detector.md): the named instances filled 0.30-0.76 of their boxes, the table's underside in a 'dining
+    # table' box 0.04-0.10, a chair and the table's leg in a frame-wide 'bench' box 0.09-0.16; 0: off
     onnx_label_space: str = "coco91"  # "coco91" (category ids 1-90, torchvision) or "coco80" (indices 0-79)
     map_ids: str = "class"  # "class": every geometry instance goes to the map as class OBJECT_ID ("object",
     # one class column; the object-query server splits instances in space); "instance": each tracked instance
@@ -81,6 +86,8 @@ class LabelConfig:
             raise ConfigError(f"labels.detector_min_views must be an integer >= 1, got {self.detector_min_views!r}")
         if not 0 <= self.onnx_score <= 1 or not 0 <= self.detector_score <= 1:
             raise ConfigError("labels.onnx_score and labels.detector_score must lie in [0, 1]")
+        if not 0 <= self.box_min_fill <= 1:
+            raise ConfigError(f"labels.box_min_fill must lie in [0, 1], got {self.box_min_fill!r}")
         if self.map_ids not in ("class", "instance"):
             raise ConfigError(f"labels.map_ids must be 'class' or 'instance', got {self.map_ids!r}")
         self.geometry.check()
@@ -188,7 +195,7 @@ class LabelStage:
         assert self.geometry is not None  # modes geometry and onnx
         ids = self.geometry.label(rgb, depth, c2w).ids
         if self.model is not None:
-            ids = self._apply_model(detections, ids)
+            ids = self._apply_model(detections, ids, depth)
         if self.cfg.map_ids == "class":
             ids = np.where(ids >= FIRST_INSTANCE_ID, OBJECT_ID, ids)
         for i in np.unique(ids):
@@ -196,12 +203,13 @@ class LabelStage:
                 self.classes[int(i)] = self.geometry.classes.get(int(i)) or self._coco.get(int(i), f"class_{i}")
         return ids
 
-    def _apply_model(self, detections: list, geo: np.ndarray) -> np.ndarray:
+    def _apply_model(self, detections: list, geo: np.ndarray, depth: np.ndarray | None = None) -> np.ndarray:
         """COCO names over the geometry labels: a mask's pixels take its class; without masks a detection
-        names the geometry instance that fills most of its box, and a detected support (``dining table``,
-        :data:`SUPPORT_IDS`) also names the geometry's ``table`` plane pixels in its box (its top is a plane, not an
-        instance). ``detections``: the model's output for the frame (``OnnxSegmenter.__call__``: (id, score, mask or
-        None, box), best first)."""
+        names the geometry instance that fills most of its box, when that instance lies mostly inside the box and
+        fills at least ``box_min_fill`` of the box's pixels with depth (``depth`` [H, W]; None: all of the box's
+        pixels); and a detected support (``dining table``, :data:`SUPPORT_IDS`) also names the geometry's ``table``
+        plane pixels in its box (its top is a plane, not an instance). ``detections``: the model's output for the
+        frame (``OnnxSegmenter.__call__``: (id, score, mask or None, box), best first)."""
         out = geo.copy()
         h, w = geo.shape
         seen: dict[int, int] = {}  # instance -> class it was named in this frame
@@ -220,6 +228,9 @@ class LabelStage:
                 total = int((geo == vals[j]).sum())
                 if cnt[j] < 0.6 * total:  # the instance lies mostly outside the box: not this object
                     continue
+                measured = inside.size if depth is None else int(np.count_nonzero(depth[y1:y2, x1:x2] > 0))
+                if cnt[j] < self.cfg.box_min_fill * measured:  # a small part of the box: something under or behind
+                    continue  # the detected object (a table's leg in its box), not the object
                 if self.min_views > 1:  # voted over the labelled frames: see _confirmed_names
                     seen[int(vals[j])] = sem_id
                     continue
