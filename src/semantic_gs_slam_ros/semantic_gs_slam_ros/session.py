@@ -37,6 +37,8 @@ from semantic_gs_slam_ros.writer import AsyncFrameWriter, WrittenFrame, prepare_
 ODOMETRY_KEEP = 2000
 #: seconds a frame waits for an odometry pose published after its images
 ODOMETRY_WAIT = 0.5
+#: seconds between two log lines about frames skipped by ``max_behind`` (the first is logged at once)
+BEHIND_LOG_EVERY = 5.0
 
 
 class SlamEngine(Protocol):
@@ -83,6 +85,10 @@ class SessionConfig:
         min_motion_m, min_motion_deg: with odometry, a frame whose odometry moved less than both
             since the last frame given to SLAM is skipped (a robot standing still, 0 = take all).
         lag_high, lag_low: unsubscribe above / resubscribe below this backlog (frames).
+        max_behind: a live camera's bound on the lag: when more than this many written frames wait for SLAM, the
+            oldest waiting ones are skipped (counted in ``Progress.behind``, logged, reported in the result), so
+            SLAM works at most this many frames behind the camera and, when it is slower than the camera, on
+            evenly spaced frames. 0 = never skip (a recording loses nothing; ``lag_high`` pauses the intake).
         checkpoint_every: save an engine checkpoint every N processed frames (0 = never).
         export_every: write the map to ``map_dir`` every N processed frames (0 = only at the end).
         map_dir: where the object-query server reads params.npz + semantic.json ("" = work_dir/map).
@@ -110,6 +116,7 @@ class SessionConfig:
     min_motion_deg: float = 0.0
     lag_high: int = 300
     lag_low: int = 150
+    max_behind: int = 0
     checkpoint_every: int = 20
     export_every: int = 0
     map_dir: str = ""
@@ -121,6 +128,8 @@ class SessionConfig:
     frames_before: int = 0
 
     def __post_init__(self) -> None:
+        if self.max_behind < 0:
+            raise StreamingError(f"max_behind must be >= 0 (0 = never skip a frame), got {self.max_behind}")
         if self.refine_iters < 0:
             raise StreamingError(f"refine_iters must be >= 0 (0 = no refinement), got {self.refine_iters}")
         if not self.refine_seconds >= 0:
@@ -151,6 +160,7 @@ class Progress:
     after_done: int = 0  # images that arrived after data_transfer_done (ignored)
     still: int = 0  # frames skipped because the odometry says the camera had not moved (min_motion_*)
     lost: int = 0  # frames whose tracking was lost (reported by the engine; not mapped)
+    behind: int = 0  # written frames skipped because SLAM was more than max_behind frames behind (live camera)
     drift_corrections: int = 0  # loop closures that found and corrected drift
 
 
@@ -297,7 +307,7 @@ class StreamingSession:
     def progress(self) -> Progress:
         with self._lock:
             p = Progress(**{k: (dict(v) if isinstance(v, dict) else v) for k, v in vars(self._progress).items()})
-        p.backlog = p.matched - p.refused - p.processed - p.skipped - p.still  # matched, not yet done with
+        p.backlog = p.matched - p.refused - p.processed - p.skipped - p.still - p.behind  # matched, not yet done
         return p
 
     def lag_action(self) -> LagAction:
@@ -327,12 +337,16 @@ class StreamingSession:
         engine_failed = False  # ... because the engine raised something else than a refused frame
         refused_in_a_row = 0
         t0 = time.monotonic()
+        behind_logged = (0, -float("inf"))  # (frames skipped, time) at the last log line about them
         while True:
             with self._lock:
+                skipped_now = self._skip_behind()
                 frame = self._ready.popleft() if self._ready else None
                 cancelled = self._cancelled
                 finished = self._done_sending and not self._ready and self._writer.pending() == 0 \
                     and self._progress.written >= self._progress.matched - self._progress.refused
+            if skipped_now:
+                behind_logged = self._log_behind(skipped_now, behind_logged)
             if self._writer.error is not None:
                 message = str(self._writer.error)
                 break
@@ -422,6 +436,9 @@ class StreamingSession:
         if p.still or p.after_done:
             self._log(f"frames skipped while the camera stood still: {p.still}; images after "
                       f"data_transfer_done ignored: {p.after_done}")
+        if p.behind:
+            self._log(f"frames skipped while SLAM was more than max_behind={self.cfg.max_behind} frames behind: "
+                      f"{p.behind}")
         if n == 0:
             return SessionResult(False, "", "", 0, message or "no frame was processed")
         if self.engine is None:
@@ -444,9 +461,33 @@ class StreamingSession:
         ok = self._writer.error is None and not failed
         p = self.progress()
         summary = f"{n} frames processed ({rate:.2f} frames/s), {p.gaussians} Gaussians{refined}"
+        if p.behind:
+            summary += f", {p.behind} frames skipped while SLAM was more than {self.cfg.max_behind} frames behind"
         if p.lost or p.drift_corrections:
             summary += f", tracking lost on {p.lost} frames, drift corrected {p.drift_corrections} times"
         return SessionResult(ok, map_path, sem_path, n, f"{message + ': ' if message else ''}{summary}")
+
+    def _skip_behind(self) -> int:
+        """``max_behind``: drop the oldest waiting frames beyond it; returns how many were dropped. Caller holds
+        ``_lock``."""
+        limit = self.cfg.max_behind
+        n = max(0, len(self._ready) - limit) if limit > 0 else 0
+        for _ in range(n):
+            self._ready.popleft()
+        self._progress.behind += n
+        return n
+
+    def _log_behind(self, skipped_now: int, last: tuple[int, float]) -> tuple[int, float]:
+        """A log line about frames skipped by ``max_behind``: the first at once, then at most every
+        ``BEHIND_LOG_EVERY`` s; returns the new (count, time) of the last line."""
+        now = time.monotonic()
+        with self._lock:
+            total = self._progress.behind
+        if now - last[1] < BEHIND_LOG_EVERY:
+            return last
+        self._log(f"SLAM is more than max_behind={self.cfg.max_behind} frames behind the camera: skipped the "
+                  f"{skipped_now} oldest waiting frames ({total - last[0]} since the last such line, {total} in all)")
+        return total, now
 
     def _refine(self) -> str:
         """``refine_iters`` iterations of the engine's map refinement, which looks at a cancel request before each

@@ -312,6 +312,71 @@ def test_session_tracks_a_frame_without_odometry_when_none_is_near_its_stamp(tmp
     assert len(engine.frames) == 1 and engine.frames[0][1] is None
 
 
+class GatedEngine(RecordingEngine):
+    """Holds its first frame until ``gate`` is set: the camera goes on meanwhile, as when SLAM is slower than it."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.entered, self.gate = threading.Event(), threading.Event()
+
+    def add_frame(self, rgb, depth, semantics, timestamp, odom_c2w=None):
+        if not self.frames:
+            self.entered.set()
+            assert self.gate.wait(30.0), "the test never released the first frame"
+        return super().add_frame(rgb, depth, semantics, timestamp, odom_c2w)
+
+
+@pytest.mark.parametrize(("max_behind", "mapped"), [(3, [1.0, 8.0, 9.0, 10.0]), (0, [float(t) for t in range(1, 11)])])
+def test_session_skips_the_oldest_waiting_frames_beyond_max_behind(tmp_path, max_behind, mapped):
+    """A live camera: while SLAM is busy with frame 1, frames 2-10 arrive; with max_behind 3 the six oldest are
+    skipped (counted, logged, in the result), with 0 (the default) none is."""
+    from semantic_gs_slam_ros.session import SessionConfig, StreamingSession
+
+    logs: list[str] = []
+    engine = GatedEngine()
+    session = StreamingSession(SessionConfig(work_dir=str(tmp_path), width=0, height=0, checkpoint_every=0,
+                                             max_behind=max_behind), engine, log=logs.append)
+    send(session, 1.0)
+    out: list = []
+    runner = threading.Thread(target=lambda: out.append(session.run(poll=0.01)))
+    runner.start()
+    try:
+        assert engine.entered.wait(30.0)
+        for t in range(2, 11):
+            send(session, float(t))
+        assert wait_until(lambda: session.progress().written == 10, 30.0)
+        assert session.progress().backlog == 10  # frame 1 in the engine, 2-10 waiting
+        session.data_transfer_done()
+    finally:
+        engine.gate.set()
+        runner.join(30.0)
+    p = session.progress()
+    assert out[0].success and [t for t, _ in engine.frames] == mapped
+    assert p.behind == 10 - len(mapped) and p.processed == len(mapped) and p.backlog == 0
+    said = f"{p.behind} frames skipped while SLAM was more than {max_behind} frames behind"
+    assert (said in out[0].message) == (max_behind > 0)
+    assert any("max_behind=3" in line and "skipped the 6 oldest" in line for line in logs) == (max_behind > 0)
+
+
+def test_session_refuses_a_negative_max_behind(tmp_path):
+    from semantic_gs_slam_ros.errors import StreamingError
+    from semantic_gs_slam_ros.session import SessionConfig
+
+    with pytest.raises(StreamingError, match="max_behind must be >= 0"):
+        SessionConfig(work_dir=str(tmp_path), max_behind=-1)
+
+
+def wait_until(predicate, timeout: float) -> bool:
+    import time
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.01)
+    return bool(predicate())
+
+
 class ReportingEngine(RecordingEngine):
     """Reports a lost track on its 2nd frame and a drift correction on its 3rd (like EngineAdapter.frame_report)."""
 
