@@ -64,8 +64,9 @@ class SlamEngine(Protocol):
     def num_gaussians(self) -> int: ...
 
     # optional: ``refine(iters, poses, should_stop) -> iterations done`` (Adam steps over all keyframes),
-    # ``num_keyframes`` (logged with the refinement) and
-    # ``frame_report() -> (lost, corrected, note)``; the session asks with getattr
+    # ``num_keyframes`` (logged with the refinement),
+    # ``frame_report() -> (lost, corrected, note)`` and ``run_note() -> str`` (logged at the end); the session asks
+    # with getattr
 
 
 @dataclass
@@ -458,6 +459,9 @@ class StreamingSession:
             self._log(f"the map could not be written after the engine failed: {type(exc).__name__}: {exc}")
             return SessionResult(False, "", "", n, f"{message}; the map could not be written ({type(exc).__name__}: "
                                                    f"{exc})")
+        run_note = getattr(self.engine, "run_note", None)
+        if run_note is not None:
+            self._log(f"engine: {run_note()}")
         ok = self._writer.error is None and not failed
         p = self.progress()
         summary = f"{n} frames processed ({rate:.2f} frames/s), {p.gaussians} Gaussians{refined}"
