@@ -105,6 +105,12 @@ def ate_of_processed(params: str, sent_stamps: list[float], dataset_indices: lis
     return (100 * ate_rmse(est, ref) if len(est) >= 3 else float("nan")), len(est)
 
 
+def log_time(text: str, what: str) -> float | None:
+    """Wall-clock time (s) of the last ROS log line that contains ``what`` (rcutils' ``[LEVEL] [time] [node]:``)."""
+    found = [float(m) for m in re.findall(r"\[\w+\] \[(\d+\.\d+)\] \[[^\]]+\]: [^\n]*" + re.escape(what), text)]
+    return found[-1] if found else None
+
+
 def server_numbers(text: str) -> dict[str, str]:
     """The reasons and counts the server logs at the end of a run (session.py's final lines)."""
     out: dict[str, str] = {}
@@ -178,7 +184,12 @@ def run(a: argparse.Namespace) -> int:
                 ros.close()
             sup.stop(grace=10.0)
     client_out, server_out = proc.output(), sup.get("run_gs_slam_server").output()
+    for name, text in (("client.log", client_out), ("server.log", server_out)):
+        with open(os.path.join(tmp, name), "w", encoding="utf-8") as fh:
+            fh.write(text)
+    print(f"logs and map: {tmp}")
     stamps, arrived, lag = watch.snapshot()
+    t_sent = log_time(client_out, "frames; waiting for the map")  # the client's own clock: when it sent the last
     nums = server_numbers(server_out)
     sent_m = re.findall(r"sent (\d+) frames; waiting for the map", client_out)
     sent = int(sent_m[-1]) if sent_m else len(stamps)
@@ -188,9 +199,11 @@ def run(a: argparse.Namespace) -> int:
     if rc != 0:
         print("client output (tail):\n" + "\n".join(client_out.splitlines()[-15:]))
         print("server output (tail):\n" + "\n".join(server_out.splitlines()[-25:]))
-    span = arrived[-1] - arrived[0] if len(arrived) > 1 else float("nan")
-    print(f"frames sent: {sent} of {len(indices)} ({len(stamps)} seen on the wire in {span:.1f} s: "
-          f"{(len(stamps) - 1) / span if span > 0 else float('nan'):.1f} Hz achieved of {a.rate:g} Hz asked)")
+    # the first frame's stamp is the client's wall clock when it began sending (run_gs_slam_client)
+    span = t_sent - stamps[0] if stamps and t_sent is not None else float("nan")
+    achieved = (sent - 1) / span if span > 0 else float("nan")
+    print(f"frames sent: {sent} of {len(indices)} in {span:.1f} s ({achieved:.1f} Hz achieved of {a.rate:g} Hz asked; "
+          f"{len(stamps)} seen by this benchmark)")
     print(f"frames processed by SLAM: {processed}")
     unmatched = nums.get("unmatched", "0 / 0 / 0").split(" / ")
     behind = nums.get("behind", f"{a.max_behind} / 0").split(" / ")
@@ -201,20 +214,22 @@ def run(a: argparse.Namespace) -> int:
     if lag:
         waiting = [n for _, n, _ in lag]
         rate = a.rate if a.rate > 0 else float("nan")
-        during = [n for t, n, _ in lag if arrived and t <= arrived[-1]] or waiting
+        last_sent = t_sent if t_sent is not None else (arrived[-1] if arrived else lag[-1][0])
+        during = [n for t, n, _ in lag if t <= last_sent] or waiting
         print(f"lag (frames waiting for SLAM; / {rate:g} Hz = seconds behind the camera): max {max(waiting)} "
               f"({max(waiting) / rate:.1f} s), when the last frame was sent {during[-1]} "
               f"({during[-1] / rate:.1f} s), at the end {waiting[-1]}")
         t_proc = [t for t, _, p in lag if p >= processed]
-        if arrived and t_proc:
-            wall = t_proc[0] - arrived[0]
+        if stamps and t_proc:
+            wall = t_proc[0] - stamps[0]
             print(f"processing rate: {processed / wall:.2f} frames/s over {wall:.1f} s (first frame on the wire to "
                   f"the last one processed); camera rate {a.rate:g} Hz")
     else:
         print("lag: no feedback seen")
-    if os.path.exists(params_npz) and arrived:
+    if os.path.exists(params_npz) and stamps:
         written = os.path.getmtime(params_npz)
-        print(f"last frame sent -> final map written: {written - arrived[-1]:.1f} s"
+        last_sent = t_sent if t_sent is not None else arrived[-1]
+        print(f"last frame sent -> final map written: {written - last_sent:.1f} s"
               + (f" (map refined {nums['refined']})" if "refined" in nums else ""))
         ate, n = ate_of_processed(params_npz, stamps, indices, data.poses if data.poses is not None else [])
         print(f"ATE of the processed frames: {ate:.2f} cm over {n} frames (rigid alignment to the sequence's poses)")

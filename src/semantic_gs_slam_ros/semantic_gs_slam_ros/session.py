@@ -86,10 +86,11 @@ class SessionConfig:
         min_motion_m, min_motion_deg: with odometry, a frame whose odometry moved less than both
             since the last frame given to SLAM is skipped (a robot standing still, 0 = take all).
         lag_high, lag_low: unsubscribe above / resubscribe below this backlog (frames).
-        max_behind: a live camera's bound on the lag: when more than this many written frames wait for SLAM, the
-            oldest waiting ones are skipped (counted in ``Progress.behind``, logged, reported in the result), so
-            SLAM works at most this many frames behind the camera and, when it is slower than the camera, on
-            evenly spaced frames. 0 = never skip (a recording loses nothing; ``lag_high`` pauses the intake).
+        max_behind: a live camera's bound on the lag: a new frame that finds this many frames waiting for SLAM
+            (written, or waiting to be written) first skips the oldest of them (counted in ``Progress.behind``,
+            logged, reported in the result), so SLAM works at most this many frames behind the camera (plus the
+            one it is on and the one being written) and, when it is slower than the camera, on evenly spaced
+            frames. 0 = never skip (a recording loses nothing; ``lag_high`` pauses the intake).
         checkpoint_every: save an engine checkpoint every N processed frames (0 = never).
         export_every: write the map to ``map_dir`` every N processed frames (0 = only at the end).
         map_dir: where the object-query server reads params.npz + semantic.json ("" = work_dir/map).
@@ -161,7 +162,8 @@ class Progress:
     after_done: int = 0  # images that arrived after data_transfer_done (ignored)
     still: int = 0  # frames skipped because the odometry says the camera had not moved (min_motion_*)
     lost: int = 0  # frames whose tracking was lost (reported by the engine; not mapped)
-    behind: int = 0  # written frames skipped because SLAM was more than max_behind frames behind (live camera)
+    behind: int = 0  # frames skipped because SLAM was max_behind frames behind (live camera; written or not)
+    writing: int = 0  # frames waiting for the disk writer (part of the backlog)
     drift_corrections: int = 0  # loop closures that found and corrected drift
 
 
@@ -218,6 +220,8 @@ class StreamingSession:
         self._wake = threading.Event()  # set when a frame is written, or on done/cancel
         self._odometry: collections.OrderedDict[float, np.ndarray] = collections.OrderedDict()  # stamp -> c2w
         self._last_odom: np.ndarray | None = None  # odometry of the last frame given to SLAM
+        self._unwritten = 0  # frames max_behind took out of the writer's queue (never written); guarded by _lock
+        self._behind_logged = (0, -float("inf"))  # (Progress.behind, time) at the last line about it; by _lock
         # after a resume the folder keeps the earlier frames: continue their numbering
         self._writer = AsyncFrameWriter(config.work_dir, self._on_written,
                                         start_index=0 if config.clean_start else _frames_on_record(config.work_dir))
@@ -238,6 +242,7 @@ class StreamingSession:
             self._progress.matched = self._matcher.stats.matched
             self._progress.dropped = dict(self._matcher.stats.dropped)
         for frame in frames:
+            self._make_room()
             if not self._writer.submit(frame):
                 with self._lock:
                     self._progress.refused += 1
@@ -309,6 +314,7 @@ class StreamingSession:
         with self._lock:
             p = Progress(**{k: (dict(v) if isinstance(v, dict) else v) for k, v in vars(self._progress).items()})
         p.backlog = p.matched - p.refused - p.processed - p.skipped - p.still - p.behind  # matched, not yet done
+        p.writing = self._writer.pending()
         return p
 
     def lag_action(self) -> LagAction:
@@ -338,16 +344,12 @@ class StreamingSession:
         engine_failed = False  # ... because the engine raised something else than a refused frame
         refused_in_a_row = 0
         t0 = time.monotonic()
-        behind_logged = (0, -float("inf"))  # (frames skipped, time) at the last log line about them
         while True:
             with self._lock:
-                skipped_now = self._skip_behind()
                 frame = self._ready.popleft() if self._ready else None
                 cancelled = self._cancelled
                 finished = self._done_sending and not self._ready and self._writer.pending() == 0 \
-                    and self._progress.written >= self._progress.matched - self._progress.refused
-            if skipped_now:
-                behind_logged = self._log_behind(skipped_now, behind_logged)
+                    and self._progress.written + self._unwritten >= self._progress.matched - self._progress.refused
             if self._writer.error is not None:
                 message = str(self._writer.error)
                 break
@@ -471,27 +473,35 @@ class StreamingSession:
             summary += f", tracking lost on {p.lost} frames, drift corrected {p.drift_corrections} times"
         return SessionResult(ok, map_path, sem_path, n, f"{message + ': ' if message else ''}{summary}")
 
-    def _skip_behind(self) -> int:
-        """``max_behind``: drop the oldest waiting frames beyond it; returns how many were dropped. Caller holds
-        ``_lock``."""
+    def _make_room(self) -> None:
+        """``max_behind``: before a new frame is queued, skip the oldest waiting ones (written and waiting for SLAM
+        first, then waiting to be written) until fewer than ``max_behind`` wait; counted and logged (the first time
+        at once, then at most every ``BEHIND_LOG_EVERY`` s)."""
         limit = self.cfg.max_behind
-        n = max(0, len(self._ready) - limit) if limit > 0 else 0
-        for _ in range(n):
-            self._ready.popleft()
-        self._progress.behind += n
-        return n
-
-    def _log_behind(self, skipped_now: int, last: tuple[int, float]) -> tuple[int, float]:
-        """A log line about frames skipped by ``max_behind``: the first at once, then at most every
-        ``BEHIND_LOG_EVERY`` s; returns the new (count, time) of the last line."""
-        now = time.monotonic()
+        if limit <= 0:
+            return
+        line = ""
         with self._lock:
-            total = self._progress.behind
-        if now - last[1] < BEHIND_LOG_EVERY:
-            return last
-        self._log(f"SLAM is more than max_behind={self.cfg.max_behind} frames behind the camera: skipped the "
-                  f"{skipped_now} oldest waiting frames ({total - last[0]} since the last such line, {total} in all)")
-        return total, now
+            n = 0
+            while len(self._ready) + self._writer.pending() >= limit:
+                if self._ready:
+                    self._ready.popleft()
+                elif self._writer.drop_oldest():
+                    self._unwritten += 1
+                else:
+                    break
+                n += 1
+            if n == 0:
+                return
+            self._progress.behind += n
+            total, (before, at) = self._progress.behind, self._behind_logged
+            now = time.monotonic()
+            if now - at >= BEHIND_LOG_EVERY:
+                self._behind_logged = (total, now)
+                line = (f"SLAM is more than max_behind={limit} frames behind the camera: skipping the oldest waiting "
+                        f"frames ({total - before} since the last such line, {total} in all)")
+        if line:
+            self._log(line)
 
     def _refine(self) -> str:
         """``refine_iters`` iterations of the engine's map refinement, which looks at a cancel request before each

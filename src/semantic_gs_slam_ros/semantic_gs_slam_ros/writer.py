@@ -114,6 +114,18 @@ class AsyncFrameWriter:
     def pending(self) -> int:
         return self._queue.qsize()
 
+    def drop_oldest(self) -> bool:
+        """Take the oldest frame waiting to be written out of the queue, unwritten (a live camera's lag bound);
+        False when none waits. Never blocks."""
+        try:
+            frame = self._queue.get_nowait()
+        except queue.Empty:
+            return False
+        if frame is None:  # the stop request of close(): it stays, and nothing was dropped
+            self._queue.put_nowait(None)
+            return False
+        return True
+
     def close(self, timeout: float = 30.0) -> None:
         """Write what is queued, then stop the thread (waits at most ``timeout`` s). Idempotent."""
         if not self._thread.is_alive():
