@@ -48,6 +48,7 @@ class Watcher:
         self.stamps: list[float] = []  # header stamps of the frames sent, in arrival order
         self.arrived: list[float] = []  # their arrival (wall clock, s)
         self.lag: list[tuple[float, int, int]] = []  # (wall clock, frames waiting, frames processed) per feedback
+        self.received = 0  # colour images the server received (the last feedback's count)
         node.create_subscription(CameraInfo, "camera_info", self._on_info, IMAGE_QOS)
         node.create_subscription(RunSlam.Impl.FeedbackMessage, "run_gs_slam/_action/feedback", self._on_feedback,
                                  10)
@@ -64,6 +65,7 @@ class Watcher:
         fb = msg.feedback
         with self._lock:
             self.lag.append((time.time(), int(fb.lag), int(fb.frames_processed)))
+            self.received = max(self.received, int(fb.frames_received))
 
     def snapshot(self) -> tuple[list[float], list[float], list[tuple[float, int, int]]]:
         with self._lock:
@@ -209,11 +211,13 @@ def run(a: argparse.Namespace) -> int:
     print(f"frames sent: {sent} of {len(indices)} in {span:.1f} s ({achieved:.1f} Hz achieved of {a.rate:g} Hz asked; "
           f"{len(stamps)} seen by this benchmark)")
     print(f"frames processed by SLAM: {processed}")
+    pauses = len(re.findall(r"backlog \d+ frames: unsubscribe image topics", server_out))
     unmatched = nums.get("unmatched", "0 / 0 / 0").split(" / ")
     behind = nums.get("behind", f"{a.max_behind} / 0").split(" / ")
-    print(f"frames not processed: {sent - processed} - unmatched images {unmatched[0]}, refused by the writer "
-          f"{unmatched[1]}, refused by SLAM {unmatched[2]}, skipped as SLAM was more than max_behind={behind[0]} "
-          f"frames behind {behind[1]}")
+    print(f"frames not processed: {sent - processed} - not received {max(sent - watch.received, 0)} (sent while "
+          f"the server had unsubscribed, its backlog above lag_high: {pauses} pauses), unmatched images {unmatched[0]},"
+          f" refused by the writer {unmatched[1]}, refused by SLAM {unmatched[2]}, skipped as SLAM was more than "
+          f"max_behind={behind[0]} frames behind {behind[1]}")
     print(f"engine: {nums.get('engine', '(no note)')}")
     if lag:
         waiting = [n for _, n, _ in lag]
