@@ -121,8 +121,11 @@ class AsyncFrameWriter:
             frame = self._queue.get_nowait()
         except queue.Empty:
             return False
-        if frame is None:  # the stop request of close(): it stays, and nothing was dropped
-            self._queue.put_nowait(None)
+        if frame is None:  # the stop request of close(): it goes back (the slot it left is free), nothing dropped
+            try:
+                self._queue.put_nowait(None)
+            except queue.Full:  # a frame took the slot meanwhile: close() still ends the thread at its timeout
+                pass
             return False
         return True
 
