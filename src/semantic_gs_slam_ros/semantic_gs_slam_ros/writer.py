@@ -124,7 +124,7 @@ class AsyncFrameWriter:
         if frame is None:  # the stop request of close(): it goes back (the slot it left is free), nothing dropped
             try:
                 self._queue.put_nowait(None)
-            except queue.Full:  # a frame took the slot meanwhile: close() still ends the thread at its timeout
+            except queue.Full:  # a frame took the slot meanwhile: close() gives up on the daemon thread in time
                 pass
             return False
         return True
