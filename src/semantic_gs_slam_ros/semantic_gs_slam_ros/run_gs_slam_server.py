@@ -74,8 +74,7 @@ class SlamServer(Node):
         p("use_semantic", False)
         p("lag_high", 300)
         p("lag_low", 150)
-        p("max_behind", 0)  # live camera: skip waiting frames beyond this many (0 = never skip)
-        p("behind_policy", "newest")  # which: newest = skip the oldest; spread = every second one (span kept)
+        p("max_behind", 0)  # live camera: skip the oldest waiting frames beyond this many (0 = never skip)
         p("checkpoint_every", 20)
         p("export_every", 0)
         p("refine_iters", 0)  # Adam iterations over all keyframes after the last frame, before the map is written
@@ -243,7 +242,6 @@ class SlamServer(Node):
             use_semantic=g("use_semantic").value, use_odometry=bool(g("odometry_topic").value),
             min_motion_m=float(g("min_motion_m").value), min_motion_deg=float(g("min_motion_deg").value),
             lag_high=g("lag_high").value, lag_low=g("lag_low").value, max_behind=int(g("max_behind").value),
-            behind_policy=str(g("behind_policy").value),
             checkpoint_every=g("checkpoint_every").value, export_every=g("export_every").value,
             refine_iters=int(g("refine_iters").value),
             refine_poses=bool(g("refine_poses").value), refine_seconds=float(g("refine_seconds").value),

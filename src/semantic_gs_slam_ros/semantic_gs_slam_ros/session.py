@@ -91,11 +91,6 @@ class SessionConfig:
             logged, reported in the result), so SLAM works at most this many frames behind the camera (plus the
             one it is on and the one being written) and, when it is slower than the camera, on evenly spaced
             frames. 0 = never skip (a recording loses nothing; ``lag_high`` pauses the intake).
-        behind_policy: which frames ``max_behind`` skips: ``newest`` keeps the newest (skips the oldest: the lag is
-            at most ``max_behind`` frames of the camera); ``spread`` skips every second written frame that waits
-            (the first and the last kept), so the frames left still span the time since SLAM's last one (after a
-            stall the next frames are not a jump away for tracking; the lag is then about ``max_behind`` times
-            SLAM's time per frame). Frames still waiting for the disk writer are skipped oldest first in both.
         checkpoint_every: save an engine checkpoint every N processed frames (0 = never).
         export_every: write the map to ``map_dir`` every N processed frames (0 = only at the end).
         map_dir: where the object-query server reads params.npz + semantic.json ("" = work_dir/map).
@@ -124,7 +119,6 @@ class SessionConfig:
     lag_high: int = 300
     lag_low: int = 150
     max_behind: int = 0
-    behind_policy: str = "newest"
     checkpoint_every: int = 20
     export_every: int = 0
     map_dir: str = ""
@@ -136,8 +130,6 @@ class SessionConfig:
     frames_before: int = 0
 
     def __post_init__(self) -> None:
-        if self.behind_policy not in ("newest", "spread"):
-            raise StreamingError(f"behind_policy must be 'newest' or 'spread', got {self.behind_policy!r}")
         if self.max_behind < 0:
             raise StreamingError(f"max_behind must be >= 0 (0 = never skip a frame), got {self.max_behind}")
         if self.refine_iters < 0:
@@ -492,12 +484,6 @@ class StreamingSession:
         with self._lock:
             n = 0
             while len(self._ready) + self._writer.pending() >= limit:
-                if self.cfg.behind_policy == "spread" and len(self._ready) >= 3:
-                    kept = list(self._ready)
-                    keep = kept[::2] if len(kept) % 2 else kept[:-1:2] + kept[-1:]  # the first and the last stay
-                    n += len(kept) - len(keep)
-                    self._ready = collections.deque(keep)
-                    continue
                 if self._ready:
                     self._ready.popleft()
                 elif self._writer.drop_oldest():

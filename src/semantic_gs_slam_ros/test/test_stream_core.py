@@ -326,11 +326,8 @@ class GatedEngine(RecordingEngine):
         return super().add_frame(rgb, depth, semantics, timestamp, odom_c2w)
 
 
-@pytest.mark.parametrize(("max_behind", "policy", "mapped"), [
-    (3, "newest", [1.0, 8.0, 9.0, 10.0]),
-    (3, "spread", [1.0, 2.0, 9.0, 10.0]),  # the oldest stays: the frames left span the time since frame 1
-    (0, "newest", [float(t) for t in range(1, 11)])])
-def test_session_skips_waiting_frames_beyond_max_behind(tmp_path, max_behind, policy, mapped):
+@pytest.mark.parametrize(("max_behind", "mapped"), [(3, [1.0, 8.0, 9.0, 10.0]), (0, [float(t) for t in range(1, 11)])])
+def test_session_skips_the_oldest_waiting_frames_beyond_max_behind(tmp_path, max_behind, mapped):
     """A live camera: while SLAM is busy with frame 1, frames 2-10 arrive; with max_behind 3 the six oldest are
     skipped before or after the disk writer (counted, logged, in the result), with 0 (the default) none is."""
     from semantic_gs_slam_ros.session import SessionConfig, StreamingSession
@@ -338,7 +335,7 @@ def test_session_skips_waiting_frames_beyond_max_behind(tmp_path, max_behind, po
     logs: list[str] = []
     engine = GatedEngine()
     session = StreamingSession(SessionConfig(work_dir=str(tmp_path), width=0, height=0, checkpoint_every=0,
-                                             max_behind=max_behind, behind_policy=policy), engine, log=logs.append)
+                                             max_behind=max_behind), engine, log=logs.append)
     send(session, 1.0)
     out: list = []
     runner = threading.Thread(target=lambda: out.append(session.run(poll=0.01)))
@@ -397,14 +394,12 @@ def test_max_behind_skips_frames_still_waiting_for_the_disk_writer_and_the_run_e
     assert session.progress().backlog == 0
 
 
-def test_session_refuses_a_negative_max_behind_and_an_unknown_policy(tmp_path):
+def test_session_refuses_a_negative_max_behind(tmp_path):
     from semantic_gs_slam_ros.errors import StreamingError
     from semantic_gs_slam_ros.session import SessionConfig
 
     with pytest.raises(StreamingError, match="max_behind must be >= 0"):
         SessionConfig(work_dir=str(tmp_path), max_behind=-1)
-    with pytest.raises(StreamingError, match="behind_policy must be 'newest' or 'spread'"):
-        SessionConfig(work_dir=str(tmp_path), max_behind=5, behind_policy="oldest")
 
 
 def wait_until(predicate, timeout: float) -> bool:
