@@ -463,7 +463,10 @@ class StreamingSession:
                                                    f"{exc})")
         run_note = getattr(self.engine, "run_note", None)
         if run_note is not None:
-            self._log(f"engine: {run_note()}")
+            try:
+                self._log(f"engine: {run_note()}")
+            except Exception as exc:  # noqa: BLE001  a note never fails a run whose map is written
+                self._log(f"engine: no note ({type(exc).__name__}: {exc})")
         ok = self._writer.error is None and not failed
         p = self.progress()
         summary = f"{n} frames processed ({rate:.2f} frames/s), {p.gaussians} Gaussians{refined}"
