@@ -455,6 +455,7 @@ def test_engine_adapter_reports_the_engines_last_frame():
     adapter.add_frame(rgb, depth, None, 0.0)
     assert adapter.frame_report() == (False, False, "")
     assert len(adapter.slam.logs) == 1  # the report is the engine's own log of that frame
+    assert adapter.run_note().startswith("1 frames tracked, 1 keyframes, 0 keyframes deferred while mapping was busy")
 
 
 def _short_fits(cfg):
