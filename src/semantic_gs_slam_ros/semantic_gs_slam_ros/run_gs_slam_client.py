@@ -7,7 +7,7 @@ Any layout the SLAM core reads (Replica / NICE-SLAM, SGS-SLAM with semantics, TU
         -p size:=320x240 -p stride:=2 -p start:=0 -p max_frames:=120
 
 ``size`` (``WIDTHxHEIGHT``, "" = the files' size) resizes every frame and scales the camera_info.
-``preload`` reads (decodes, resizes, registers) every frame before the first is sent, so that ``rate`` is kept
+``preload`` reads (decodes, resizes, registers) every frame before the goal is sent, so that ``rate`` is kept
 where reading a frame takes longer than its period (7-Scenes' colour registration: about 0.6 s a frame on 2 busy
 cores); memory: about 7 bytes a pixel a frame (500 frames at 320x240: 270 MB as float32 colour and depth).
 ``colour_calib`` (``auto``, ``none`` or a file) re-samples colour into the depth camera's pixels where
@@ -124,6 +124,16 @@ class SlamClient(Node):
         except (SlamError, OSError) as exc:
             log.error(f"cannot read dataset {g('dataset')!r}: {exc}")
             return 2
+        # preload: every frame read before the goal is sent; dataset index -> Frame, or what reading it raised
+        loaded: dict[int, object] = {}
+        if g("preload"):
+            t_load = time.monotonic()
+            for i in indices:
+                try:
+                    loaded[i] = data[i]
+                except (SlamError, OSError) as exc:
+                    loaded[i] = exc
+            log.info(f"preloaded {len(indices)} frames in {time.monotonic() - t_load:.1f} s")
         if not self._action.wait_for_server(timeout_sec=g("server_timeout")):
             log.error(f"no run_gs_slam action server after {g('server_timeout'):.0f} s (is run_gs_slam_server up?)")
             return 2
@@ -161,15 +171,6 @@ class SlamClient(Node):
         if not indices:
             indices = [len(data) - 1]  # nothing left: send the last frame again so the run can finish
         streams = ["rgb", "depth"] + (["semantic"] if data.sem_paths is not None else [])
-        loaded: dict[int, object] = {}  # dataset index -> Frame, or the exception reading it raised (preload)
-        if g("preload"):
-            t_load = time.monotonic()
-            for i in indices:
-                try:
-                    loaded[i] = data[i]
-                except (SlamError, OSError) as exc:
-                    loaded[i] = exc
-            log.info(f"preloaded {len(indices)} frames in {time.monotonic() - t_load:.1f} s")
         t0_wall, t0_data = time.time(), data.timestamps[indices[0]]
         period = 1.0 / g("rate") if g("rate") > 0 else 0.0
         next_t = time.monotonic()
