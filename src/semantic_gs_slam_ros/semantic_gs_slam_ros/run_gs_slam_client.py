@@ -65,7 +65,7 @@ class SlamClient(Node):
         p("start", 0)  # first dataset frame to send
         p("size", "")  # working size WIDTHxHEIGHT ("" = the dataset's own)
         p("rate", 10.0)  # frames per second (0 = as fast as the server takes them)
-        p("preload", False)  # read every frame before sending the first (keeps `rate` when reading is slower)
+        p("preload", False)  # read every frame before the goal is sent (keeps `rate` when reading is slower)
         p("output_dir", "")
         p("map_dir", "")
         p("resume", False)
