@@ -97,6 +97,8 @@ def ate_of_processed(params: str, sent_stamps: list[float], dataset_indices: lis
     frame sent (= dataset frame ``dataset_indices[k]``); and how many frames were compared."""
     from semantic_gs_slam.eval.metrics import ate_rmse
 
+    if not gt:  # a sequence without poses
+        return float("nan"), 0
     stamps, poses = map_trajectory(params)
     sent = np.asarray(sent_stamps)
     est, ref = [], []
