@@ -6,9 +6,9 @@ loopback only), watches the run's action feedback and the camera_info sent with 
 sent (and the rate the client achieved), frames processed by SLAM, frames not processed by reason (unmatched
 images, refused by the writer or by SLAM, skipped by ``max_behind``), the engine's own note (keyframes deferred
 while mapping was busy, frames lost), the lag (frames waiting for SLAM and the seconds of camera time that
-makes: the largest, when the last frame was sent, at the end), the processing rate, the time from the last frame
-sent to the final map written, and the ATE of the processed frames against the sequence's poses (the map's
-``params.npz`` keeps every processed frame's pose and stamp).
+makes: the largest, in the last feedback before the last frame was sent, at the end), the processing rate, the
+time from the last frame sent to the final map written, and the ATE of the processed frames against the sequence's
+poses (the map's ``params.npz`` keeps every processed frame's pose and stamp).
 
     source scripts/env.sh && python bench/slam_stream_rate.py [SEQ] [--rate 30] [--frames 500] \\
         [--profile realtime] [--labels none] [--refine-seconds 0] [--max-behind 0] [--no-preload] \\
@@ -227,7 +227,7 @@ def run(a: argparse.Namespace) -> int:
         last_sent = t_sent if t_sent is not None else (arrived[-1] if arrived else lag[-1][0])
         during = [n for t, n, _ in lag if t <= last_sent] or waiting
         print(f"lag (frames waiting for SLAM; / {rate:g} Hz = seconds behind the camera): max {max(waiting)} "
-              f"({max(waiting) / rate:.1f} s), when the last frame was sent {during[-1]} "
+              f"({max(waiting) / rate:.1f} s), in the last feedback before the last frame was sent {during[-1]} "
               f"({during[-1] / rate:.1f} s), at the end {waiting[-1]}")
         t_proc = [t for t, _, p in lag if p >= processed]
         if stamps and t_proc:
