@@ -79,6 +79,15 @@ class EngineAdapter:
     def num_keyframes(self) -> int:
         return len(self.slam.keyframes)
 
+    def run_note(self) -> str:
+        """What the engine did with the frames it was given (the session logs it at the end of a run): frames
+        tracked, keyframes, keyframes deferred while the mapping thread was busy (``mapping.defer_keyframes``) and
+        what became of them, frames lost, map updates dropped by a full queue."""
+        s = self.slam.stats()
+        return (f"{s['frames']} frames tracked, {s['keyframes']} keyframes, {s['deferred_keyframes']} keyframes "
+                f"deferred while mapping was busy ({s['backlog']} kept for the refinement, {s['caught_up']} mapped "
+                f"by it), {len(s['lost_frames'])} frames lost, {len(s['dropped'])} map updates dropped")
+
     def frame_report(self) -> tuple[bool, bool, str]:
         """(tracking lost, drift corrected, loop-closure note) of the last frame: what the session reports and
         counts."""

@@ -75,6 +75,7 @@ class SlamServer(Node):
         p("use_semantic", False)
         p("lag_high", 300)
         p("lag_low", 150)
+        p("max_behind", 0)  # live camera: skip the oldest waiting frames beyond this many (0 = never skip)
         p("checkpoint_every", 20)
         p("export_every", 0)
         p("refine_iters", 0)  # Adam iterations over all keyframes after the last frame, before the map is written
@@ -241,7 +242,7 @@ class SlamServer(Node):
             sync_tolerance=g("sync_tolerance").value, sync_max_wait=g("sync_max_wait").value,
             use_semantic=g("use_semantic").value, use_odometry=bool(g("odometry_topic").value),
             min_motion_m=float(g("min_motion_m").value), min_motion_deg=float(g("min_motion_deg").value),
-            lag_high=g("lag_high").value, lag_low=g("lag_low").value,
+            lag_high=g("lag_high").value, lag_low=g("lag_low").value, max_behind=int(g("max_behind").value),
             checkpoint_every=g("checkpoint_every").value, export_every=g("export_every").value,
             refine_iters=int(g("refine_iters").value),
             refine_poses=bool(g("refine_poses").value), refine_seconds=float(g("refine_seconds").value),
@@ -405,7 +406,8 @@ def to_feedback(p: Progress) -> RunSlam.Feedback:
     fb.frames_received = p.received.get("rgb", 0)
     fb.frames_written = p.written
     fb.frames_processed = p.processed
-    fb.frames_dropped = sum(p.dropped.values()) + p.refused + p.skipped  # unmatched; refused by the writer, SLAM
+    # unmatched; refused by the writer, by SLAM; skipped while SLAM was more than max_behind frames behind
+    fb.frames_dropped = sum(p.dropped.values()) + p.refused + p.skipped + p.behind
     fb.lag = max(p.backlog, 0)
     fb.subscribed = p.subscribed
     fb.num_gaussians = p.gaussians

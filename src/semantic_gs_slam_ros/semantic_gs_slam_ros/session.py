@@ -37,6 +37,8 @@ from semantic_gs_slam_ros.writer import AsyncFrameWriter, WrittenFrame, prepare_
 ODOMETRY_KEEP = 2000
 #: seconds a frame waits for an odometry pose published after its images
 ODOMETRY_WAIT = 0.5
+#: seconds between two log lines about frames skipped by ``max_behind`` (the first is logged at once)
+BEHIND_LOG_EVERY = 5.0
 
 
 class SlamEngine(Protocol):
@@ -62,9 +64,9 @@ class SlamEngine(Protocol):
     def num_gaussians(self) -> int: ...
 
     # optional: ``refine(iters, poses, should_stop) -> iterations done`` (Adam steps over all keyframes),
-    # ``num_keyframes`` (logged with the refinement) and
-    # ``frame_report() -> (lost, corrected, note)`` and ``localised`` (False while a run started on a saved map
-    # is not relocalised in it); the session asks with getattr
+    # ``num_keyframes`` (logged with the refinement),
+    # ``frame_report() -> (lost, corrected, note)``, ``run_note() -> str`` (logged at the end) and ``localised``
+    # (False while a run started on a saved map is not relocalised in it); the session asks with getattr
 
 
 @dataclass
@@ -84,6 +86,11 @@ class SessionConfig:
         min_motion_m, min_motion_deg: with odometry, a frame whose odometry moved less than both
             since the last frame given to SLAM is skipped (a robot standing still, 0 = take all).
         lag_high, lag_low: unsubscribe above / resubscribe below this backlog (frames).
+        max_behind: a live camera's bound on the lag: a new frame that finds this many frames waiting for SLAM
+            (written, or waiting to be written) first skips the oldest of them (counted in ``Progress.behind``,
+            logged, reported in the result), so SLAM works at most this many frames behind the camera (plus the
+            one it is on and the one being written) and, when it is slower than the camera, on evenly spaced
+            frames. 0 = never skip (a recording loses nothing; ``lag_high`` pauses the intake).
         checkpoint_every: save an engine checkpoint every N processed frames (0 = never).
         export_every: write the map to ``map_dir`` every N processed frames (0 = only at the end).
         map_dir: where the object-query server reads params.npz + semantic.json ("" = work_dir/map).
@@ -111,6 +118,7 @@ class SessionConfig:
     min_motion_deg: float = 0.0
     lag_high: int = 300
     lag_low: int = 150
+    max_behind: int = 0
     checkpoint_every: int = 20
     export_every: int = 0
     map_dir: str = ""
@@ -122,6 +130,8 @@ class SessionConfig:
     frames_before: int = 0
 
     def __post_init__(self) -> None:
+        if self.max_behind < 0:
+            raise StreamingError(f"max_behind must be >= 0 (0 = never skip a frame), got {self.max_behind}")
         if self.refine_iters < 0:
             raise StreamingError(f"refine_iters must be >= 0 (0 = no refinement), got {self.refine_iters}")
         if not self.refine_seconds >= 0:
@@ -152,6 +162,8 @@ class Progress:
     after_done: int = 0  # images that arrived after data_transfer_done (ignored)
     still: int = 0  # frames skipped because the odometry says the camera had not moved (min_motion_*)
     lost: int = 0  # frames whose tracking was lost (reported by the engine; not mapped)
+    behind: int = 0  # frames skipped because SLAM was max_behind frames behind (live camera; written or not)
+    writing: int = 0  # frames waiting for the disk writer (part of the backlog)
     drift_corrections: int = 0  # loop closures that found and corrected drift
 
 
@@ -208,6 +220,8 @@ class StreamingSession:
         self._wake = threading.Event()  # set when a frame is written, or on done/cancel
         self._odometry: collections.OrderedDict[float, np.ndarray] = collections.OrderedDict()  # stamp -> c2w
         self._last_odom: np.ndarray | None = None  # odometry of the last frame given to SLAM
+        self._unwritten = 0  # frames max_behind took out of the writer's queue (never written); guarded by _lock
+        self._behind_logged = (0, -float("inf"))  # (Progress.behind, time) at the last line about it; by _lock
         # after a resume the folder keeps the earlier frames: continue their numbering
         self._writer = AsyncFrameWriter(config.work_dir, self._on_written,
                                         start_index=0 if config.clean_start else _frames_on_record(config.work_dir))
@@ -228,6 +242,7 @@ class StreamingSession:
             self._progress.matched = self._matcher.stats.matched
             self._progress.dropped = dict(self._matcher.stats.dropped)
         for frame in frames:
+            self._make_room()
             if not self._writer.submit(frame):
                 with self._lock:
                     self._progress.refused += 1
@@ -298,7 +313,8 @@ class StreamingSession:
     def progress(self) -> Progress:
         with self._lock:
             p = Progress(**{k: (dict(v) if isinstance(v, dict) else v) for k, v in vars(self._progress).items()})
-        p.backlog = p.matched - p.refused - p.processed - p.skipped - p.still  # matched, not yet done with
+        p.backlog = p.matched - p.refused - p.processed - p.skipped - p.still - p.behind  # matched, not yet done
+        p.writing = self._writer.pending()
         return p
 
     def lag_action(self) -> LagAction:
@@ -333,7 +349,7 @@ class StreamingSession:
                 frame = self._ready.popleft() if self._ready else None
                 cancelled = self._cancelled
                 finished = self._done_sending and not self._ready and self._writer.pending() == 0 \
-                    and self._progress.written >= self._progress.matched - self._progress.refused
+                    and self._progress.written + self._unwritten >= self._progress.matched - self._progress.refused
             if self._writer.error is not None:
                 message = str(self._writer.error)
                 break
@@ -426,6 +442,9 @@ class StreamingSession:
         if p.still or p.after_done:
             self._log(f"frames skipped while the camera stood still: {p.still}; images after "
                       f"data_transfer_done ignored: {p.after_done}")
+        if p.behind:
+            self._log(f"frames skipped while SLAM was more than max_behind={self.cfg.max_behind} frames behind: "
+                      f"{p.behind}")
         if n == 0:
             return SessionResult(False, "", "", 0, message or "no frame was processed")
         if self.engine is None:
@@ -445,12 +464,50 @@ class StreamingSession:
             self._log(f"the map could not be written after the engine failed: {type(exc).__name__}: {exc}")
             return SessionResult(False, "", "", n, f"{message}; the map could not be written ({type(exc).__name__}: "
                                                    f"{exc})")
+        run_note = getattr(self.engine, "run_note", None)
+        if run_note is not None:
+            try:
+                self._log(f"engine: {run_note()}")
+            except Exception as exc:  # noqa: BLE001  a note never fails a run whose map is written
+                self._log(f"engine: no note ({type(exc).__name__}: {exc})")
         ok = self._writer.error is None and not failed
         p = self.progress()
         summary = f"{n} frames processed ({rate:.2f} frames/s), {p.gaussians} Gaussians{refined}"
+        if p.behind:
+            summary += f", {p.behind} frames skipped while SLAM was more than {self.cfg.max_behind} frames behind"
         if p.lost or p.drift_corrections:
             summary += f", tracking lost on {p.lost} frames, drift corrected {p.drift_corrections} times"
         return SessionResult(ok, map_path, sem_path, n, f"{message + ': ' if message else ''}{summary}")
+
+    def _make_room(self) -> None:
+        """``max_behind``: before a new frame is queued, skip the oldest waiting ones (written and waiting for SLAM
+        first, then waiting to be written) until fewer than ``max_behind`` wait; counted and logged (the first time
+        at once, then at most every ``BEHIND_LOG_EVERY`` s)."""
+        limit = self.cfg.max_behind
+        if limit <= 0:
+            return
+        line = ""
+        with self._lock:
+            n = 0
+            while len(self._ready) + self._writer.pending() >= limit:
+                if self._ready:
+                    self._ready.popleft()
+                elif self._writer.drop_oldest():
+                    self._unwritten += 1
+                else:
+                    break
+                n += 1
+            if n == 0:
+                return
+            self._progress.behind += n
+            total, (before, at) = self._progress.behind, self._behind_logged
+            now = time.monotonic()
+            if now - at >= BEHIND_LOG_EVERY:
+                self._behind_logged = (total, now)
+                line = (f"SLAM is more than max_behind={limit} frames behind the camera: skipping the oldest waiting "
+                        f"frames ({total - before} since the last such line, {total} in all)")
+        if line:
+            self._log(line)
 
     def _refine(self) -> str:
         """``refine_iters`` iterations of the engine's map refinement, which looks at a cancel request before each

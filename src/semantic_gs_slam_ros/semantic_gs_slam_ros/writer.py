@@ -114,6 +114,21 @@ class AsyncFrameWriter:
     def pending(self) -> int:
         return self._queue.qsize()
 
+    def drop_oldest(self) -> bool:
+        """Take the oldest frame waiting to be written out of the queue, unwritten (a live camera's lag bound);
+        False when none waits. Never blocks."""
+        try:
+            frame = self._queue.get_nowait()
+        except queue.Empty:
+            return False
+        if frame is None:  # the stop request of close(): it goes back (the slot it left is free), nothing dropped
+            try:
+                self._queue.put_nowait(None)
+            except queue.Full:  # a frame took the slot meanwhile: close() gives up on the daemon thread in time
+                pass
+            return False
+        return True
+
     def close(self, timeout: float = 30.0) -> None:
         """Write what is queued, then stop the thread (waits at most ``timeout`` s). Idempotent."""
         if not self._thread.is_alive():

@@ -312,6 +312,107 @@ def test_session_tracks_a_frame_without_odometry_when_none_is_near_its_stamp(tmp
     assert len(engine.frames) == 1 and engine.frames[0][1] is None
 
 
+class GatedEngine(RecordingEngine):
+    """Holds its first frame until ``gate`` is set: the camera goes on meanwhile, as when SLAM is slower than it."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.entered, self.gate = threading.Event(), threading.Event()
+
+    def add_frame(self, rgb, depth, semantics, timestamp, odom_c2w=None):
+        if not self.frames:
+            self.entered.set()
+            assert self.gate.wait(30.0), "the test never released the first frame"
+        return super().add_frame(rgb, depth, semantics, timestamp, odom_c2w)
+
+
+@pytest.mark.parametrize(("max_behind", "mapped"), [(3, [1.0, 8.0, 9.0, 10.0]), (0, [float(t) for t in range(1, 11)])])
+def test_session_skips_the_oldest_waiting_frames_beyond_max_behind(tmp_path, max_behind, mapped):
+    """A live camera: while SLAM is busy with frame 1, frames 2-10 arrive; with max_behind 3 the six oldest are
+    skipped before or after the disk writer (counted, logged, in the result), with 0 (the default) none is."""
+    from semantic_gs_slam_ros.session import SessionConfig, StreamingSession
+
+    logs: list[str] = []
+    engine = GatedEngine()
+    session = StreamingSession(SessionConfig(work_dir=str(tmp_path), width=0, height=0, checkpoint_every=0,
+                                             max_behind=max_behind), engine, log=logs.append)
+    send(session, 1.0)
+    out: list = []
+    runner = threading.Thread(target=lambda: out.append(session.run(poll=0.01)))
+    runner.start()
+    try:
+        assert engine.entered.wait(30.0)
+        for t in range(2, 11):
+            send(session, float(t))
+            assert wait_until(lambda: session.progress().writing == 0, 30.0)  # written before the next comes
+        waiting = len(mapped) - 1  # frame 1 is in the engine; these wait for it
+        assert wait_until(lambda: session.progress().writing == 0 and session.progress().backlog == 1 + waiting, 30.0)
+        session.data_transfer_done()
+    finally:
+        engine.gate.set()
+        runner.join(30.0)
+    p = session.progress()
+    assert out[0].success and [t for t, _ in engine.frames] == mapped
+    assert p.behind == 10 - len(mapped) and p.processed == len(mapped) and p.backlog == 0
+    said = f"{p.behind} frames skipped while SLAM was more than {max_behind} frames behind"
+    assert (said in out[0].message) == (max_behind > 0)
+    said = "max_behind=3 frames behind the camera: skipping the oldest"
+    assert any(said in line for line in logs) == (max_behind > 0)
+
+
+def test_max_behind_skips_frames_still_waiting_for_the_disk_writer_and_the_run_ends(tmp_path, monkeypatch):
+    """The writer slower than the camera: the oldest frames of its queue are skipped unwritten, and the run still
+    ends once the rest are processed (it does not wait for frames that will never be written)."""
+    import semantic_gs_slam_ros.writer as writer_mod
+    from semantic_gs_slam_ros.session import SessionConfig, StreamingSession
+
+    entered, gate = threading.Event(), threading.Event()
+    real_write = writer_mod.write_jpeg
+
+    def slow_first_write(path, rgb, quality=95):  # the disk holds the first frame until the test lets it go
+        if not entered.is_set():
+            entered.set()
+            assert gate.wait(30.0)
+        real_write(path, rgb, quality)
+
+    monkeypatch.setattr(writer_mod, "write_jpeg", slow_first_write)
+    engine = RecordingEngine()
+    session = StreamingSession(SessionConfig(work_dir=str(tmp_path), width=0, height=0, checkpoint_every=0,
+                                             max_behind=2), engine)
+    try:
+        send(session, 1.0)
+        assert entered.wait(30.0)
+        for t in range(2, 7):  # frames 2-6 queue behind it: 2, 3, 4 are skipped before they are written
+            send(session, float(t))
+        assert session.progress().writing == 2 and session.progress().behind == 3
+    finally:
+        gate.set()
+    session.data_transfer_done()
+    result = session.run(poll=0.01)
+    assert result.success and [t for t, _ in engine.frames] == [1.0, 5.0, 6.0]
+    assert sorted(os.listdir(tmp_path / "frames")) == [f"frame{i:06d}.jpg" for i in range(3)]  # 1, 5, 6 on disk
+    assert session.progress().backlog == 0
+
+
+def test_session_refuses_a_negative_max_behind(tmp_path):
+    from semantic_gs_slam_ros.errors import StreamingError
+    from semantic_gs_slam_ros.session import SessionConfig
+
+    with pytest.raises(StreamingError, match="max_behind must be >= 0"):
+        SessionConfig(work_dir=str(tmp_path), max_behind=-1)
+
+
+def wait_until(predicate, timeout: float) -> bool:
+    import time
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.01)
+    return bool(predicate())
+
+
 class ReportingEngine(RecordingEngine):
     """Reports a lost track on its 2nd frame and a drift correction on its 3rd (like EngineAdapter.frame_report)."""
 
@@ -354,6 +455,7 @@ def test_engine_adapter_reports_the_engines_last_frame():
     adapter.add_frame(rgb, depth, None, 0.0)
     assert adapter.frame_report() == (False, False, "")
     assert len(adapter.slam.logs) == 1  # the report is the engine's own log of that frame
+    assert adapter.run_note().startswith("1 frames tracked, 1 keyframes, 0 keyframes deferred while mapping was busy")
 
 
 def _short_fits(cfg):

@@ -117,9 +117,10 @@ def test_stream_to_map_to_object_query(launch_nodes, ros_node, ros_domain, seque
     assert queries.wait_for_service(20.0)
     assert queries.query("placeholder", 5.0).found
 
-    client = Client(ros_domain, sequence / "home")
+    client = Client(ros_domain, sequence / "home", preload=True)  # every frame read before the first is sent
     assert client.wait() == 0, client.text()
     assert "map ready" in client.text() and "8 frames processed" in client.text()
+    assert "preloaded 8 frames" in client.text()
     assert "refined 20 of 20 iterations" in client.text(), client.text()
     assert "refining the map and the keyframes' poses: 20 iterations" in sup.get("run_gs_slam_server").output()
     # frames on disk, 64x36 after the server's resize, depth in millimetres
