@@ -125,8 +125,9 @@ class TrackingConfig:
     use_gt_pose: bool = False  # debugging / mapping-only runs: take the ground-truth pose given to add_frame
     frontend: str = "render"  # "render": point-to-plane ICP against the map rendered at the guess (every frame
     # renders the map); "keyframe": the frame-rate front end (tracking/frontend.py) against the latest keyframe's
-    # reference (its sensor depth and colour at its latest pose), with relocalisation when lost. It does not use
-    # add_frame's odom_c2w for tracking (only for the map frame); the odometry gate and prior are "render"'s
+    # reference (its sensor depth and colour at its latest pose), with relocalisation when lost. With add_frame's
+    # odom_c2w it starts from the odometry's guess instead of constant velocity; the odometry gate and prior are
+    # "render"'s
     frontend_new_keyframe_coverage: float = 0.5  # "keyframe": a frame whose tracked points cover less of the
     # reference than this becomes a keyframe (a new reference), besides mapping.keyframe_every / keyframe_motion_*
     frontend_downsample: int = 1  # "keyframe": track on the frame shrunk by this factor (1, 2 or 4; edge-aware 2x2

@@ -332,7 +332,8 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
         elif self.cfg.tracking.use_gt_pose and gt is not None:
             c2w, source = gt, "ground_truth"
         elif keyframe_fe and self._fe_views:
-            c2w, residual, inliers, failed, source, coverage = self._track_keyframe(idx, rgb_np, depth_np)
+            c2w, residual, inliers, failed, source, coverage = self._track_keyframe(idx, rgb_np, depth_np,
+                                                                                     self.odometry_guess(odom))
             fe_tracked = True
         else:
             if rgb_t is None:  # the keyframe front end before its first reference (e.g. use_gt_pose on frame 0)

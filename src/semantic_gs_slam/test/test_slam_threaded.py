@@ -222,3 +222,20 @@ def test_a_full_backlog_thins_out_to_span_the_run(views):
     assert 1 <= len(kept) <= 3 and kept[-1] >= len(frames) - 2 and kept == sorted(kept)
     with pytest.raises(ConfigError, match="backlog_max"):
         SlamConfig(intrinsics=k, mapping=MappingConfig(backlog_max=-1)).check()
+
+
+def test_the_keyframe_front_end_starts_from_the_odometry_when_given():
+    k = default_intrinsics(120, 68)
+    poses = trajectory(9, span_deg=24.0)  # 3 degrees a frame
+    ren = HomeRenderer(0)
+    frames = [ren.render(p, k) for p in poses]
+    order = [0, 1, 2, 8]  # a jump of 18 degrees where constant velocity guesses 3
+    for odom in (False, True):
+        eng = SLAM(_cfg(k, False), initial_c2w=poses[0])
+        for i in order:
+            eng.add_frame(*frames[i], float(i), odom_c2w=poses[i] if odom else None)
+        err = pose_error(eng.poses[-1], poses[8])[0]
+        if odom:
+            assert err < 0.02 and eng.logs[-1].pose_source == "tracking", (err, eng.logs[-1].pose_source)
+        else:  # what the odometry is for: without it the jump is lost or tracked wrong
+            assert err > 0.02 or eng.logs[-1].pose_source != "tracking", err

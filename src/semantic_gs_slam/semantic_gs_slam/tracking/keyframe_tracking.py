@@ -123,9 +123,11 @@ class KeyframeTracking:
         out = ranked[:max(1, n - 1)]
         return out + ([near] if near not in out else ranked[n - 1:n])
 
-    def _track_keyframe(self, idx: int, rgb: np.ndarray, depth: np.ndarray
+    def _track_keyframe(self, idx: int, rgb: np.ndarray, depth: np.ndarray, odom_guess: np.ndarray | None = None
                         ) -> tuple[np.ndarray, float, int, bool, str, float]:
-        """Track frame ``idx`` ([H, W, 3] in [0, 1], [H, W] metres, both float64).
+        """Track frame ``idx`` ([H, W, 3] in [0, 1], [H, W] metres, both float64) from ``odom_guess`` (the last pose
+        moved by the odometry since, :meth:`~semantic_gs_slam.slam.SLAM.odometry_guess`) when given, else from the
+        constant-velocity guess.
 
         Returns:
             pose [4, 4], residual (m), correspondences, lost, pose source (tracking | lost | relocalised |
@@ -139,7 +141,8 @@ class KeyframeTracking:
         live = prepare_live(depth, self._fe_k, fe, rgb)
         res: TrackResult | None = None
         if self._fe_state != "lost":
-            guess = prev if self._fe_after_reloc else prev @ (np.linalg.inv(prev2) @ prev)
+            guess = odom_guess if odom_guess is not None else \
+                prev if self._fe_after_reloc else prev @ (np.linalg.inv(prev2) @ prev)
             model = self._fe_model(self._fe_ref_idx)
             self._fe_used = (model.keyframe_id, model.c2w)
             res = track(live, model, guess, fe)
