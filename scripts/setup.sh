@@ -11,7 +11,7 @@
 #
 # Environment knobs: PYTHON (interpreter for the venv), VENV (default .venv),
 # HOME_ROBOT_EXTRAS (space-separated extra requirement files under requirements/, e.g. "voice").
-# Re-running is cheap: installs are skipped while the requirement files are unchanged.
+# Re-running is cheap: installs are skipped while the requirement files are unchanged, the colcon build while src/ is.
 set -euo pipefail
 
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -154,13 +154,27 @@ PY
   then skip+=("$vendored"); fi
 done
 if [ ${#skip[@]} -gt 0 ]; then skip=(--packages-skip "${skip[@]}"); fi
-log "colcon build"
-mkdir -p "$ROOT/log"
-colcon build --symlink-install --base-paths src "${skip[@]}" \
-  --event-handlers console_cohesion- summary+ status- \
-  --cmake-args -DPython3_EXECUTABLE="$PY" -DBUILD_TESTING=OFF -DCMAKE_BUILD_TYPE=Release \
-  > "$ROOT/log/colcon-build.txt" 2>&1 || { tail -n 60 "$ROOT/log/colcon-build.txt" >&2; die "colcon build failed (full log: log/colcon-build.txt)"; }
-tail -n 3 "$ROOT/log/colcon-build.txt"
+build=(colcon build --symlink-install --base-paths src "${skip[@]}"
+  --event-handlers console_cohesion- summary+ status-
+  --cmake-args -DPython3_EXECUTABLE="$PY" -DBUILD_TESTING=OFF -DCMAKE_BUILD_TYPE=Release)
+# The build is skipped while its inputs are unchanged: every file under src/ (contents and paths, caches left out),
+# the build command, the installed Python packages and this script. The stamp lives in install/, so a missing or
+# removed install/ (fresh clone, `make clean`) always builds; a failed build removes it first.
+stamp="$ROOT/install/.home-robot-build-stamp"
+inputs=$( { find src -type f ! -path '*/__pycache__/*' ! -path '*.egg-info/*' ! -path '*/.pytest_cache/*' \
+              ! -name '*.py[co]' -print0 | LC_ALL=C sort -z | xargs -0 sha256sum
+            printf '%s\n' "${build[*]}" "$want" "$(sha256sum < "${BASH_SOURCE[0]}")"; } | sha256sum | cut -d' ' -f1)
+if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$inputs" ] && [ -f "$ROOT/install/local_setup.bash" ] && [ -d "$ROOT/build" ]; then
+  log "colcon build: src/ unchanged since the last build (install/.home-robot-build-stamp), skipped"
+else
+  log "colcon build"
+  rm -f "$stamp"
+  mkdir -p "$ROOT/log"
+  "${build[@]}" > "$ROOT/log/colcon-build.txt" 2>&1 \
+    || { tail -n 60 "$ROOT/log/colcon-build.txt" >&2; die "colcon build failed (full log: log/colcon-build.txt)"; }
+  tail -n 3 "$ROOT/log/colcon-build.txt"
+  echo "$inputs" > "$stamp"
+fi
 
 # --- 5. smoke test: rclpy + our interfaces import, discovery on loopback only ---------------------
 HOME_ROBOT_ENV_QUIET=1 source "$ROOT/scripts/env.sh"
