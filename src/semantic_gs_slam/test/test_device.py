@@ -223,11 +223,53 @@ MODULES = ["render.types", "render.tiles", "render.gsplat_backend", "render.numb
            "render", "tracking.icp_numba", "eval.metrics_numba"]
 
 
+# One process imports the third-party libraries (torch, numpy, numba: seconds), then forks a fresh child per module
+# that imports only that module of this package: each child starts with none of semantic_gs_slam loaded, as a new
+# interpreter would, without paying for torch's import eight times. A child's traceback is its result.
+_IMPORT_EACH_ALONE = r"""
+import os, sys, traceback
+import numpy, torch
+try:
+    import numba
+except ImportError:
+    pass
+assert not [m for m in sys.modules if m.split(".")[0] == "semantic_gs_slam"], "the package was imported first"
+for name in sys.argv[1:]:
+    r, w = os.pipe()
+    pid = os.fork()
+    if pid == 0:
+        os.close(r)
+        os.dup2(w, 1)
+        os.dup2(w, 2)
+        try:
+            __import__("semantic_gs_slam." + name)
+        except BaseException:
+            traceback.print_exc()
+            sys.stderr.flush()
+            os._exit(1)
+        os._exit(0)
+    os.close(w)
+    with os.fdopen(r, "rb") as f:
+        out = f.read().decode("utf-8", "replace")
+    code = os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1])
+    print(repr((name, code, out)), flush=True)
+"""
+
+
+@pytest.fixture(scope="module")
+def imports_alone() -> dict[str, tuple[int, str]]:
+    r = subprocess.run([sys.executable, "-c", _IMPORT_EACH_ALONE, *MODULES], capture_output=True, text=True,
+                       timeout=240)
+    assert r.returncode == 0, r.stdout + r.stderr
+    import ast
+
+    return {name: (code, out) for name, code, out in map(ast.literal_eval, r.stdout.splitlines())}
+
+
 @pytest.mark.parametrize("name", MODULES)
-def test_each_module_imports_alone(name):
-    r = subprocess.run([sys.executable, "-c", f"import semantic_gs_slam.{name}"], capture_output=True, text=True,
-                       timeout=120)
-    assert r.returncode == 0, r.stderr
+def test_each_module_imports_alone(name, imports_alone):
+    code, out = imports_alone[name]
+    assert code == 0, out
 
 
 def test_map_arrays_round_trip_keeps_the_device(tmp_path):

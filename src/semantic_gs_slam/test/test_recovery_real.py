@@ -31,8 +31,9 @@ def _shared_sequence() -> str:
 
 SHARED_7SCENES = _shared_sequence()
 
+# a minute of mapping on an idle machine; pytest's 300 s default cut it at load 15 (the checks are not about time)
 pytestmark = [pytest.mark.skipif(not SHARED_7SCENES, reason="the shared 7-Scenes sequence is not here"),
-              pytest.mark.slow]
+              pytest.mark.slow, pytest.mark.timeout(900)]
 
 # frame numbers of the sequence fed in this order (stride 2): a stretch, a 60-frame gap, a jump back to ground seen
 # at the start (kidnapped), then a part of the kitchen none of the earlier frames saw
