@@ -27,7 +27,8 @@ class _Recorder(SLAM):
         self.cfg = SlamConfig(intrinsics=default_intrinsics(96, 54),
                               mapping=MappingConfig(keyframe_every=keyframe_every))
         self.keyframes = []  # no keyframe yet: only the index says which frame will be one
-        self._last_kf_index, self._poses_lock = -1, threading.RLock()  # what keyframe_expected reads
+        self._last_kf_index, self._poses_lock, self._kf_due = -1, threading.RLock(), False  # what
+        # keyframe_expected reads
         self.k, self.device = self.cfg.intrinsics, torch.device("cpu")  # what check_frame needs
 
     def add_frame(self, rgb, depth, semantics=None, timestamp=None, gt_c2w=None):
