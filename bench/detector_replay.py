@@ -37,7 +37,7 @@ import torch
 
 from semantic_gs_slam.config import MappingConfig
 from semantic_gs_slam.io.datasets import load_dataset
-from semantic_gs_slam.labels import LabelConfig, LabelStage, predict_pose
+from semantic_gs_slam.labels import LabelConfig, LabelStage, box_instance, predict_pose
 from semantic_gs_slam.mapping.gaussian_map import GaussianMap, load_params, trajectory_from_params
 
 
@@ -79,7 +79,6 @@ def replay(map_dir: str, dataset: str, size: tuple[int, int], start: int, stride
 
 def box_fills(dataset: str, size: tuple[int, int], start: int, stride: int, frames: int) -> dict[str, list[float]]:
     """Class -> the box fill of each of its detections that names an instance (see ``--fills``)."""
-    from semantic_gs_slam.labels.geometry import FIRST_INSTANCE_ID
     from semantic_gs_slam.labels.onnx_model import COCO_BASE, COCO_NAMES
 
     ds = load_dataset(dataset, size=size)
@@ -92,16 +91,11 @@ def box_fills(dataset: str, size: tuple[int, int], start: int, stride: int, fram
         h, w = geo.shape
         for sem_id, _score, _mask, box in detections:
             x1, y1, x2, y2 = np.clip(np.round(box), 0, [w, h, w, h]).astype(int)
-            inside = geo[y1:y2, x1:x2]
-            cand = inside[inside >= FIRST_INSTANCE_ID]
-            if cand.size == 0:
-                continue
-            vals, cnt = np.unique(cand, return_counts=True)
-            k = int(np.argmax(cnt))
-            if cnt[k] < 0.6 * int((geo == vals[k]).sum()):
+            found = box_instance(geo, (x1, y1, x2, y2))
+            if found is None:
                 continue
             seen = max(int(np.count_nonzero(f.depth[y1:y2, x1:x2] > 0)), 1)
-            out.setdefault(COCO_NAMES[sem_id - COCO_BASE], []).append(float(cnt[k]) / seen)
+            out.setdefault(COCO_NAMES[sem_id - COCO_BASE], []).append(float(found[1]) / seen)
     return out
 
 

@@ -114,12 +114,18 @@ def test_threaded_needs_the_keyframe_front_end(views):
         SlamConfig(intrinsics=k, tracking=TrackingConfig(frontend="orb")).check()
 
 
-def test_busy_mapping_defers_keyframes_and_the_next_free_frame_takes_it(views):
-    k, poses, frames = views
-    cfg = _cfg(k, True, queue_size=4)
+def _held_deferring(k, poses, **kw) -> _SlowMap:
+    """A threaded engine deferring keyframes whose mapping thread is held (``gate``) until the test lets it go."""
+    cfg = _cfg(k, True, queue_size=4, **kw)
     cfg.mapping.defer_keyframes = True
     eng = _SlowMap(cfg, initial_c2w=poses[0])
     eng.gate = threading.Event()
+    return eng
+
+
+def test_busy_mapping_defers_keyframes_and_the_next_free_frame_takes_it(views):
+    k, poses, frames = views
+    eng = _held_deferring(k, poses)
     _feed(eng, frames[:5])  # frame 0's map update holds the thread: frame 3, due by keyframe_every, is deferred
     assert [lg.index for lg in eng.logs if lg.keyframe] == [0]
     assert eng.stats()["deferred_keyframes"] == 2  # frames 3 and 4 (the due keyframe waits for a free thread)
@@ -192,10 +198,7 @@ def test_spread_order_covers_the_run_evenly_at_every_prefix():
 
 def test_deferred_frames_are_kept_and_mapped_by_the_refinement(views):
     k, poses, frames = views
-    cfg = _cfg(k, True, queue_size=4)
-    cfg.mapping.defer_keyframes = True
-    eng = _SlowMap(cfg, initial_c2w=poses[0])
-    eng.gate = threading.Event()
+    eng = _held_deferring(k, poses)
     _feed(eng, frames)  # frame 0's mapping holds the thread: every later due keyframe is deferred
     assert [i for i, *_ in eng.backlog] == [3, 6]  # keyframe_every (3) apart, counted from the last keyframe
     eng.gate.set()

@@ -105,6 +105,22 @@ def predict_pose(poses: list[np.ndarray], first: np.ndarray | None = None) -> np
     return poses[-1] @ (np.linalg.inv(poses[-2]) @ poses[-1])
 
 
+def box_instance(geo: np.ndarray, box: tuple[int, int, int, int]) -> tuple[int, int] | None:
+    """The geometry instance that fills most of ``box`` (x1, y1, x2, y2 pixels) in ``geo`` [H, W] (ids), with its
+    pixel count in the box; None when the box holds no instance or that instance lies mostly (40 % or more) outside
+    the box (not the detected object)."""
+    x1, y1, x2, y2 = box
+    inside = geo[y1:y2, x1:x2]
+    cand = inside[inside >= FIRST_INSTANCE_ID]
+    if cand.size == 0:
+        return None
+    vals, cnt = np.unique(cand, return_counts=True)
+    j = int(np.argmax(cnt))
+    if cnt[j] < 0.6 * int((geo == vals[j]).sum()):
+        return None
+    return int(vals[j]), int(cnt[j])
+
+
 class LabelStage:
     """Turns each RGB-D frame into per-pixel ids according to a :class:`LabelConfig`."""
 
@@ -219,22 +235,17 @@ class LabelStage:
                 if sem_id in SUPPORT_IDS:
                     top = out[y1:y2, x1:x2]
                     top[geo[y1:y2, x1:x2] == TABLE] = sem_id
-                inside = geo[y1:y2, x1:x2]
-                cand = inside[inside >= FIRST_INSTANCE_ID]
-                if cand.size == 0:
+                found = box_instance(geo, (x1, y1, x2, y2))
+                if found is None:  # no instance, or the largest lies mostly outside the box: not this object
                     continue
-                vals, cnt = np.unique(cand, return_counts=True)
-                j = int(np.argmax(cnt))
-                total = int((geo == vals[j]).sum())
-                if cnt[j] < 0.6 * total:  # the instance lies mostly outside the box: not this object
-                    continue
-                measured = inside.size if depth is None else int(np.count_nonzero(depth[y1:y2, x1:x2] > 0))
-                if cnt[j] < self.cfg.box_min_fill * measured:  # a small part of the box: something under or behind
+                inst, cnt = found
+                measured = (y2 - y1) * (x2 - x1) if depth is None else int(np.count_nonzero(depth[y1:y2, x1:x2] > 0))
+                if cnt < self.cfg.box_min_fill * measured:  # a small part of the box: something under or behind
                     continue  # the detected object (a table's leg in its box), not the object
                 if self.min_views > 1:  # voted over the labelled frames: see _confirmed_names
-                    seen[int(vals[j])] = sem_id
+                    seen[inst] = sem_id
                     continue
-                mask = geo == vals[j]
+                mask = geo == inst
             out[mask] = sem_id
         if self.min_views > 1:
             self._confirmed_names(seen, geo, out)
