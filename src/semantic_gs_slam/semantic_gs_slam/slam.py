@@ -29,7 +29,6 @@ from semantic_gs_slam.devices import require_cpu_kernel, resolve_device
 from semantic_gs_slam.errors import FrameError, MapFormatError, TrackingError
 from semantic_gs_slam.geometry import pose_error
 from semantic_gs_slam.io.exposure import identity as exposure_identity
-from semantic_gs_slam.io.exposure import to_map
 from semantic_gs_slam.loop.closing import LoopClosing
 from semantic_gs_slam.loop.posegraph import Edge
 from semantic_gs_slam.mapping.gaussian_map import (
@@ -363,12 +362,12 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
         if (due or needed) and not unmapped and idx > 0 and self._mapping_busy():
             # mapping.defer_keyframes: the next frame is due instead; a reference the front end needs is taken
             # (or one keyframe_every frames old: a stale reference makes the front end drift)
-            stale = keyframe_fe and idx - self._fe_ref_idx >= self.cfg.mapping.keyframe_every
+            # (threaded, so the keyframe front end)
+            stale = idx - self._fe_ref_idx >= self.cfg.mapping.keyframe_every
             self._kf_due, due, new_reference, needed = True, False, needed or stale, False
             self.deferred_keyframes += 1
-            if keyframe_fe and self._keeps(idx):
-                rgb_t, depth_t, sem_t = self._device_frame(host)
-            self._keep_deferred(idx, rgb_t, depth_t, sem_t)
+            if self._keeps(idx):
+                self._keep_deferred(idx, *self._device_frame(host))
         is_kf = (due or needed) and not unmapped
         if is_kf:
             self._kf_due = False
@@ -422,13 +421,11 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
         last = max(self._last_kf_index, self.backlog[-1][0] if self.backlog else -1)
         return mc.backlog_max > 0 and idx - last >= mc.keyframe_every * self._backlog_spacing
 
-    def _keep_deferred(self, idx: int, rgb_t: Tensor | None, depth_t: Tensor | None, sem_t: Tensor | None) -> None:
-        """Keep a deferred frame for :meth:`catch_up` when :meth:`_keeps` says so; a full backlog
+    def _keep_deferred(self, idx: int, rgb_t: Tensor, depth_t: Tensor, sem_t: Tensor | None) -> None:
+        """Keep deferred frame ``idx`` (one :meth:`_keeps` accepted) for :meth:`catch_up`; a full backlog
         (``mapping.backlog_max``) drops every second frame and keeps half as many from then on, so it spans the
         whole run."""
         mc = self.cfg.mapping
-        if not self._keeps(idx) or rgb_t is None or depth_t is None:
-            return
         if len(self.backlog) >= mc.backlog_max:
             self.backlog = self.backlog[1::2]
             self._backlog_spacing *= 2
@@ -629,10 +626,7 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
         self._loop_note = self._close_loop(idx, depth)
         with self._poses_lock:
             c2w = self.poses[idx].copy()
-        added = self._densify(idx, rgb, depth, sem, c2w, keyframe=True)
-        if self._exposure is not None:
-            rgb = to_map(rgb, self._exposure)
-        kf = Keyframe(idx, torch.as_tensor(c2w, device=self.device), rgb, depth, sem)
+        kf, added = self._seeded_view(idx, rgb, depth, sem, c2w)
         if self.keyframes:
             lc = self.cfg.loop
             with self._poses_lock:

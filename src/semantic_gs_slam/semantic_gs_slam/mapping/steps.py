@@ -180,6 +180,15 @@ class MappingSteps:
             done += 1
         return (float(loss.detach()) if loss is not None else float("nan")), done  # one host copy per keyframe
 
+    def _seeded_view(self, idx: int, rgb: Tensor, depth: Tensor, sem: Tensor | None, c2w: np.ndarray
+                     ) -> tuple[Keyframe, int]:
+        """Seed frame ``idx``'s Gaussians as on a keyframe (its exposure fitted into ``_exposure``) and make it a
+        view at ``c2w`` ([4, 4]) with its colour in the map's exposure; returns (the view, Gaussians added)."""
+        added = self._densify(idx, rgb, depth, sem, c2w, keyframe=True)
+        if self._exposure is not None:
+            rgb = to_map(rgb, self._exposure)
+        return Keyframe(idx, torch.as_tensor(c2w, device=self.device), rgb, depth, sem), added
+
     def catch_up(self, should_stop: Callable[[], bool] | None = None) -> list[Keyframe]:
         """Map the frames deferred during the run (``mapping.defer_keyframes``; :attr:`backlog`): each seeds
         Gaussians where the map lacks them, at its current pose (loop closures included), and becomes a view of
@@ -200,11 +209,10 @@ class MappingSteps:
             with self._poses_lock:
                 c2w = self.poses[idx].copy()
             self._exposure = None
-            self._densify(idx, rgb, depth, sem, c2w, keyframe=True)
+            view, _ = self._seeded_view(idx, rgb, depth, sem, c2w)
             if self._exposure is not None:
                 self.exposures[idx] = self._exposure
-                rgb = to_map(rgb, self._exposure)
-            views.append(Keyframe(idx, torch.as_tensor(c2w, device=self.device), rgb, depth, sem))
+            views.append(view)
         self.caught_up += len(views)
         return views
 
