@@ -138,6 +138,10 @@ class TrackingConfig:
     relocalise_candidates: int = 3  # keyframes tried per relocalisation: the best ranked by a 20x15 thumbnail of
     # depth and intensity (cheap), plus the one nearest the last trusted pose
     relocalise_confirm: int = 2  # trusted frames in a row (the relocalised one first) before mapping resumes
+    relocalise_map_refine: bool = True  # "keyframe": a relocalised frame and the frames confirming it are refined by
+    # the "render" front end's ICP against the map rendered at their pose (the map holds more of the scene than the
+    # one keyframe they were relocalised against; a mapping thread finishes its job first). On the kitchen, after a
+    # 60-frame gap: error 5.6-7.3 -> 4.8-5.7 cm; a kidnapped camera 0.8-1.8 -> 0.5-1.6 cm (test_recovery_real.py)
 
     def check(self) -> None:
         _check_device_dependent("tracking.icp_iters", self.icp_iters, int)

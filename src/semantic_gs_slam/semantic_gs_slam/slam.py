@@ -26,7 +26,7 @@ from torch import Tensor
 
 from semantic_gs_slam.config import Intrinsics, SlamConfig
 from semantic_gs_slam.devices import require_cpu_kernel, resolve_device
-from semantic_gs_slam.errors import FrameError, MapFormatError, TrackingError
+from semantic_gs_slam.errors import FrameError, MapFormatError, MappingError, TrackingError
 from semantic_gs_slam.geometry import pose_error
 from semantic_gs_slam.io.exposure import identity as exposure_identity
 from semantic_gs_slam.loop.closing import LoopClosing
@@ -334,6 +334,10 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
             c2w, residual, inliers, failed, source, coverage = self._track_keyframe(idx, rgb_np, depth_np,
                                                                                      self.odometry_guess(odom))
             fe_tracked = True
+            if source in ("relocalised", "confirming", "recovered") and self.cfg.tracking.relocalise_map_refine:
+                refined = self._refine_on_map(idx, host, c2w)
+                if refined is not None:  # in the map's current frame: no reference-keyframe correction below
+                    c2w, residual, inliers, fe_tracked = refined[0], refined[1], refined[2], False
         else:
             if rgb_t is None:  # the keyframe front end before its first reference (e.g. use_gt_pose on frame 0)
                 rgb_t, depth_t, sem_t = self._device_frame(host)
@@ -405,6 +409,30 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
             self.checkpoint(self.cfg.checkpoint_dir)
         with self._poses_lock:
             return self.poses[idx].copy()
+
+    def _refine_on_map(self, idx: int, host: tuple[np.ndarray, np.ndarray, np.ndarray | None], c2w: np.ndarray
+                       ) -> tuple[np.ndarray, float, int] | None:
+        """A relocalised (or confirming) frame's pose ``c2w`` refined by the render front end's ICP against the map
+        rendered there (``tracking.relocalise_map_refine``); None when the map does not confirm it or a mapping
+        thread did not finish its job within ``queue_timeout_s`` (the front end's pose is kept).
+
+        Returns:
+            (pose [4, 4], residual (m), correspondences).
+        """
+        if self._worker is not None:  # the map must not change under the render: the mapping thread's job first
+            try:
+                self._worker.drain(self.cfg.queue_timeout_s)
+            except MappingError as exc:
+                if self._worker.failed:
+                    raise
+                log.warning("frame %d: relocalised pose not refined on the map (%s)", idx, exc)
+                return None
+        rgb_t, depth_t, _ = self._device_frame(host)
+        out, residual, inliers, failed, _ = self._track(rgb_t, depth_t, None, guess=c2w)
+        if failed:
+            log.warning("frame %d: the map does not confirm the relocalised pose; the front end's is kept", idx)
+            return None
+        return out, residual, inliers
 
     def _device_frame(self, host: tuple[np.ndarray, np.ndarray, np.ndarray | None]
                       ) -> tuple[Tensor, Tensor, Tensor | None]:

@@ -225,3 +225,17 @@ def test_pixels_without_depth_take_colour_at_their_surroundings_depth():
     # an image with no depth at all still registers (far depth: only the intrinsics move colour)
     none = cr.register(rgb, np.zeros_like(depth), *DEPTH_K, TRUE)
     np.testing.assert_allclose(none, cr.bilinear(rgb, u, v), atol=1e-6)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.uint8])
+def test_bilinear_matches_its_numpy_reference_inside_and_past_the_border(dtype):
+    rng = np.random.default_rng(5)
+    img = (rng.random((31, 47, 3)) * (255 if dtype == np.uint8 else 1)).astype(dtype)
+    v, u = np.mgrid[0:20, 0:30].astype(np.float32)
+    u = u * 1.8 - 4 + rng.random(u.shape).astype(np.float32)  # some samples left of and past the right border
+    v = v * 1.9 - 3 + rng.random(v.shape).astype(np.float32)
+    got, want = cr.bilinear(img, u, v), cr.bilinear_reference(img, u, v)
+    assert got.shape == want.shape == (20, 30, 3) and got.dtype == want.dtype == dtype
+    np.testing.assert_allclose(got.astype(np.float64), want.astype(np.float64), atol=1 if dtype == np.uint8 else 1e-5)
+    np.testing.assert_array_equal(cr.bilinear(img, np.zeros((1, 1)), np.zeros((1, 1)))[0, 0], img[0, 0])
+    np.testing.assert_array_equal(cr.bilinear(img, np.full((1, 1), 99.0), np.full((1, 1), -9.0))[0, 0], img[0, -1])

@@ -66,9 +66,10 @@ def _recovery(eng: SLAM, first: int, end: int) -> tuple[int, int]:
 
 
 # the error allowed after the recovery: the kidnapped camera lands on keyframes of its own ground and tracks as well as
-# before (measured: 0.8-1.8 cm, before: up to 3.8 cm); after the gap the only keyframes are 40-60 cm away and the
-# relocalised pose keeps their partial view's offset (measured 5.6-7.3 cm): 8 cm, a figure to bring down
-AFTER_LIMIT_M = {"gap": 0.08, "kidnapped": None}  # None: the largest error before the camera was lost
+# before (measured: 0.5-1.6 cm, before: up to 3.8 cm); after the gap the only keyframes are 40-60 cm away: the
+# relocalised pose, refined on the map (tracking.relocalise_map_refine), keeps part of their partial view's offset
+# (measured 4.8-5.7 cm; 5.6-7.3 cm without the refinement on the map): 6.5 cm, a figure to bring down
+AFTER_LIMIT_M = {"gap": 0.065, "kidnapped": None}  # None: the largest error before the camera was lost
 
 
 def test_a_lost_camera_is_relocalised_within_a_few_frames_and_a_view_never_seen_stays_lost():

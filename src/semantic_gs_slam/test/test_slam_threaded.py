@@ -242,3 +242,30 @@ def test_the_keyframe_front_end_starts_from_the_odometry_when_given():
             assert err < 0.02 and eng.logs[-1].pose_source == "tracking", (err, eng.logs[-1].pose_source)
         else:  # what the odometry is for: without it the jump is lost or tracked wrong
             assert err > 0.02 or eng.logs[-1].pose_source != "tracking", err
+
+
+@pytest.mark.parametrize("refine", [True, False])
+def test_a_kidnapped_camera_is_relocalised_and_refined_on_the_map_while_the_mapping_thread_runs(views, refine):
+    """Lost on a view turned away, then back on ground the map holds: relocalised against a keyframe; with
+    tracking.relocalise_map_refine the pose is then refined on the map (after the mapping thread's job)."""
+    k, poses, frames = views
+    away = poses[4].copy()
+    turn = np.array([[-1.0, 0, 0], [0, 1, 0], [0, 0, -1]])  # half a turn about the camera's vertical axis
+    away[:3, :3] = away[:3, :3] @ turn
+    lost_view = HomeRenderer(0).render(away, k)
+    cfg = _cfg(k, True)
+    cfg.tracking.relocalise_map_refine = refine
+    cfg.tracking.relocalise_every = 1  # the first frame back tries at once
+    eng = SLAM(cfg, initial_c2w=poses[0])
+    order = [0, 1, 2, 3, 4, 5, 6, None, 3, 4, 5]  # None: the view turned away
+    for n, i in enumerate(order):
+        rgb, depth, sem = lost_view if i is None else frames[i]
+        eng.add_frame(rgb, depth, sem, float(n))
+    eng.finish(120.0)
+    sources = [lg.pose_source for lg in eng.logs]
+    assert sources[7] == "lost" and sources[8] == "relocalised", sources
+    assert eng.stats()["recoveries"] and eng.stats()["recoveries"][0][0] == 7
+    # refined on the map: the render front end's agreement is logged (the keyframe front end logs none)
+    assert [np.isfinite(eng.logs[n].track_agreement) for n in (7, 8, 9)] == [False, refine, refine]
+    for n in (8, 9, 10):
+        assert pose_error(eng.poses[n], poses[order[n]])[0] < 0.02, (n, sources)

@@ -7,6 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from semantic_gs_slam.config import Intrinsics
 from semantic_gs_slam.devices import numba_available
 from semantic_gs_slam.errors import ConfigError, FrameError, TrackingError
 from semantic_gs_slam.geometry import pose_error
@@ -16,6 +17,7 @@ from semantic_gs_slam.tracking.frontend import (
     FrontendConfig,
     RelocalisationError,
     build_reference,
+    downsample_frame,
     normal_equations,
     normal_equations_reference,
     prepare_live,
@@ -161,3 +163,24 @@ def test_bad_input_is_refused(scene):
         build_reference(views[0][1], np.eye(3), k, CFG)
     with pytest.raises(ConfigError, match="one value per level"):
         FrontendConfig(levels=2).check()
+
+
+@pytest.mark.parametrize("backend", ["numpy", "numba"])
+def test_downsample_frame_means_each_2x2_cell_and_never_averages_across_an_edge(backend):
+    if backend == "numba" and not numba_available():
+        pytest.skip("numba not installed")
+    cfg = FrontendConfig(backend=backend)
+    rng = np.random.default_rng(3)
+    rgb = rng.random((17, 19, 3)).astype(np.float32)  # odd sizes: the last row and column are dropped
+    depth = np.full((17, 19), 2.0)
+    depth[0, 0] = 0.0  # a cell with a hole
+    depth[2:4, 2:4] = [[1.0, 2.0], [1.0, 2.0]]  # a cell across an edge
+    depth[4:6, 4:6] = [[2.0, 2.04], [2.02, 2.06]]  # a cell within depth_jump: its mean
+    k = Intrinsics(fx=16.0, fy=16.0, cx=9.0, cy=8.0, width=19, height=17)
+    d, c, k2 = downsample_frame(depth, rgb, k, 1, cfg)
+    assert d.shape == (8, 9) and c.shape == (8, 9, 3) and (k2.width, k2.height) == (9, 8)
+    want = rgb[:16, :18].reshape(8, 2, 9, 2, 3).mean(axis=(1, 3))
+    np.testing.assert_allclose(c, want, rtol=1e-6)
+    assert d[0, 0] == 0.0 and d[1, 1] == 0.0
+    assert d[2, 2] == pytest.approx(2.03)
+    assert d[0, 1] == pytest.approx(2.0)

@@ -19,6 +19,7 @@ NumPy, and torch only for the shared hole filling (no ROS).
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
@@ -99,6 +100,15 @@ def save(calib: ColourCalib, path: str, note: str = "") -> None:
         f.write("\n")
 
 
+@functools.lru_cache(maxsize=4)
+def _pixel_grid(h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """Row and column indices [h, w] float64 (read-only: shared between calls)."""
+    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    v.flags.writeable = False
+    u.flags.writeable = False
+    return v, u
+
+
 def colour_coords(depth: np.ndarray, fx: float, fy: float, cx: float, cy: float, calib: ColourCalib
                   ) -> tuple[np.ndarray, np.ndarray]:
     """Where the colour camera sees each depth pixel: (u, v) [H, W] float32 in colour pixels.
@@ -112,7 +122,7 @@ def colour_coords(depth: np.ndarray, fx: float, fy: float, cx: float, cy: float,
     h, w = depth.shape
     filled = fill_depth_holes(torch.from_numpy(np.ascontiguousarray(depth, dtype=np.float32))).numpy()
     z = np.where(filled > 0, filled, FAR).astype(np.float64)
-    v, u = np.mgrid[0:h, 0:w].astype(np.float64)
+    v, u = _pixel_grid(h, w)
     x = (u - cx) / fx * z + calib.tx
     y = (v - cy) / fy * z + calib.ty
     zc = np.maximum(z + calib.tz, 1e-6)
@@ -127,7 +137,25 @@ def scaled(calib: ColourCalib, sx: float, sy: float) -> ColourCalib:
 
 
 def bilinear(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """``img`` [H, W, C] sampled at float pixel coordinates ``u``, ``v`` [h, w] (clamped at the border)."""
+    """``img`` [H, W, C] (or [H, W]) sampled at float pixel coordinates ``u``, ``v`` [h, w] (clamped at the border).
+
+    torch's ``grid_sample`` (corner-aligned, border padding): at 640x480 a ninth of the time of
+    :func:`bilinear_reference`, which it matches to float rounding (integer images: within 1 where the
+    truncation to the integer type falls on the other side).
+    """
+    h, w = img.shape[:2]
+    chans = img.reshape(h, w, -1)
+    t = torch.from_numpy(np.ascontiguousarray(chans)).permute(2, 0, 1)[None].float()  # [1, C, H, W]
+    gx = torch.from_numpy(np.clip(u, 0.0, w - 1.0).astype(np.float32, copy=False)) * (2.0 / max(w - 1, 1)) - 1.0
+    gy = torch.from_numpy(np.clip(v, 0.0, h - 1.0).astype(np.float32, copy=False)) * (2.0 / max(h - 1, 1)) - 1.0
+    grid = torch.stack([gx, gy], -1)[None]  # [1, h, w, 2] in [-1, 1]
+    out = torch.nn.functional.grid_sample(t, grid, mode="bilinear", padding_mode="border", align_corners=True)
+    out = out[0].permute(1, 2, 0).numpy()  # [h, w, C] float32
+    return out.reshape(u.shape + img.shape[2:]).astype(img.dtype)
+
+
+def bilinear_reference(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """:func:`bilinear` in NumPy (the reference)."""
     h, w = img.shape[:2]
     u = np.clip(u, 0.0, w - 1.0)
     v = np.clip(v, 0.0, h - 1.0)

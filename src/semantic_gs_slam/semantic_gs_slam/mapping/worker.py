@@ -49,6 +49,12 @@ class MappingWorker:
             finally:
                 self._q.task_done()
 
+    @property
+    def failed(self) -> bool:
+        """Whether a job raised (the worker stopped running jobs)."""
+        with self._lock:
+            return self._error is not None
+
     def raise_if_failed(self) -> None:
         """Re-raise a job's exception as :class:`MappingError` (once per failure: the worker stays failed)."""
         with self._lock:
