@@ -23,7 +23,15 @@ Layout, by concept:
 Old module paths (``semantic_gs_slam.datasets`` ...) still import, with a DeprecationWarning (:mod:`._moved`).
 """
 
-from semantic_gs_slam import _moved
+import os
+
+# torch's idle OpenMP workers sleep instead of spinning (read once, when torch loads its OpenMP runtime, so only
+# where this package is imported before torch, e.g. the nodes' entry points; scripts/env.sh sets it for every
+# process): the tracking thread, the mapping thread and the robot's other nodes share a few cores. A value of the
+# caller's own wins.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+from semantic_gs_slam import _moved  # noqa: E402
 
 _moved.install()
 
