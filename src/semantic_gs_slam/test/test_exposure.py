@@ -130,3 +130,30 @@ def test_frames_with_odometry_are_left_alone_unless_asked():
     assert torch.equal(torch.stack(robot.exposures)[:, 0], torch.ones(10, 3))
     asked, _ = _run(auto_exposure=True, compensate=True, odometry=True, with_odometry=True)
     assert float(torch.stack(asked.exposures)[9, 0, 0]) == pytest.approx(1.3, abs=0.08)
+
+
+def test_frames_between_keyframes_take_the_blend_of_the_fitted_exposures_around_them(tmp_path):
+    """Keyframes only (densify_every_frame off, as the realtime profile): the exposure brightens red by 4 % a frame;
+    a frame between keyframes reads the blend of theirs (not the last keyframe's), and the fits survive a checkpoint."""
+    from semantic_gs_slam.synthetic.scenes import HomeRenderer, default_intrinsics, trajectory
+
+    k = default_intrinsics(96, 54)
+    ren = HomeRenderer(0)
+    poses = trajectory(10, span_deg=20.0)
+    cfg = SlamConfig(intrinsics=k, threads=1, tracking=TrackingConfig(use_gt_pose=True),
+                     mapping=MappingConfig(first_frame_iters=30, iters=6, keyframe_every=4,
+                                           densify_every_frame=False))
+    eng = SLAM(cfg)
+    for i, p in enumerate(poses):
+        rgb, depth, _ = ren.render(p, k)
+        rgb = np.clip(rgb.astype(np.float32) * np.array([1.0 + 0.04 * i, 1.0, 1.0], np.float32), 0, 1)
+        eng.add_frame(rgb, depth.astype(np.float32), None, float(i), p)
+    assert eng.exposure_fitted == [i % 4 == 0 for i in range(10)]
+    red = [float(eng.exposure_of(i)[0, 0]) for i in range(10)]
+    assert red[4] == pytest.approx(1.16, abs=0.05) and red[8] == pytest.approx(1.32, abs=0.06), red
+    assert red[6] == pytest.approx((red[4] + red[8]) / 2, abs=1e-5) and red[6] == pytest.approx(1.24, abs=0.05)
+    assert red[9] == red[8]  # past the last fitted frame: its exposure
+    eng.checkpoint(str(tmp_path / "ck"))
+    back = SLAM.resume(str(tmp_path / "ck"))
+    assert back.exposure_fitted == eng.exposure_fitted
+    assert float(back.exposure_of(6)[0, 0]) == pytest.approx(red[6], abs=1e-6)

@@ -212,6 +212,7 @@ class MappingSteps:
             view, _ = self._seeded_view(idx, rgb, depth, sem, c2w)
             if self._exposure is not None:
                 self.exposures[idx] = self._exposure
+                self.exposure_fitted[idx] = True
             views.append(view)
         self.caught_up += len(views)
         return views
