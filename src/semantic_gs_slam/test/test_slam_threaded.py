@@ -212,6 +212,18 @@ def test_deferred_frames_are_kept_and_mapped_by_the_refinement(views):
 
 
 
+def _kept_while_held(cfg: SlamConfig, poses, frames) -> list[int]:
+    """The frames a deferring engine keeps while its mapping thread is held through ``frames`` (then let go and
+    drained)."""
+    eng = _SlowMap(cfg, initial_c2w=poses[0])
+    eng.gate = threading.Event()
+    _feed(eng, frames)
+    kept = [i for i, *_ in eng.backlog]
+    eng.gate.set()
+    eng.finish(120.0)
+    return kept
+
+
 def test_a_deferred_frame_that_moved_far_enough_is_kept_before_keyframe_every(views):
     """A camera turning fast (here 1.4 degrees a frame against a 2.5-degree keyframe_motion_deg) has its deferred
     frames kept as soon as they turned that far from the last kept one, not only keyframe_every frames apart."""
@@ -219,12 +231,7 @@ def test_a_deferred_frame_that_moved_far_enough_is_kept_before_keyframe_every(vi
     cfg = _cfg(k, True, queue_size=4)
     cfg.mapping.defer_keyframes, cfg.mapping.keyframe_every = True, 5
     cfg.mapping.keyframe_motion_deg, cfg.mapping.keyframe_motion_m = 2.5, 0.0
-    eng = _SlowMap(cfg, initial_c2w=poses[0])
-    eng.gate = threading.Event()
-    _feed(eng, frames)
-    kept = [i for i, *_ in eng.backlog]
-    eng.gate.set()
-    eng.finish(120.0)
+    kept = _kept_while_held(cfg, poses, frames)
     assert kept == [2, 4, 6, 8], kept  # every 2nd frame (2.8 degrees), where keyframe_every alone keeps frame 5
 
 
@@ -232,12 +239,7 @@ def test_a_full_backlog_thins_out_to_span_the_run(views):
     k, poses, frames = views
     cfg = _cfg(k, True, queue_size=len(frames))
     cfg.mapping.defer_keyframes, cfg.mapping.keyframe_every, cfg.mapping.backlog_max = True, 1, 3
-    eng = _SlowMap(cfg, initial_c2w=poses[0])
-    eng.gate = threading.Event()
-    _feed(eng, frames)
-    kept = [i for i, *_ in eng.backlog]
-    eng.gate.set()
-    eng.finish(120.0)
+    kept = _kept_while_held(cfg, poses, frames)
     assert 1 <= len(kept) <= 3 and kept[-1] >= len(frames) - 2 and kept == sorted(kept)
     with pytest.raises(ConfigError, match="backlog_max"):
         SlamConfig(intrinsics=k, mapping=MappingConfig(backlog_max=-1)).check()

@@ -307,8 +307,9 @@ def test_client_streams_a_label_less_7scenes_sequence_server_labels_it(launch_no
     log = sup.get("run_gs_slam_server").output
     assert "5 frames processed" in client.text(), client.text() + log()
     # the frame of zeros is the 5th sent; the server names it by its own frame index, which is 4 when the frames are
-    # processed in the order sent and 5 when the last frame's pair was matched first (seen once at load 2)
-    skipped = re.compile(r"frame [45] skipped by SLAM: only 0\.0 % of depth pixels are valid")
+    # processed in the order sent, 5 when the last frame's pair was matched first (seen once at load 2) and 3 when
+    # the frame before it was (seen once with three test workers on two cores)
+    skipped = re.compile(r"frame [345] skipped by SLAM: only 0\.0 % of depth pixels are valid")
     assert wait_for(lambda: skipped.search(log()) is not None, 30), log()  # the log reader may lag the client's exit
     names = {c["class"] for c in json.loads((work / "map" / "semantic.json").read_text())["segmentation"]}
     assert {"floor", "object"} <= names, names
