@@ -432,11 +432,10 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
                 log.warning("frame %d: relocalised pose not refined on the map (%s)", idx, exc)
                 return None
         rgb_t, depth_t, _ = self._device_frame(host)
-        out, residual, inliers, failed, _ = self._track(rgb_t, depth_t, None, guess=c2w)
-        if failed:
-            log.warning("frame %d: the map does not confirm the relocalised pose; the front end's is kept", idx)
-            return None
-        return out, residual, inliers
+        out, residual, inliers, failed, _ = self._track(
+            rgb_t, depth_t, None, guess=c2w, on_failure="the map does not confirm the relocalised pose; the front "
+                                                          "end's is kept")
+        return None if failed else (out, residual, inliers)
 
     def _device_frame(self, host: tuple[np.ndarray, np.ndarray, np.ndarray | None]
                       ) -> tuple[Tensor, Tensor, Tensor | None]:
@@ -584,9 +583,10 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
         return None
 
     def _track(self, rgb: Tensor, depth: Tensor, odom_guess: np.ndarray | None = None,
-               guess: np.ndarray | None = None) -> tuple[np.ndarray, float, int, bool, str]:
+               guess: np.ndarray | None = None, *, on_failure: str = "keeping the previous pose, not mapping this frame"
+               ) -> tuple[np.ndarray, float, int, bool, str]:
         """ICP against the map rendered at ``odom_guess`` (tight prior, see add_frame), else at ``guess``, else at
-        the constant-velocity guess."""
+        the constant-velocity guess. ``on_failure``: what the warning of a failed ICP says the caller does."""
         prev = self.poses[-1] if self.poses else guess  # no pose yet: a start on a saved map (map_start.py)
         if odom_guess is not None:
             guess = odom_guess
@@ -620,7 +620,7 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
             if odom_guess is not None and tc.odometry_fallback:
                 log.warning("frame %d: %s; keeping the odometry guess", len(self.poses), exc)
                 return odom_guess, float("nan"), 0, False, "odometry"
-            log.warning("frame %d: %s; keeping the previous pose, not mapping this frame", len(self.poses), exc)
+            log.warning("frame %d: %s; %s", len(self.poses), exc, on_failure)
             return prev, float("nan"), 0, True, "previous"
         if self.cfg.tracking.photometric_iters > 0:
             icp_c2w = photometric_refine(self.map.gaussians(), res.c2w, rgb, depth, self.k, self.cfg.renderer,

@@ -162,7 +162,8 @@ class MapStart:
             log.warning("frame %d: not relocalised in the saved map yet (%s); not mapped", idx, exc)
             return self._ms_prior.copy(), float("nan"), 0, True, "lost", float("nan")
         # refined against the map as the render front end tracks (its sharper render, its lost test)
-        c2w, residual, inliers, failed, _ = self._track(rgb_t, depth_t, None, guess=r.c2w)
+        c2w, residual, inliers, failed, _ = self._track(rgb_t, depth_t, None, guess=r.c2w,
+                                                        on_failure="checking the relocalised pose on the map")
         if failed:
             log.warning("frame %d: relocalised against the saved map's view %d, but the map does not confirm it; "
                         "not mapped", idx, r.keyframe_id)
