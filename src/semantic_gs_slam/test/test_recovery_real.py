@@ -4,6 +4,7 @@ confirmed before mapping resumes, and tracked as well as before; a view never se
 
 from __future__ import annotations
 
+import logging
 import os
 
 import numpy as np
@@ -41,10 +42,10 @@ PARTS = {"start": range(0, 100, 2), "gap": range(158, 190, 2), "kidnapped": rang
          "unseen": range(300, 316, 2)}
 
 
-def _run():
-    """One run through every part (a minute of mapping on 2 cores): the one test below checks all of it."""
+def _run(parts: dict[str, range] = PARTS):
+    """One run through every part (10 s of mapping on 2 cores): the one test below checks all of it."""
     ds = load_dataset(SHARED_7SCENES, size=(320, 240))
-    order = [i for part in PARTS.values() for i in part]
+    order = [i for part in parts.values() for i in part]
     cfg = SlamConfig(intrinsics=ds.intrinsics, threads=2, tracking=TrackingConfig(frontend="keyframe"),
                      mapping=MappingConfig(first_frame_iters=5, iters=1, densify_every_frame=False),
                      loop=LoopConfig(enabled=False))
@@ -55,8 +56,8 @@ def _run():
         gts.append(f.gt_c2w)
         eng.add_frame(f.rgb, f.depth, None, float(n))
     err = np.array([pose_error(p, g)[0] for p, g in zip(eng.poses, gts, strict=True)])
-    starts = np.cumsum([0] + [len(p) for p in PARTS.values()])
-    return eng, err, dict(zip(PARTS, zip(starts[:-1], starts[1:], strict=True), strict=False))
+    starts = np.cumsum([0] + [len(p) for p in parts.values()])
+    return eng, err, dict(zip(parts, zip(starts[:-1], starts[1:], strict=True), strict=False))
 
 
 def _recovery(eng: SLAM, first: int, end: int) -> tuple[int, int]:
@@ -65,21 +66,25 @@ def _recovery(eng: SLAM, first: int, end: int) -> tuple[int, int]:
     return found[0][0], found[0][1]
 
 
-# the error allowed after the recovery: the kidnapped camera lands on keyframes of its own ground and tracks as well as
-# before (measured: 0.5-1.6 cm, before: up to 3.8 cm); after the gap the only keyframes are 40-60 cm away: the
-# relocalised pose, refined on the map (tracking.relocalise_map_refine), keeps part of their partial view's offset
-# (measured 4.8-5.7 cm; 5.6-7.3 cm without the refinement on the map): 6.5 cm, a figure to bring down
-AFTER_LIMIT_M = {"gap": 0.065, "kidnapped": None}  # None: the largest error before the camera was lost
+# the error allowed after the recovery: no larger than before the camera was lost, or than the same frames' error when
+# tracked without the gap, whichever is larger. A relocalisation lands in the map, so its error is at least the map's
+# own error where the camera comes back: after the gap that is where the map's 1.7 degrees of drift at the last frame
+# before it (3.8 cm there) put 1.5-2 m away (measured: 4.8-5.7 cm after the recovery, 5.0-6.2 cm without the gap).
+# The kidnapped camera lands on keyframes of its own ground (0.5-1.6 cm, before: up to 3.8 cm).
+UNBROKEN = {"start": range(0, 158, 2), "gap": range(158, 190, 2)}  # the first two parts without the gap
 
 
 def test_a_lost_camera_is_relocalised_within_a_few_frames_and_a_view_never_seen_stays_lost():
     run = _run()
+    unbroken = _run(UNBROKEN)
+    a, b = unbroken[2]["gap"]
+    without_gap = {"gap": unbroken[1][a:b].max(), "kidnapped": 0.0}
     for part in ("gap", "kidnapped"):
-        _check_relocalised(run, part)
+        _check_relocalised(run, part, without_gap[part])
     _check_stays_lost(run)
 
 
-def _check_relocalised(run, part: str) -> None:
+def _check_relocalised(run, part: str, without_gap: float) -> None:
     """A gap or a kidnapping: relocalised within a few frames, not mapped until confirmed, tracking as before."""
     eng, err, span = run
     a, b = span[part]
@@ -93,8 +98,7 @@ def _check_relocalised(run, part: str) -> None:
     assert not any(eng.logs[i].keyframe for i in range(a, back_at))
     before = err[s0:s1].max()
     after = err[back_at:b]
-    limit = AFTER_LIMIT_M[part] or before
-    assert after.max() <= limit, (part, before, after)
+    assert after.max() <= max(before, without_gap), (part, before, without_gap, after)
 
 
 def _check_stays_lost(run) -> None:
@@ -105,3 +109,15 @@ def _check_stays_lost(run) -> None:
         [(lg.index, lg.pose_source, round(float(err[lg.index]), 3)) for lg in eng.logs[a:b]]
     assert list(range(a, b)) == [i for i in eng.lost_frames if i >= a]
     assert not any(eng.logs[i].keyframe for i in range(a, b))
+
+
+def test_a_fast_move_is_tracked_again_against_the_previous_frame(caplog):
+    """Every 10th frame (3 Hz: up to 14 cm and 7 degrees a step): a frame the reference loses is tracked again, with
+    more steps, against the frame before it, which becomes the reference; no frame is lost."""
+    parts = {"fast": range(0, 500, 10)}
+    with caplog.at_level(logging.INFO, logger="semantic_gs_slam"):
+        eng, err, _ = _run(parts)
+    retried = [r.getMessage() for r in caplog.records if "the new reference" in r.getMessage()]
+    assert retried, "no frame needed the previous frame: the sequence no longer tests it"
+    assert eng.lost_frames == [], (eng.lost_frames, retried)
+    assert err.max() < 0.25, err.round(3)

@@ -16,12 +16,13 @@ from __future__ import annotations
 
 import logging
 from collections import OrderedDict
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from semantic_gs_slam.tracking.frontend import (
     FrontendConfig,
+    LiveFrame,
     ReferenceModel,
     RelocalisationError,
     TrackResult,
@@ -83,6 +84,7 @@ class KeyframeTracking:
         self._fe_confirmed = 0  # trusted frames since the relocalisation (confirming)
         self._fe_last_trusted = 0  # frame index of the last trusted, mapped pose
         self._fe_after_reloc = False  # the previous frame was relocalised: no constant velocity yet
+        self._fe_prev: tuple[int, np.ndarray, np.ndarray] | None = None  # the last frame tracked (index, depth, rgb)
 
     def _fe_frame(self, depth: np.ndarray, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The front end's copy of a frame ([H, W] metres, [H, W, 3] in [0, 1]): float64, halved
@@ -123,6 +125,38 @@ class KeyframeTracking:
         out = ranked[:max(1, n - 1)]
         return out + ([near] if near not in out else ranked[n - 1:n])
 
+    def _fe_retry(self, idx: int, live: LiveFrame, guess: np.ndarray, reason: str) -> TrackResult | None:
+        """Frame ``idx`` tracked again when the reference lost it (a fast move), with twice the Gauss-Newton steps per
+        level (a large step needs them at 320 x 240), from ``guess`` and then from the previous pose: against the
+        frame before it (the nearest view; the reference may be several frames behind), or against the reference
+        when that is the frame before. A previous frame that tracks it becomes the reference (unmapped, like a
+        stale reference's replacement). Returns the trusted result, or None."""
+        prev = self._fe_prev is not None and self._fe_prev[0] == idx - 1 and idx - 1 != self._fe_ref_idx
+        with self._poses_lock:
+            c2w = self.poses[idx - 1].copy()
+        if prev:
+            _, depth, rgb = self._fe_prev
+            model = build_reference(depth, c2w, self._fe_k, self._fe_cfg, rgb=rgb, keyframe_id=idx - 1)
+        else:
+            model = self._fe_model(self._fe_ref_idx)
+        wide = replace(self._fe_cfg, iters=tuple(2 * i for i in self._fe_cfg.iters))
+        res = track(live, model, guess, wide)
+        if not res.quality.trusted:
+            res = track(live, model, c2w, wide)
+            if not res.quality.trusted:
+                return None
+        if prev:
+            log.info("frame %d: tracked against frame %d, the new reference (the keyframe of frame %d lost it: %s)",
+                     idx, idx - 1, self._fe_ref_idx, reason)
+            self._fe_views[idx - 1] = KeyframeView(idx - 1, depth, rgb, thumbnail(depth, rgb))
+            self._fe_models[idx - 1] = model
+            self._fe_ref_idx = idx - 1
+            self._fe_used = (idx - 1, model.c2w)
+        else:
+            log.info("frame %d: tracked against the keyframe of frame %d with more steps (%s with fewer)", idx,
+                     self._fe_ref_idx, reason)
+        return res
+
     def _track_keyframe(self, idx: int, rgb: np.ndarray, depth: np.ndarray, odom_guess: np.ndarray | None = None
                         ) -> tuple[np.ndarray, float, int, bool, str, float]:
         """Track frame ``idx`` ([H, W, 3] in [0, 1], [H, W] metres, both float64) from ``odom_guess`` (the last pose
@@ -153,9 +187,17 @@ class KeyframeTracking:
                     self._fe_confirmed += 1
                     if self._fe_confirmed >= tc.relocalise_confirm:
                         self._fe_state = "tracking"
+                        self._fe_prev = (idx, depth, rgb)
                         return res.c2w, q.residual, q.correspondences, False, "recovered", q.coverage
                     return res.c2w, q.residual, q.correspondences, False, "confirming", q.coverage
+                self._fe_prev = (idx, depth, rgb)
                 return res.c2w, q.residual, q.correspondences, False, "tracking", q.coverage
+            if self._fe_state == "tracking":
+                alt = self._fe_retry(idx, live, guess, q.reason)
+                if alt is not None:
+                    self._fe_prev = (idx, depth, rgb)
+                    qa = alt.quality
+                    return alt.c2w, qa.residual, qa.correspondences, False, "tracking", qa.coverage
             log.warning("frame %d: tracking lost against the keyframe of frame %d (%s)", idx, self._fe_ref_idx,
                         q.reason)
             if self._fe_state == "tracking":
