@@ -111,7 +111,7 @@ log "quality / speed table ($SIZES, $FRAMES frames each) and streaming"
 # --- 6. a real sequence on CUDA, when REAL_DATA names one ---------------------
 if [ -n "${REAL_DATA:-}" ]; then
   real=("$PY" bench/slam_real.py "$REAL_DATA" --frames "${REAL_FRAMES:-250}" --stride "${REAL_STRIDE:-2}"
-        --device cuda --no-open3d --quiet --curve-every 125)
+        --device cuda --no-open3d --quiet --curve-every 125 --profile default)
   echo '{"mapping": {"keyframe_pixel_stride": 1}}' > "$OUT_DIR/kps1.json"
   set +e  # one failing run must not hide the others; their exit codes are reported at the end
   log "real sequence $REAL_DATA: defaults, then a 900-iteration refinement with poses"
