@@ -176,3 +176,40 @@ def test_gsplat_backend_unavailable_raises_typed_error():
 
 
 # the gsplat agreement tests (GPU) are in test_gsplat_gpu.py
+
+
+
+@pytest.mark.parametrize("aniso", [False, True])
+def test_culling_off_screen_gaussians_keeps_every_pair_and_its_exponent(aniso):
+    """A wide scene, most of it outside the view, with large Gaussians whose centres lie just off the image
+    borders (their footprints reach in): dropping what cannot reach the image before the differentiable projection
+    (render.tiles.cull_bounds) leaves the same (tile, Gaussian) pairs in the same order, with the same exponent
+    coefficients and features, so every pixel and gradient is unchanged."""
+    from semantic_gs_slam.render.tiles import cull_bounds, tile_pairs
+
+    gen = torch.Generator().manual_seed(3)
+    n = 400
+    means = torch.cat([(torch.rand(n, 3, generator=gen, dtype=F64) - 0.5) * torch.tensor([12.0, 9.0, 8.0], dtype=F64)
+                       + torch.tensor([0.0, 0.0, 3.0], dtype=F64),
+                       # just outside the left / right / top / bottom borders at z = 3 (fx = 30: 2 m half-width)
+                       torch.tensor([[-2.2, 0.0, 3.0], [2.2, 0.3, 3.0], [0.2, -1.7, 3.0], [-0.4, 1.7, 3.0]],
+                                    dtype=F64)])
+    m = means.shape[0]
+    scales = torch.log(torch.rand(m, 3 if aniso else 1, generator=gen, dtype=F64) * 0.1 + 0.03)
+    scales[-4:] = math.log(0.35)  # the border ones: footprints several pixels into the image
+    g = Gaussians(means, torch.randn(m, 4, generator=gen, dtype=F64), scales,
+                  torch.randn(m, 1, generator=gen, dtype=F64) * 2 + 2, torch.rand(m, 3, generator=gen, dtype=F64),
+                  torch.rand(m, 2, generator=gen, dtype=F64))
+    w2c = torch.eye(4, dtype=F64)
+    cfg = RendererConfig(tile=8, backend="torch")
+    kept = cull_bounds(g.means, g.log_scales, K, cfg.near, 40, 32)
+    assert 0 < int(kept.sum()) < m // 2 and bool(kept[-4:].all())  # most dropped; the border ones kept
+    a = tile_pairs(g, w2c, K, cfg)  # culled
+    b = tile_pairs(g, w2c, K, cfg, cull=False)
+    ida, idb = torch.nonzero(kept).squeeze(1), torch.nonzero(g.means[:, 2] > cfg.near).squeeze(1)
+    assert a.n_visible == b.n_visible > 0
+    assert torch.equal(ida[a.pg], idb[b.pg]) and torch.equal(a.tstart, b.tstart) and torch.equal(a.tcount, b.tcount)
+    torch.testing.assert_close(a.coef, b.coef, rtol=0, atol=0)
+    torch.testing.assert_close(a.feats[a.pg], b.feats[b.pg], rtol=0, atol=0)
+    border = set(range(m - 4, m))
+    assert border <= set(ida[a.pg].tolist())  # the border ones reach into the image and are drawn
