@@ -29,6 +29,7 @@ from semantic_gs_slam.devices import require_cpu_kernel, resolve_device
 from semantic_gs_slam.errors import FrameError, MapFormatError, MappingError, TrackingError
 from semantic_gs_slam.geometry import pose_error
 from semantic_gs_slam.io.exposure import identity as exposure_identity
+from semantic_gs_slam.io.host_frame import host_frame
 from semantic_gs_slam.loop.closing import LoopClosing
 from semantic_gs_slam.loop.posegraph import Edge
 from semantic_gs_slam.mapping.gaussian_map import (
@@ -237,24 +238,10 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
         if sem is not None and np.asarray(sem).shape != (k.height, k.width):
             raise FrameError(f"semantics must be [{k.height}, {k.width}] ids, got {list(np.asarray(sem).shape)}")
         try:
-            rgb_f = rgb.astype(np.float32) / 255.0 if rgb.dtype == np.uint8 else rgb.astype(np.float32)
-            depth_f = depth.astype(np.float32)
             sem_i = None if sem is None else np.asarray(sem).astype(np.int64)
         except (TypeError, ValueError) as exc:
             raise FrameError(f"frame arrays must be numeric: {exc}") from exc
-        if not np.isfinite(rgb_f).all():
-            raise FrameError("rgb contains NaN or inf")
-        finite = np.isfinite(depth_f)
-        if not finite.all():
-            raise FrameError(f"depth contains {int((~finite).sum())} NaN/inf values (use 0 for missing)")
-        if (depth_f < 0).any():
-            raise FrameError("depth has negative values")
-        valid = (depth_f >= self.cfg.depth_min) & (depth_f <= self.cfg.depth_max)
-        frac = float(valid.mean())
-        if frac < 0.05:
-            raise FrameError(f"only {frac * 100:.1f} % of depth pixels are valid "
-                             f"(in [{self.cfg.depth_min}, {self.cfg.depth_max}] m); is the depth in metres?")
-        depth_f[~valid] = 0.0
+        rgb_f, depth_f = host_frame(rgb, depth, self.cfg.depth_min, self.cfg.depth_max)
         if sem_i is not None:
             for i in np.unique(sem_i).tolist():
                 if i > 0:  # unknown labels get a placeholder name in semantic.json

@@ -184,3 +184,53 @@ def test_downsample_frame_means_each_2x2_cell_and_never_averages_across_an_edge(
     assert d[0, 0] == 0.0 and d[1, 1] == 0.0
     assert d[2, 2] == pytest.approx(2.03)
     assert d[0, 1] == pytest.approx(2.0)
+
+
+@pytest.mark.parametrize("times", [1, 2])
+def test_compiled_shrink_gives_the_numpy_shrink_exactly(times):
+    """downsample_frame's one compiled call (tracking.frontend_numba.shrink_frame) against its NumPy steps, on a
+    float32 camera frame with holes and edges: the same float64 depth and colour, bit for bit."""
+    if not numba_available():
+        pytest.skip("numba not installed")
+    rng = np.random.default_rng(5)
+    rgb = rng.random((49, 67, 3)).astype(np.float32)
+    depth = (1.0 + rng.random((49, 67)) * 0.02).astype(np.float32)
+    depth[rng.random((49, 67)) < 0.03] = 0.0  # holes
+    depth[:, 30:] += 0.5  # an edge
+    k = Intrinsics(fx=40.0, fy=40.0, cx=33.0, cy=24.0, width=67, height=49)
+    d_np, c_np, k_np = downsample_frame(depth, rgb, k, times, FrontendConfig(backend="numpy"))
+    d_nb, c_nb, k_nb = downsample_frame(depth, rgb, k, times, FrontendConfig(backend="numba"))
+    assert d_nb.dtype == c_nb.dtype == np.float64 and k_nb == k_np
+    np.testing.assert_array_equal(c_nb, c_np)
+    np.testing.assert_allclose(d_nb, d_np, rtol=1e-15, atol=0)  # half_depth's mean: the kernels' summation order
+    assert ((d_nb > 0) == (d_np > 0)).all() and 0.2 < (d_nb > 0).mean() < 0.95
+
+
+def test_compiled_live_frame_gives_the_numpy_points_and_refuses_the_same_frames():
+    """prepare_live's one compiled call (tracking.frontend_numba.live_frame) against its NumPy steps: the same points,
+    validity and intensity on every level, and the same errors for NaN depth or colour."""
+    if not numba_available():
+        pytest.skip("numba not installed")
+    rng = np.random.default_rng(8)
+    k = Intrinsics(fx=60.0, fy=60.0, cx=39.5, cy=29.5, width=80, height=60)
+    depth = (1.0 + rng.random((60, 80)) * 0.03).astype(np.float32)
+    depth[rng.random((60, 80)) < 0.05] = 0.0
+    depth[:, 50:] += 3.5  # beyond depth_max 4 m: dropped
+    rgb = rng.random((60, 80, 3)).astype(np.float32)
+    fast = prepare_live(depth, k, FrontendConfig(backend="numba"), rgb)
+    ref = prepare_live(depth, k, FrontendConfig(backend="numpy"), rgb)
+    for a, b, va, vb in zip(fast.points, ref.points, fast.valid, ref.valid, strict=True):
+        np.testing.assert_array_equal(va, vb)
+        np.testing.assert_allclose(a[va], b[vb], rtol=1e-12, atol=0)
+        assert 0.2 < va.mean() < 0.9
+    np.testing.assert_allclose(fast.intensity, ref.intensity, rtol=1e-12, atol=0)
+    assert prepare_live(depth, k, FrontendConfig(backend="numba")).intensity is None
+    for backend in ("numba", "numpy"):
+        bad = depth.copy()
+        bad[5, 5] = np.nan
+        with pytest.raises(FrameError, match="depth has NaN"):
+            prepare_live(bad, k, FrontendConfig(backend=backend), rgb)
+        bad = rgb.copy()
+        bad[1, 1, 2] = np.inf  # a pixel no level samples (stride 2 on the finest)
+        with pytest.raises(FrameError, match="rgb has NaN"):
+            prepare_live(depth, k, FrontendConfig(backend=backend), bad)

@@ -161,7 +161,8 @@ def _check_pose(name: str, c2w: np.ndarray) -> np.ndarray:
     return c2w
 
 
-def _check_image(name: str, img: np.ndarray | None, k: Intrinsics, channels: int | None) -> np.ndarray | None:
+def _check_shape(name: str, img: np.ndarray | None, k: Intrinsics, channels: int | None) -> np.ndarray | None:
+    """``img`` as an array of the camera's shape and a float type (else FrameError); None stays None."""
     if img is None:
         return None
     img = np.asarray(img)
@@ -171,6 +172,13 @@ def _check_image(name: str, img: np.ndarray | None, k: Intrinsics, channels: int
                          f"{list(img.shape)}")
     if not np.issubdtype(img.dtype, np.floating):
         raise FrameError(f"{name} must be a float array (metres / [0, 1] colour), got {img.dtype}")
+    return img
+
+
+def _check_image(name: str, img: np.ndarray | None, k: Intrinsics, channels: int | None) -> np.ndarray | None:
+    img = _check_shape(name, img, k, channels)
+    if img is None:
+        return None
     if not np.isfinite(img).all():
         raise FrameError(f"{name} has NaN or infinite values")
     return img.astype(np.float64, copy=False)
@@ -226,8 +234,18 @@ def downsample_frame(depth: np.ndarray, rgb: np.ndarray | None, k: Intrinsics, t
     Returns:
         depth [H / 2^times, W / 2^times] float64, rgb likewise (or None), and their camera.
     """
-    depth = np.ascontiguousarray(depth, dtype=np.float64)
     cams = _pyramid_cameras(k, times + 1)
+    depth, rgb = np.asarray(depth), None if rgb is None else np.asarray(rgb)
+    if times > 0 and rgb is not None and _use_numba(cfg) and rgb.shape == depth.shape + (3,):
+        # one compiled call: beside a thread that keeps the GIL, each NumPy operation below waits to get it back
+        # (bench/frontend_gil.py)
+        h, w = depth.shape[0] >> times, depth.shape[1] >> times
+        out_d, out_c = np.empty((h, w)), np.empty((h, w, 3))
+        _fast().shrink_frame(np.ascontiguousarray(depth), np.ascontiguousarray(rgb), times, float(cfg.depth_jump),
+                             out_d, out_c)
+        return out_d, out_c, cams[-1]
+    depth = np.ascontiguousarray(depth, dtype=np.float64)
+    rgb = None if rgb is None else np.asarray(rgb, np.float64)
     for _ in range(times):
         depth = _half(depth, cfg.depth_jump, _use_numba(cfg))
         if rgb is not None:
@@ -373,10 +391,12 @@ def prepare_live(depth: np.ndarray, k: Intrinsics, cfg: FrontendConfig, rgb: np.
         FrameError: a shape, dtype or non-finite value is wrong.
     """
     cfg.check()
+    fast = _use_numba(cfg)
+    if fast:
+        return _prepare_live_fast(depth, k, cfg, rgb)
     d = _check_image("depth", depth, k, None)
     rgb = _check_image("rgb", rgb, k, 3)
     d = np.where((d >= cfg.depth_min) & (d <= cfg.depth_max), d, 0.0)
-    fast = _use_numba(cfg)
     pts, val = [], []
     il = None
     for lv, cam in enumerate(_pyramid_cameras(k, cfg.levels)):
@@ -395,6 +415,31 @@ def prepare_live(depth: np.ndarray, k: Intrinsics, cfg: FrontendConfig, rgb: np.
         if lv == 0 and rgb is not None and cfg.photometric_weight > 0:
             il = np.ascontiguousarray(_intensity(rgb)[::s, ::s].reshape(-1))
     return LiveFrame(pts, val, il)
+
+
+def _prepare_live_fast(depth: np.ndarray, k: Intrinsics, cfg: FrontendConfig, rgb: np.ndarray | None) -> LiveFrame:
+    """:func:`prepare_live` in one compiled call (:func:`~semantic_gs_slam.tracking.frontend_numba.live_frame`): the
+    GIL is let go once, not once per NumPy operation (``bench/frontend_gil.py``); the same checks and errors."""
+    depth = _check_shape("depth", depth, k, None)
+    rgb = _check_shape("rgb", rgb, k, 3)
+    cams = _pyramid_cameras(k, cfg.levels)
+    sizes = [(-(-c.height // s)) * (-(-c.width // s)) for c, s in zip(cams, cfg.point_stride, strict=True)]
+    offsets = np.cumsum([0, *sizes]).astype(np.int64)
+    pts, ok = np.empty((int(offsets[-1]), 3)), np.empty(int(offsets[-1]), np.bool_)
+    intensity = rgb is not None and cfg.photometric_weight > 0
+    il = np.empty(sizes[0] if intensity else 1)
+    bad_depth, bad_rgb = _fast().live_frame(
+        np.ascontiguousarray(depth), np.zeros((1, 1, 3)) if rgb is None else np.ascontiguousarray(rgb),
+        rgb is not None, float(cfg.depth_min), float(cfg.depth_max), float(cfg.depth_jump),
+        np.array([c.fx for c in cams], np.float64), np.array([c.fy for c in cams], np.float64),
+        np.array([c.cx for c in cams], np.float64), np.array([c.cy for c in cams], np.float64),
+        np.array(cfg.point_stride, np.int64), offsets, intensity, pts, ok, il)
+    if bad_depth:
+        raise FrameError("depth has NaN or infinite values")
+    if bad_rgb:
+        raise FrameError("rgb has NaN or infinite values")
+    return LiveFrame([pts[a:b] for a, b in zip(offsets[:-1], offsets[1:], strict=True)],
+                     [ok[a:b] for a, b in zip(offsets[:-1], offsets[1:], strict=True)], il if intensity else None)
 
 
 # ---------------------------------------------------------------- the normal equations

@@ -4,8 +4,11 @@ Each has a NumPy reference in :mod:`semantic_gs_slam.tracking.frontend` that ``t
 it against:
 
 * :func:`half_depth` - ``_half_depth`` (one pyramid step of a depth image);
+* :func:`shrink_frame` - ``downsample_frame`` (depth and colour halved, in one call);
 * :func:`model_level` - ``_backproject`` + ``_normals`` + the move to world coordinates in ``build_reference``;
 * :func:`live_points` - the strided back-projection in ``prepare_live``;
+* :func:`live_frame` - the whole of ``prepare_live`` in one call (the depth range, the pyramid, every level's points,
+  the intensity);
 * :func:`icp_level` - one pyramid level of ``track``'s Gauss-Newton loop: the sums of
   :func:`semantic_gs_slam.tracking.numba_kernels.icp_accumulate` (called from here, compiled together), the prior toward
   the guess, a Cholesky solve of the 6x6 system and the pose update, so a level is one call from Python instead of
@@ -24,7 +27,7 @@ import numpy as np
 
 from semantic_gs_slam.tracking.numba_kernels import icp_accumulate
 
-__all__ = ["half_depth", "icp_level", "live_points", "model_level"]
+__all__ = ["half_depth", "icp_level", "live_frame", "live_points", "model_level", "shrink_frame"]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -41,6 +44,34 @@ def half_depth(depth, jump, out):
             hi = max(max(a, b), max(c, d))
             mean = (((a + b) + c) + d) / 4.0
             out[y, x] = mean if (lo > 0 and hi - lo < jump * mean) else 0.0
+
+
+@numba.njit(cache=True, nogil=True)
+def shrink_frame(depth, rgb, times, jump, out_depth, out_rgb):
+    """``downsample_frame`` in one call (the GIL is let go once, not once per NumPy operation): depth [H, W] and
+    rgb [H, W, 3] (any float type) halved ``times`` times in float64 into out_depth [H / 2^t, W / 2^t] and out_rgb
+    [H / 2^t, W / 2^t, 3]; depth as :func:`half_depth`, colour the mean of each 2x2 cell summed in NumPy's
+    order ((top-left + bottom-left) + top-right) + bottom-right."""
+    d = np.empty(depth.shape)
+    c = np.empty(rgb.shape)
+    for y in range(depth.shape[0]):
+        for x in range(depth.shape[1]):
+            d[y, x] = depth[y, x]
+            for ch in range(3):
+                c[y, x, ch] = rgb[y, x, ch]
+    for _ in range(times):
+        h, w = d.shape[0] // 2, d.shape[1] // 2
+        d2 = np.empty((h, w))
+        half_depth(d, jump, d2)
+        c2 = np.empty((h, w, 3))
+        for y in range(h):
+            for x in range(w):
+                for ch in range(3):
+                    c2[y, x, ch] = (((c[2 * y, 2 * x, ch] + c[2 * y + 1, 2 * x, ch]) + c[2 * y, 2 * x + 1, ch])
+                                    + c[2 * y + 1, 2 * x + 1, ch]) * 0.25
+        d, c = d2, c2
+    out_depth[:, :] = d
+    out_rgb[:, :, :] = c
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
@@ -105,6 +136,46 @@ def live_points(depth, fx, fy, cx, cy, stride, pts, valid):
             pts[m, 0], pts[m, 1], pts[m, 2] = v0, v1, v2
             valid[m] = v2 > 0
             m += 1
+
+
+@numba.njit(cache=True, nogil=True)
+def live_frame(depth, rgb, check_rgb, depth_min, depth_max, jump, fx, fy, cx, cy, strides, offsets, intensity, pts,
+               valid, il):
+    """``prepare_live`` in one call: depth [H, W] (float) limited to [depth_min, depth_max] and halved per level
+    (:func:`half_depth`), every ``strides[l]``-th pixel of level l (camera fx[l], fy[l], cx[l], cy[l]) into rows
+    offsets[l]..offsets[l + 1] of pts [M, 3] and valid [M], and, when ``intensity``, the mean colour of rgb
+    [H, W, 3] at level 0's points into il [M_0]. Returns the counts of depth values and (when ``check_rgb``)
+    colour values that are not finite (the caller refuses such a frame)."""
+    bad_depth = 0
+    bad_rgb = 0
+    d = np.empty(depth.shape)
+    for y in range(depth.shape[0]):
+        for x in range(depth.shape[1]):
+            v = np.float64(depth[y, x])
+            if not np.isfinite(v):
+                bad_depth += 1
+            d[y, x] = v if (v >= depth_min and v <= depth_max) else 0.0
+    if check_rgb:
+        for y in range(rgb.shape[0]):
+            for x in range(rgb.shape[1]):
+                for ch in range(3):
+                    if not np.isfinite(rgb[y, x, ch]):
+                        bad_rgb += 1
+    if intensity:
+        s = strides[0]
+        m = 0
+        for y in range(0, rgb.shape[0], s):
+            for x in range(0, rgb.shape[1], s):
+                il[m] = ((np.float64(rgb[y, x, 0]) + np.float64(rgb[y, x, 1])) + np.float64(rgb[y, x, 2])) / 3.0
+                m += 1
+    for lv in range(len(strides)):
+        if lv > 0:
+            d2 = np.empty((d.shape[0] // 2, d.shape[1] // 2))
+            half_depth(d, jump, d2)
+            d = d2
+        a, b = offsets[lv], offsets[lv + 1]
+        live_points(d, fx[lv], fy[lv], cx[lv], cy[lv], strides[lv], pts[a:b], valid[a:b])
+    return bad_depth, bad_rgb
 
 
 @numba.njit(cache=True, nogil=True, inline="always")

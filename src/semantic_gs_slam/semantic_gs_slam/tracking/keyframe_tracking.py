@@ -5,8 +5,9 @@ Every frame is tracked (:func:`~semantic_gs_slam.tracking.frontend.track`) again
 model: the keyframe's own sensor depth and colour at its latest pose (moved when the mapping back end corrects it:
 loop closure). Nothing here reads the Gaussian map, so tracking runs beside a mapping thread.
 
-A frame whose pose is not trusted (:class:`~semantic_gs_slam.tracking.frontend.TrackQuality`) is lost: it keeps the
-previous pose and is not mapped. Lost frames try to relocalise (the first, then every ``tracking.relocalise_every``-th)
+A frame the reference does not track to a trusted pose (:class:`~semantic_gs_slam.tracking.frontend.TrackQuality`)
+is tracked again with more steps against the frame before it, which then becomes the reference (a fast move); a frame
+still not trusted is lost: it keeps the previous pose and is not mapped. Lost frames try to relocalise (the first, then every ``tracking.relocalise_every``-th)
 against the keyframes ranked by a thumbnail of depth and intensity plus the one nearest the last trusted pose, from
 their poses and perturbed guesses that widen after the first try. A relocalised pose must then be trusted on
 ``tracking.relocalise_confirm`` frames in a row before mapping resumes; a frame that fails meanwhile is lost again.
@@ -91,8 +92,7 @@ class KeyframeTracking:
         ``tracking.frontend_downsample``'s power of two times."""
         if self._fe_halvings == 0:
             return np.asarray(depth, np.float64), np.asarray(rgb, np.float64)
-        d, c, self._fe_k = downsample_frame(depth, np.asarray(rgb, np.float64), self.k, self._fe_halvings,
-                                            self._fe_cfg)
+        d, c, self._fe_k = downsample_frame(depth, rgb, self.k, self._fe_halvings, self._fe_cfg)
         return d, c
 
     def _fe_model(self, index: int) -> ReferenceModel:
