@@ -11,7 +11,8 @@ compiled kernel), it waits to get it back for as long as the other thread keeps 
 switch interval (5 ms) when that thread runs Python (a mapping thread launching GPU kernels, a ROS executor's
 callbacks). This measures that cost on the CPU, without a GPU: the stages of ``SLAM.add_frame``'s tracking path
 (``_host_frame``: the frame's checks and conversion; ``_fe_frame``: the front end's shrink; ``_track_keyframe``:
-the live points and the ICP against the reference, and a new reference when coverage drops), per frame, on ``--frames`` frames after the first,
+the live points and the ICP against the reference, and a new reference when coverage drops), per frame, on
+``--frames`` frames after the first,
 
 * alone;
 * beside a thread running small PyTorch operations (they release the GIL, as a CPU mapping thread's do);

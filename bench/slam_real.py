@@ -208,7 +208,8 @@ def main() -> int:
                          "report how late they were taken")
     ap.add_argument("--refine-seconds", type=float, default=None,
                     help="refine for at most this many seconds after the run (with --refine-iters: whichever ends "
-                         f"first); default {REALTIME_REFINE_S:g} with the realtime profile and no --refine-iters, else 0")
+                         f"first); default {REALTIME_REFINE_S:g} with the realtime profile and no --refine-iters, "
+                         "else 0")
     ap.add_argument("--profile", default="realtime", choices=list(PROFILES),
                     help="a named SlamConfig profile (config.PROFILES) under --config's overrides: realtime (the "
                          "default: every frame of a real camera at its rate) or default (the engine's base settings)")

@@ -29,7 +29,7 @@ from semantic_gs_slam.devices import require_cpu_kernel, resolve_device
 from semantic_gs_slam.errors import FrameError, MapFormatError, MappingError, TrackingError
 from semantic_gs_slam.geometry import pose_error
 from semantic_gs_slam.io.exposure import identity as exposure_identity
-from semantic_gs_slam.io.host_frame import host_frame
+from semantic_gs_slam.io.host_frame import check_counts, host_frame
 from semantic_gs_slam.loop.closing import LoopClosing
 from semantic_gs_slam.loop.posegraph import Edge
 from semantic_gs_slam.mapping.gaussian_map import (
@@ -207,16 +207,7 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
         valid = (depth_t >= self.cfg.depth_min) & (depth_t <= self.cfg.depth_max)
         bad_rgb, bad_depth, negative, n_valid = torch.stack([(~torch.isfinite(rgb_t)).sum(), (~torch.isfinite(
             depth_t)).sum(), (depth_t < 0).sum(), valid.sum()]).tolist()  # one host copy
-        if bad_rgb:
-            raise FrameError("rgb contains NaN or inf")
-        if bad_depth:
-            raise FrameError(f"depth contains {bad_depth} NaN/inf values (use 0 for missing)")
-        if negative:
-            raise FrameError("depth has negative values")
-        frac = n_valid / depth_t.numel()
-        if frac < 0.05:
-            raise FrameError(f"only {frac * 100:.1f} % of depth pixels are valid "
-                             f"(in [{self.cfg.depth_min}, {self.cfg.depth_max}] m); is the depth in metres?")
+        check_counts(bad_rgb, bad_depth, negative, n_valid, depth_t.numel(), self.cfg.depth_min, self.cfg.depth_max)
         if sem_t is not None:
             for i in torch.unique(sem_t).tolist():
                 if i > 0:  # unknown labels get a placeholder name in semantic.json

@@ -19,7 +19,7 @@ import numpy as np
 from semantic_gs_slam.devices import numba_available
 from semantic_gs_slam.errors import FrameError
 
-__all__ = ["host_frame", "host_frame_reference"]
+__all__ = ["check_counts", "host_frame", "host_frame_reference"]
 
 
 @functools.cache
@@ -29,8 +29,10 @@ def _fast():
     return host_frame_numba
 
 
-def _check(nonfinite_rgb: int, nonfinite_depth: int, negative: int, valid: int, pixels: int, depth_min: float,
-           depth_max: float) -> None:
+def check_counts(nonfinite_rgb: int, nonfinite_depth: int, negative: int, valid: int, pixels: int,
+                 depth_min: float, depth_max: float) -> None:
+    """Refuse a frame by its counts (colour and depth values not finite, negative depths, depths in range of
+    ``pixels``): FrameError with what is wrong, first match in that order."""
     if nonfinite_rgb:
         raise FrameError("rgb contains NaN or inf")
     if nonfinite_depth:
@@ -53,7 +55,7 @@ def host_frame_reference(rgb: np.ndarray, depth: np.ndarray, depth_min: float, d
         raise FrameError(f"frame arrays must be numeric: {exc}") from exc
     finite = np.isfinite(depth_f)
     valid = (depth_f >= np.float32(depth_min)) & (depth_f <= np.float32(depth_max))
-    _check(int((~np.isfinite(rgb_f)).sum()), int((~finite).sum()), int((depth_f[finite] < 0).sum()),
+    check_counts(int((~np.isfinite(rgb_f)).sum()), int((~finite).sum()), int((depth_f[finite] < 0).sum()),
            int(valid.sum()), depth_f.size, depth_min, depth_max)
     depth_f[~valid] = 0.0
     return rgb_f, depth_f
@@ -86,5 +88,5 @@ def host_frame(rgb: np.ndarray, depth: np.ndarray, depth_min: float, depth_max: 
     depth_f = np.empty(depth.shape, np.float32)
     counts = _fast().host_frame(rgb, depth, rgb.dtype == np.uint8, np.float32(depth_min), np.float32(depth_max),
                                 rgb_f, depth_f)
-    _check(*counts, depth.size, depth_min, depth_max)
+    check_counts(*counts, depth.size, depth_min, depth_max)
     return rgb_f, depth_f

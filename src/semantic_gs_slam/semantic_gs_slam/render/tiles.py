@@ -21,7 +21,8 @@ from semantic_gs_slam.config import Intrinsics, RendererConfig
 from semantic_gs_slam.geometry import quat_to_rotmat
 from semantic_gs_slam.render.types import BLUR_PX2, FOV_MARGIN, OPACITY_CAP, Gaussians
 
-__all__ = ["TilePairs", "check_inputs", "cull_bounds", "footprint", "jacobian_limits", "project", "project_rows", "tile_pairs"]
+__all__ = ["TilePairs", "check_inputs", "cull_bounds", "footprint", "jacobian_limits", "project", "project_rows",
+           "tile_pairs"]
 
 
 def check_inputs(g: Gaussians, w2c: Tensor) -> None:
