@@ -9,8 +9,9 @@ A frame the reference does not track to a trusted pose (:class:`~semantic_gs_sla
 is tracked again with more steps against the frame before it, which then becomes the reference (a fast move); a frame
 still not trusted is lost: it keeps the previous pose and is not mapped. Lost frames try to relocalise (the first,
 then every ``tracking.relocalise_every``-th) against the keyframes ranked by a thumbnail of depth and intensity plus
-the one nearest the last trusted pose, from their poses and perturbed guesses that widen after the first try. A relocalised pose must then be trusted on
-``tracking.relocalise_confirm`` frames in a row before mapping resumes; a frame that fails meanwhile is lost again.
+the one nearest the last trusted pose, from their poses and perturbed guesses that widen after the first try. A
+relocalised pose must then be trusted on ``tracking.relocalise_confirm`` frames in a row before mapping resumes; a
+frame that fails meanwhile is lost again.
 """
 
 from __future__ import annotations
