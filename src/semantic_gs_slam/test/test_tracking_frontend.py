@@ -86,6 +86,15 @@ def test_compiled_model_live_points_and_track_equal_the_reference(scene):
     assert r_ref.steps == r_fast.steps > 0
     np.testing.assert_allclose(r_ref.c2w, r_fast.c2w, rtol=0, atol=1e-9)
     assert r_ref.quality.correspondences == r_fast.quality.correspondences
+    # with colour: the intensity term on the finest level (one compiled call for all levels: frontend_numba.icp_track)
+    c0, c1 = views[0][0], views[3][0]
+    m_ref, m_fast = build_reference(d0, poses[0], k, CFG, rgb=c0), build_reference(d0, poses[0], k, fast, rgb=c0)
+    l_ref, l_fast = prepare_live(d1, k, CFG, c1), prepare_live(d1, k, fast, c1)
+    r_ref, r_fast = track(l_ref, m_ref, start, CFG), track(l_fast, m_fast, start, fast)
+    assert r_ref.steps == r_fast.steps > 0
+    np.testing.assert_allclose(r_ref.c2w, r_fast.c2w, rtol=0, atol=1e-9)
+    assert r_ref.quality.correspondences == r_fast.quality.correspondences
+    assert r_ref.quality.agreement == pytest.approx(r_fast.quality.agreement, abs=1e-12)
 
 
 @pytest.mark.parametrize("backend", ["numpy", pytest.param("numba", marks=needs_numba)])

@@ -584,6 +584,8 @@ def track(live: LiveFrame, model: ReferenceModel, guess_c2w: np.ndarray, cfg: Fr
     guess_inv = np.linalg.inv(guess)
     est = guess.copy()
     order = list(reversed(range(cfg.levels))) if levels is None else list(levels)
+    if fast and order:
+        return _track_fast(live, model, guess, guess_inv, np.diagonal(prior_w).copy(), order, cfg)
     steps = 0
     for lv in order:
         lvl = model.levels[lv]
@@ -617,6 +619,27 @@ def track(live: LiveFrame, model: ReferenceModel, guess_c2w: np.ndarray, cfg: Fr
     n_live = max(int(live.valid[last].sum()), 1)
     q = _quality(a, st, n_live, cfg)
     return TrackResult(est, q, steps, model.keyframe_id)
+
+
+def _track_fast(live: LiveFrame, model: ReferenceModel, guess: np.ndarray, guess_inv: np.ndarray,
+                prior_diag: np.ndarray, order: list[int], cfg: FrontendConfig) -> TrackResult:
+    """:func:`track`'s levels and score in one compiled call (:func:`~semantic_gs_slam.tracking.frontend_numba.
+    icp_track`): the GIL is let go once per frame, not once per level (``bench/frontend_gil.py``)."""
+    lv = model.levels
+    photometric = bool(cfg.photometric_weight > 0 and live.intensity is not None and lv[0].col is not None)
+    est = guess.copy()
+    a, b, st = np.zeros((6, 6)), np.zeros(6), np.zeros(4)
+    steps, n_live = _fast().icp_track(
+        est, guess_inv, prior_diag, model.w2c, tuple(live.points), tuple(live.valid),
+        live.intensity if photometric else np.zeros(1), tuple(m.vm for m in lv), tuple(m.nm for m in lv),
+        tuple(m.nvalid for m in lv), lv[0].col if photometric else np.zeros((1, 4)),
+        np.array([m.k.fx for m in lv], np.float64), np.array([m.k.fy for m in lv], np.float64),
+        np.array([m.k.cx for m in lv], np.float64), np.array([m.k.cy for m in lv], np.float64),
+        np.array([m.k.width for m in lv], np.int64), np.array([m.k.height for m in lv], np.int64),
+        np.array(cfg.max_dist, np.float64), float(cfg.sigma_geo), photometric, float(cfg.sigma_col),
+        float(cfg.photometric_weight), np.array(cfg.iters, np.int64), float(cfg.min_step), np.array(order, np.int64),
+        a, b, st)
+    return TrackResult(est, _quality(a, st, max(int(n_live), 1), cfg), int(steps), model.keyframe_id)
 
 
 def _quality(a: np.ndarray, st: np.ndarray, n_live: int, cfg: FrontendConfig) -> TrackQuality:

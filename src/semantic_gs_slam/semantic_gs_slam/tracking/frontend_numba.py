@@ -12,7 +12,8 @@ it against:
 * :func:`icp_level` - one pyramid level of ``track``'s Gauss-Newton loop: the sums of
   :func:`semantic_gs_slam.tracking.numba_kernels.icp_accumulate` (called from here, compiled together), the prior toward
   the guess, a Cholesky solve of the 6x6 system and the pose update, so a level is one call from Python instead of
-  one per step (the per-step Python and NumPy glue cost as much as the sums at 320x240).
+  one per step (the per-step Python and NumPy glue cost as much as the sums at 320x240);
+* :func:`icp_track` - every level of ``track`` and its score in one call.
 
 Plain numpy-in, numpy-out functions at module level (numba's on-disk cache finds them again); numba has no BLAS
 here (no SciPy), so the small products are written out.
@@ -27,7 +28,7 @@ import numpy as np
 
 from semantic_gs_slam.tracking.numba_kernels import icp_accumulate
 
-__all__ = ["half_depth", "icp_level", "live_frame", "live_points", "model_level", "shrink_frame"]
+__all__ = ["half_depth", "icp_level", "icp_track", "live_frame", "live_points", "model_level", "shrink_frame"]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -294,3 +295,28 @@ def icp_level(est, guess_inv, prior_diag, w2c, lp, lvalid, il, vm, nm, nvalid, c
         if big < min_step:
             break
     return steps
+
+
+@numba.njit(cache=True, nogil=True)
+def icp_track(est, guess_inv, prior_diag, w2c, lps, lvalids, il, vms, nms, nvalids, col, fx, fy, cx, cy, width,
+              height, max_dist, sg, photometric, sc, w_col, iters, min_step, order, a, b, stats):
+    """``track``'s whole Gauss-Newton loop in one call: :func:`icp_level` on the levels in ``order`` (the tuples
+    ``lps``, ``lvalids``, ``vms``, ``nms``, ``nvalids`` and the arrays fx ... max_dist, iters hold one entry per level;
+    the intensity term, when ``photometric``, on level 0 only), then the sums at the last level's final estimate into
+    a [6, 6], b [6] and stats [4] (:func:`icp_accumulate`, the score). Returns (steps taken, live points with
+    depth at the last level)."""
+    steps = 0
+    for n in range(len(order)):
+        lv = order[n]
+        steps += icp_level(est, guess_inv, prior_diag, w2c, lps[lv], lvalids[lv], il, vms[lv], nms[lv], nvalids[lv],
+                           col, fx[lv], fy[lv], cx[lv], cy[lv], width[lv], height[lv], max_dist[lv], sg,
+                           photometric and lv == 0, sc, w_col, iters[lv], min_step)
+    last = order[len(order) - 1]
+    icp_accumulate(est, w2c, lps[last], lvalids[last], il, vms[last], nms[last], nvalids[last], col, fx[last],
+                   fy[last], cx[last], cy[last], width[last], height[last], max_dist[last], sg, 1.0,
+                   photometric and last == 0, sc, w_col, a, b, stats)
+    n_live = 0
+    for i in range(lvalids[last].shape[0]):
+        if lvalids[last][i]:
+            n_live += 1
+    return steps, n_live
