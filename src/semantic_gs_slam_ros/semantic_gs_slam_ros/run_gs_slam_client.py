@@ -24,6 +24,7 @@ saves the map). Exit code: 0 success, 1 run failed, 2 bad input / no server, 130
 from __future__ import annotations
 
 import json
+import signal
 import sys
 import threading
 import time
@@ -278,6 +279,9 @@ def _wait(future, timeout: float):
 def main(args: list[str] | None = None) -> int:
     # Ctrl-C must reach run() as KeyboardInterrupt (to cancel the goal and wait for the saved
     # map) while the executor keeps running: rclpy's own handler would shut the context down.
+    # Installed explicitly: a process started with SIGINT ignored (a script's background job, some
+    # supervisors) keeps ignoring it otherwise, and the run could not be cancelled.
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     node = SlamClient()
     executor = MultiThreadedExecutor(num_threads=2)

@@ -164,7 +164,13 @@ def test_cancel_mid_run_still_saves_a_map(shared_server, shared_domain, long_seq
     # 120 frames at 2 per second (about a minute to send): when the second frame is on disk the run is still going
     # unless the server took that minute for two frames, and even then the client ends only after all 120 are
     # processed (8 frames at 1 per second let a server that lagged 7 s finish the run before the cancel)
-    client = Client(shared_domain, long_sequence, rate=2.0, output_dir=str(work), map_dir=str(work / "map"))
+    # started with SIGINT ignored, as a script's background job is (and as a test worker's children were at
+    # times): the client still takes Ctrl-C
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        client = Client(shared_domain, long_sequence, rate=2.0, output_dir=str(work), map_dir=str(work / "map"))
+    finally:
+        signal.signal(signal.SIGINT, old)
     assert wait_for(lambda: processed_frames(work) >= 2, 120), client.text() + shared_server.output()
     assert client.proc.poll() is None, "the run ended before the cancel:\n" + client.text()
     client.proc.send_signal(signal.SIGINT)
