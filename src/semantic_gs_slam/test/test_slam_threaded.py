@@ -136,7 +136,9 @@ def test_busy_mapping_defers_keyframes_and_the_next_free_frame_takes_it(views):
     _feed_from(eng, frames, 5)
     eng.finish(120.0)
     kfs = [lg.index for lg in eng.logs if lg.keyframe]
-    assert kfs[:2] == [0, 5] and all(lg.map_queue != "dropped" for lg in eng.logs)
+    # a keyframe is never dropped (deferred, or it waits for room); another frame's label votes may be when the queue
+    # is full, which depends on how fast this machine tracks against how fast it maps
+    assert kfs[:2] == [0, 5] and all(lg.map_queue != "dropped" for lg in eng.logs if lg.keyframe)
     for est, gt in zip(eng.poses, poses, strict=True):  # deferring changes which frames map, not the tracking
         assert pose_error(est, gt)[0] < 0.02
 
