@@ -42,6 +42,17 @@ def main() -> int:
             for i in range(len(ds)):
                 f = ds[i]
                 eng.add_frame(f.rgb, f.depth, f.semantics, f.timestamp)
+        # what the tiny run above does not reach: a camera frame halved for the front end (640x480 and up), and
+        # uint8 colour as a ROS image brings it
+        from semantic_gs_slam.config import Intrinsics
+        from semantic_gs_slam.io.host_frame import host_frame
+        from semantic_gs_slam.tracking.frontend import FrontendConfig, downsample_frame
+
+        f = ds[0]
+        rgb8 = (f.rgb * 255).astype(np.uint8)
+        host_frame(rgb8, f.depth, 0.1, 10.0)
+        k = Intrinsics(f.depth.shape[1], f.depth.shape[0], 50.0, 50.0, 48.0, 27.0)
+        downsample_frame(*host_frame(rgb8, f.depth, 0.1, 10.0)[::-1], k, 1, FrontendConfig())
     from numba.core.registry import CPUDispatcher
 
     kernels = {id(v): v for m in list(sys.modules.values()) for v in list(getattr(m, "__dict__", {}).values())
