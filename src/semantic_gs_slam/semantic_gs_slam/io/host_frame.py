@@ -56,7 +56,7 @@ def host_frame_reference(rgb: np.ndarray, depth: np.ndarray, depth_min: float, d
     finite = np.isfinite(depth_f)
     valid = (depth_f >= np.float32(depth_min)) & (depth_f <= np.float32(depth_max))
     check_counts(int((~np.isfinite(rgb_f)).sum()), int((~finite).sum()), int((depth_f[finite] < 0).sum()),
-           int(valid.sum()), depth_f.size, depth_min, depth_max)
+                 int(valid.sum()), depth_f.size, depth_min, depth_max)
     depth_f[~valid] = 0.0
     return rgb_f, depth_f
 

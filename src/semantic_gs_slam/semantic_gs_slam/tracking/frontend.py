@@ -578,28 +578,19 @@ def track(live: LiveFrame, model: ReferenceModel, guess_c2w: np.ndarray, cfg: Fr
     if len(live.points) != len(model.levels) or len(model.levels) != cfg.levels:
         raise ConfigError(f"live frame ({len(live.points)}), model ({len(model.levels)}) and cfg ({cfg.levels}) "
                           "must have the same number of pyramid levels")
-    fast = _use_numba(cfg)
-    sums = normal_equations if fast else normal_equations_reference
     prior_w = np.diag([1 / cfg.prior_sigma_rot**2] * 3 + [1 / cfg.prior_sigma_trans**2] * 3)
     guess_inv = np.linalg.inv(guess)
-    est = guess.copy()
     order = list(reversed(range(cfg.levels))) if levels is None else list(levels)
-    if fast and order:
+    if not order:
+        raise ConfigError("track needs at least one pyramid level to run")
+    if _use_numba(cfg):  # every level and the score in one compiled call (frontend_numba.icp_track)
         return _track_fast(live, model, guess, guess_inv, np.diagonal(prior_w).copy(), order, cfg)
+    sums = normal_equations_reference
+    est = guess.copy()
     steps = 0
     for lv in order:
         lvl = model.levels[lv]
         il = live.intensity if lv == 0 else None
-        if fast:  # the whole level in one compiled call (frontend_numba.icp_level)
-            photometric = bool(lv == 0 and cfg.photometric_weight > 0 and il is not None and lvl.col is not None)
-            k = lvl.k
-            steps += _fast().icp_level(est, guess_inv, np.diagonal(prior_w).copy(), model.w2c, live.points[lv],
-                                       live.valid[lv], il if photometric else np.zeros(1), lvl.vm, lvl.nm, lvl.nvalid,
-                                       lvl.col if photometric else np.zeros((1, 4)), float(k.fx), float(k.fy),
-                                       float(k.cx), float(k.cy), int(k.width), int(k.height), float(cfg.max_dist[lv]),
-                                       float(cfg.sigma_geo), photometric, float(cfg.sigma_col),
-                                       float(cfg.photometric_weight), int(cfg.iters[lv]), float(cfg.min_step))
-            continue
         for _ in range(cfg.iters[lv]):
             a, b, st = sums(est, live.points[lv], live.valid[lv], il, lvl, model.w2c, cfg.max_dist[lv], cfg,
                             lv == 0)
@@ -624,7 +615,8 @@ def track(live: LiveFrame, model: ReferenceModel, guess_c2w: np.ndarray, cfg: Fr
 def _track_fast(live: LiveFrame, model: ReferenceModel, guess: np.ndarray, guess_inv: np.ndarray,
                 prior_diag: np.ndarray, order: list[int], cfg: FrontendConfig) -> TrackResult:
     """:func:`track`'s levels and score in one compiled call (:func:`~semantic_gs_slam.tracking.frontend_numba.
-    icp_track`): the GIL is let go once per frame, not once per level (``bench/frontend_gil.py``)."""
+    icp_track`): the GIL is let go once per frame, not once per level and once for the score
+    (``bench/frontend_gil.py``)."""
     lv = model.levels
     photometric = bool(cfg.photometric_weight > 0 and live.intensity is not None and lv[0].col is not None)
     est = guess.copy()
