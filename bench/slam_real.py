@@ -121,11 +121,10 @@ def run_ours(ds, idx: list[int], args: argparse.Namespace) -> dict:
     online_poses = [p.copy() for p in eng.poses]  # the per-frame error curve is the online run's
     if args.refine_iters > 0 or args.refine_seconds > 0:  # map refinement after the run (not counted in FPS)
         t1 = time.perf_counter()
-        deadline = t1 + args.refine_seconds if args.refine_seconds > 0 else float("inf")
-        half = t1 + args.refine_seconds / 2 if args.refine_seconds > 0 else float("inf")  # deferred frames' share
+        # a time budget: the deferred frames get at most half, the first mapping.refine_coarse_share renders at
+        # half resolution (SLAM.refine)
         _, res["refine_done"] = eng.refine(args.refine_iters if args.refine_iters > 0 else 10 ** 9,
-                                           poses=args.refine_poses, should_stop=lambda: time.perf_counter() > deadline,
-                                           backlog_stop=lambda: time.perf_counter() > half)
+                                           poses=args.refine_poses, seconds=max(args.refine_seconds, 0.0))
         res["refine_s"] = time.perf_counter() - t1
         res["refined"] = evaluate(eng, ds, idx, every=args.eval_every)
     # FPS over frames 1..n as bench/slam_synthetic.py and bench/slam_gpu.py count it (frame 0's initial mapping,

@@ -42,10 +42,12 @@ class Intrinsics:
 def _check_device_dependent(name: str, value: Any, kind: type) -> None:
     """A device-dependent field (``DEVICE_DEFAULTS``) holds None (the device's value) or a ``kind`` (not a bool for
     int): a YAML ``"false"`` or ``auto`` would otherwise slip through as a string."""
-    if value is None or (isinstance(value, kind) and (kind is bool or not isinstance(value, bool))):
+    kinds = (int, float) if kind is float else kind  # a YAML 0 is a number too
+    if value is None or (isinstance(value, kinds) and (kind is bool or not isinstance(value, bool))):
         return
-    raise ConfigError(f"{name} must be {'true or false' if kind is bool else 'an integer'} or null (null: the "
-                      f"device's value, config.DEVICE_DEFAULTS), got {value!r}")
+    what = {bool: "true or false", int: "an integer", float: "a number"}[kind]
+    raise ConfigError(f"{name} must be {what} or null (null: the device's value, config.DEVICE_DEFAULTS), "
+                      f"got {value!r}")
 
 
 @dataclass
@@ -231,6 +233,10 @@ class MappingConfig:
     prune_opacity: float = 0.005
     prune_max_scale: float = 0.3  # metres; bigger Gaussians are removed
     prune_every: int = 5  # keyframes between pruning passes
+    refine_coarse_share: float | None = None  # SLAM.refine(seconds=...): the share of a time budget spent at half
+    # resolution before the rest at full resolution (None: the device's, DEVICE_DEFAULTS: 0.8 on the CPU, 0 on
+    # CUDA, where it was not measured); 0: full resolution throughout. Chosen on kitchen frames 0-249
+    # (docs/design/slam.md "Refinement at the end", bench/refine_schedule.py)
     refine_pose_prior: float = 0.001  # SLAM.refine(poses=True): weight w of a prior that holds each keyframe's pose
     # correction near zero, w * (|t|^2 / (1 cm)^2 + |q_v|^2 / 0.004^2) per rendered keyframe. Where pixels are too
     # coarse to see a pose error the poses would random-walk under Adam (2.7 cm on the synthetic home at 120x68);
@@ -253,6 +259,10 @@ class MappingConfig:
             raise ConfigError("mapping iteration counts must be >= 0")
         if self.keyframe_pixel_stride < 0:
             raise ConfigError("mapping.keyframe_pixel_stride must be >= 0 (0 = pixel_stride)")
+        _check_device_dependent("mapping.refine_coarse_share", self.refine_coarse_share, float)
+        if self.refine_coarse_share is not None and not 0 <= self.refine_coarse_share < 1:
+            raise ConfigError(f"mapping.refine_coarse_share must be in [0, 1) (the rest of a time budget renders at "
+                              f"full resolution), got {self.refine_coarse_share}")
         if not (math.isfinite(self.refine_pose_prior) and self.refine_pose_prior >= 0):
             raise ConfigError(f"mapping.refine_pose_prior must be >= 0 (0 = no prior), got {self.refine_pose_prior}")
 
@@ -314,8 +324,10 @@ class LoopConfig:
 # PSNR 34.1 dB, mIoU 0.97 (CPU values: 0.11 / 34.3 / 0.967). On the CPU at 300x170 the same values cost the
 # synthetic home its mIoU target (0.897 < 0.92) and the Kinect data nothing, so the CPU keeps the thorough ones.
 DEVICE_DEFAULTS: dict[str, dict[str, dict[str, Any]]] = {
-    "cpu": {"tracking": {"icp_iters": 12}, "mapping": {"iters": 10, "densify_every_frame": True}},
-    "cuda": {"tracking": {"icp_iters": 8}, "mapping": {"iters": 6, "densify_every_frame": False}},
+    "cpu": {"tracking": {"icp_iters": 12},
+            "mapping": {"iters": 10, "densify_every_frame": True, "refine_coarse_share": 0.8}},
+    "cuda": {"tracking": {"icp_iters": 8},  # refine_coarse_share: measured on the CPU only; CUDA stays at full size
+             "mapping": {"iters": 6, "densify_every_frame": False, "refine_coarse_share": 0.0}},
 }
 
 

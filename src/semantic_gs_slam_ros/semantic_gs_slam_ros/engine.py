@@ -61,10 +61,11 @@ class EngineAdapter:
         self.slam.checkpoint(ckpt_dir)
 
     def refine(self, iters: int, poses: bool = False, should_stop: Callable[[], bool] | None = None,
-               backlog_stop: Callable[[], bool] | None = None) -> int:
-        """``iters`` Adam iterations over all keyframes (:meth:`semantic_gs_slam.slam.SLAM.refine`; ``poses``: the
-        keyframes' poses too); returns the iterations done (fewer when ``should_stop`` said so)."""
-        return self.slam.refine(iters, poses=poses, should_stop=should_stop, backlog_stop=backlog_stop)[1]
+               seconds: float = 0.0) -> int:
+        """``iters`` Adam iterations over all keyframes, within ``seconds`` when > 0
+        (:meth:`semantic_gs_slam.slam.SLAM.refine`; ``poses``: the keyframes' poses too); returns the iterations
+        done (fewer when ``should_stop`` said so or the time ran out)."""
+        return self.slam.refine(iters, poses=poses, should_stop=should_stop, seconds=seconds)[1]
 
     @property
     def num_gaussians(self) -> int:

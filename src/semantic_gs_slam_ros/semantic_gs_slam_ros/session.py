@@ -63,7 +63,8 @@ class SlamEngine(Protocol):
     @property
     def num_gaussians(self) -> int: ...
 
-    # optional: ``refine(iters, poses, should_stop) -> iterations done`` (Adam steps over all keyframes),
+    # optional: ``refine(iters, poses, should_stop, seconds) -> iterations done`` (Adam steps over all keyframes,
+    # within a time budget when ``seconds`` > 0),
     # ``num_keyframes`` (logged with the refinement),
     # ``frame_report() -> (lost, corrected, note)``, ``run_note() -> str`` (logged at the end) and ``localised``
     # (False while a run started on a saved map is not relocalised in it); the session asks with getattr
@@ -524,15 +525,13 @@ class StreamingSession:
         self._log(f"refining {what}: {budget} over {over} in turn before the map is written")
         total = total if total > 0 else 10 ** 9
         t0 = time.monotonic()
-        deadline = t0 + seconds if seconds > 0 else float("inf")
 
         def cancelled() -> bool:
             with self._lock:
-                return self._cancelled or time.monotonic() > deadline
+                return self._cancelled
 
-        try:
-            half = t0 + seconds / 2  # the deferred frames get at most half of a time budget, the iterations the rest
-            extra = {"backlog_stop": lambda: time.monotonic() > half} if seconds > 0 else {}
+        try:  # the engine splits a time budget (deferred frames, coarse to fine: SLAM.refine's seconds)
+            extra = {"seconds": seconds} if seconds > 0 else {}
             done = int(refine(total, poses=self.cfg.refine_poses, should_stop=cancelled, **extra))
         except Exception as exc:  # noqa: BLE001  (the map as it is is still written)
             self._log(f"map refinement failed: {exc}; the map is written as it is")

@@ -8,14 +8,17 @@ steps from ``add_frame`` on keyframes); the methods use the engine's state: ``cf
 
 from __future__ import annotations
 
+import math
+import time
 from collections import deque
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from semantic_gs_slam.config import Intrinsics, device_default
 from semantic_gs_slam.geometry import fill_depth_holes
 from semantic_gs_slam.io.exposure import fit as fit_exposure
 from semantic_gs_slam.io.exposure import to_map
@@ -32,6 +35,32 @@ class Keyframe:
     rgb: Tensor  # [H, W, 3]
     depth: Tensor  # [H, W]
     sem: Tensor | None  # [H, W] int64
+
+
+def _any_of(a: Callable[[], bool] | None, b: Callable[[], bool] | None) -> Callable[[], bool] | None:
+    """A stop that says True when either of two stops (None: never) does."""
+    if a is None or b is None:
+        return b if a is None else a
+    return lambda: a() or b()
+
+
+def half_resolution(k: Intrinsics) -> Intrinsics:
+    """The camera of :func:`half_resolution_view`'s images: each pixel the average of a 2x2 block (an odd last row
+    or column dropped)."""
+    return replace(k.scaled(0.5), width=k.width // 2, height=k.height // 2)
+
+
+def half_resolution_view(kf: Keyframe) -> Keyframe:
+    """``kf`` at half resolution (the refinement's coarse phase): colour [H/2, W/2, 3] averaged over 2x2 pixels,
+    depth averaged where all four pixels have depth (else 0: missing, so no depth edge is blurred into a surface
+    that is not there), labels the top-left pixel's of each block."""
+    h, w = kf.depth.shape[0] // 2 * 2, kf.depth.shape[1] // 2 * 2
+    rgb = kf.rgb[:h, :w].reshape(h // 2, 2, w // 2, 2, -1).mean((1, 3))
+    d = kf.depth[:h, :w].reshape(h // 2, 2, w // 2, 2)
+    full = (d > 0).all(3).all(1)
+    depth = torch.where(full, d.mean((1, 3)), torch.zeros_like(full, dtype=d.dtype))
+    sem = None if kf.sem is None else kf.sem[:h:2, :w:2].contiguous()
+    return Keyframe(kf.index, kf.c2w, rgb.contiguous(), depth.contiguous(), sem)
 
 
 def spread_order(n: int) -> list[int]:
@@ -127,7 +156,8 @@ class MappingSteps:
         return self._optimise(window, iters)[0]
 
     def _optimise(self, window: list[Keyframe], iters: int, pose_deltas: list[tuple[Tensor, Tensor]] | None = None,
-                  should_stop: Callable[[], bool] | None = None) -> tuple[float, int]:
+                  should_stop: Callable[[], bool] | None = None, coarse_stop: Callable[[], bool] | None = None
+                  ) -> tuple[float, int]:
         """:meth:`optimise`, returning (last loss, iterations done).
 
         Args:
@@ -137,6 +167,9 @@ class MappingSteps:
                 tracking's photometric learning rates and :func:`pose_prior` (``mapping.refine_pose_prior``).
                 None: poses fixed.
             should_stop: asked before each iteration (cheap next to a render); True ends the loop there.
+            coarse_stop: asked before each iteration until it says True: until then the iterations render and
+                compare at half resolution (:func:`half_resolution`), 2.3-2.6 times as many per second; from then on at
+                full resolution. None: full resolution throughout.
         """
         if iters <= 0 or len(self.map) == 0:
             return float("nan"), 0
@@ -156,21 +189,24 @@ class MappingSteps:
         # of ~50 (measured: 2.2 ms of host time per step at 1200x680, H200); the CPU keeps the default implementation
         w2cs = [torch.linalg.inv(kf.c2w).float() for kf in window]
         one = torch.ones(1, device=self.device)
-        sem_imgs = [None if kf.sem is None else self.map.one_hot(kf.sem) for kf in window]  # [H, W, C]
-        labelled = [None if kf.sem is None else (kf.sem > 0).float() for kf in window]
-        sem_w = [None if (kf.sem is None or mc.semantic_balance <= 0) else _class_balance(kf.sem, mc.semantic_balance)
-                 for kf in window]
+        coarse = coarse_stop is not None and not coarse_stop()
+        views = self._loss_targets(window)
+        if coarse:
+            k_half, half = half_resolution(self.k), [half_resolution_view(kf) for kf in window]
+            views_half = self._loss_targets(half)
         loss = None
         done = 0
         for it in range(iters):
             if should_stop is not None and should_stop():
                 break
+            if coarse and coarse_stop():
+                coarse = False
             j = it % len(window)
-            kf = window[j]
+            kf, (sem_img, labelled, sem_w) = (half[j], views_half[j]) if coarse else (window[j], views[j])
             w2c = w2cs[j] if pose_deltas is None else \
                 w2c_from_quat_trans(torch.cat([one, pose_deltas[j][0]]), pose_deltas[j][1]) @ w2cs[j]
-            out = self._render(self.map.gaussians(), w2c, plane=mc.plane_depth_loss)
-            loss = mapping_loss(out, kf.rgb, kf.depth, sem_imgs[j], labelled[j], sem_w[j], mc)
+            out = self._render(self.map.gaussians(), w2c, plane=mc.plane_depth_loss, k=k_half if coarse else None)
+            loss = mapping_loss(out, kf.rgb, kf.depth, sem_img, labelled, sem_w, mc)
             if pose_deltas is not None and j > 0 and mc.refine_pose_prior > 0:
                 loss = loss + pose_prior(pose_deltas[j][0], pose_deltas[j][1], mc.refine_pose_prior)
             opt.zero_grad(set_to_none=True)
@@ -179,6 +215,14 @@ class MappingSteps:
                 opt.step()
             done += 1
         return (float(loss.detach()) if loss is not None else float("nan")), done  # one host copy per keyframe
+
+    def _loss_targets(self, views: list[Keyframe]) -> list[tuple[Tensor | None, Tensor | None, Tensor | None]]:
+        """Per view, the semantic targets of :func:`mapping_loss`: the labels one-hot [H, W, C], the labelled mask
+        [H, W] and the class-balance weights (each None without labels)."""
+        mc = self.cfg.mapping
+        return [(None, None, None) if kf.sem is None else
+                (self.map.one_hot(kf.sem), (kf.sem > 0).float(),
+                 _class_balance(kf.sem, mc.semantic_balance) if mc.semantic_balance > 0 else None) for kf in views]
 
     def _seeded_view(self, idx: int, rgb: Tensor, depth: Tensor, sem: Tensor | None, c2w: np.ndarray
                      ) -> tuple[Keyframe, int]:
@@ -218,7 +262,8 @@ class MappingSteps:
         return views
 
     def refine(self, iters: int, poses: bool = False, should_stop: Callable[[], bool] | None = None,
-               backlog: bool = True, backlog_stop: Callable[[], bool] | None = None) -> tuple[float, int]:
+               backlog: bool = True, backlog_stop: Callable[[], bool] | None = None, seconds: float = 0.0
+               ) -> tuple[float, int]:
         """Map refinement after the run: ``iters`` Adam steps cycling over all keyframes (and the deferred frames).
 
         Args:
@@ -231,16 +276,30 @@ class MappingSteps:
                 refine over them too.
             backlog_stop: asked before each deferred frame as well (e.g. half of a time budget, so that the
                 iterations get the rest); None: only ``should_stop``.
+            seconds: a time budget (> 0), counted from this call: the refinement ends when it is spent (or when
+                ``should_stop`` says so), the deferred frames get at most its first half, and its first
+                ``mapping.refine_coarse_share`` renders at half resolution (coarse to fine: 2.3-2.6 times the
+                iterations there; the last part at full resolution sharpens). 0: no time budget, every iteration
+                at full resolution.
 
         Returns:
             (the last loss, iterations done); (NaN, 0) when there is nothing to do. With ``poses`` the loss
             includes the pose prior (``mapping.refine_pose_prior``).
         """
+        if not (math.isfinite(seconds) and seconds >= 0):
+            raise ValueError(f"refine: seconds must be a finite number >= 0 (0: no time budget), got {seconds!r}")
+        coarse_stop = None
+        if seconds > 0:
+            t0 = time.monotonic()
+            should_stop = _any_of(should_stop, lambda: time.monotonic() > t0 + seconds)
+            backlog_stop = _any_of(backlog_stop, lambda: time.monotonic() > t0 + seconds / 2)
+            share = self.cfg.mapping.refine_coarse_share
+            share = device_default("mapping", "refine_coarse_share", self.device.type) if share is None else share
+            coarse_stop = (lambda: time.monotonic() > t0 + share * seconds) if share > 0 else None
         self.drain(600.0)  # a mapping thread (SlamConfig.threaded) finishes first
         if not self.keyframes:
             return float("nan"), 0
-        stop = should_stop if backlog_stop is None else (
-            backlog_stop if should_stop is None else lambda: should_stop() or backlog_stop())
+        stop = _any_of(should_stop, backlog_stop)
         extra = self.catch_up(stop) if backlog else []
         views = self.keyframes + sorted(extra, key=lambda v: v.index)
         deltas = None
@@ -249,7 +308,7 @@ class MappingSteps:
                        torch.zeros(3, device=self.device, requires_grad=n < len(self.keyframes)))
                       for n in range(len(views))]
         try:
-            loss, done = self._optimise(views, iters, deltas, should_stop)
+            loss, done = self._optimise(views, iters, deltas, should_stop, coarse_stop)
         finally:  # the map was fitted at the moved poses: they go with it, also when an iteration raised
             if deltas is not None:
                 self._apply_keyframe_deltas(deltas[:len(self.keyframes)])
