@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import signal
 import sys
@@ -225,14 +226,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--threaded", action="store_true", help="map in a worker thread (needs --frontend keyframe)")
     ap.add_argument("--refine-iters", type=int, default=0,
                     help="after the run, refine the map over all keyframes for N iterations (not counted in FPS)")
+    ap.add_argument("--refine-seconds", type=float, default=0.0,
+                    help="refine for at most S seconds after the run (with --refine-iters: whichever ends first; "
+                         "alone: as many iterations as fit), the deferred frames first, coarse to fine "
+                         "(mapping.refine_coarse_share)")
     ap.add_argument("--refine-poses", action="store_true",
                     help="the refinement also optimises the keyframes' poses (bundle adjustment through the renderer; "
                          "on real data it gives a sharper map and a better trajectory)")
     ap.add_argument("--eval", action="store_true", help="print the evaluation table at the end")
     ap.add_argument("--quiet", action="store_true", help="no per-frame log lines")
     args = ap.parse_args(argv)
-    if args.refine_poses and args.refine_iters <= 0:
-        ap.error("--refine-poses needs --refine-iters N (N > 0): it says what the refinement also optimises")
+    if not (math.isfinite(args.refine_seconds) and args.refine_seconds >= 0):
+        ap.error(f"--refine-seconds must be a finite number >= 0 (0: no time budget), got {args.refine_seconds}")
+    if args.refine_poses and args.refine_iters <= 0 and args.refine_seconds <= 0:
+        ap.error("--refine-poses needs --refine-iters N or --refine-seconds S (> 0): it says what the refinement "
+                 "also optimises")
     if args.labels_every < 1:
         ap.error("--labels-every must be >= 1")
     if args.start_map and args.resume:
@@ -312,16 +320,17 @@ def main(argv: list[str] | None = None) -> int:
                     return 130
                 first = skipped[0] if skipped else (idx[start] if start < len(idx) else -1, "no frames")
                 raise DatasetError(f"no frame could be used, nothing to save (frame {first[0]}: {first[1]})")
-            if args.refine_iters > 0 and not stopped:
+            if (args.refine_iters > 0 or args.refine_seconds > 0) and not stopped:
                 t1 = time.perf_counter()
-                _, its = eng.refine(args.refine_iters, poses=args.refine_poses,
-                                    should_stop=lambda: interrupt.requested)
+                _, its = eng.refine(args.refine_iters if args.refine_iters > 0 else 10 ** 9, poses=args.refine_poses,
+                                    should_stop=lambda: interrupt.requested, seconds=args.refine_seconds)
                 what = "the map and the keyframes' poses" if args.refine_poses else "the map"
                 print(f"refined {what} over "
                       f"{len(eng.keyframes)} keyframes for {its} iterations in "
                       f"{time.perf_counter() - t1:.1f} s", file=sys.stderr)
                 if interrupt.requested:
-                    stopped = f"refinement stopped by Ctrl-C after {its} of {args.refine_iters} iterations"
+                    of = f" of {args.refine_iters}" if args.refine_iters > 0 else ""
+                    stopped = f"refinement stopped by Ctrl-C after {its}{of} iterations"
             paths = eng.save(args.out)
             if stopped and eng.cfg.checkpoint_dir:  # so that --resume goes on from here
                 eng.checkpoint(eng.cfg.checkpoint_dir)

@@ -32,6 +32,18 @@ def test_run_checkpoint_resume_and_eval(tiny_home, tmp_path, capsys):
         assert os.path.getsize(os.path.join(out, name)) > 0
 
 
+def test_run_refines_for_a_time_budget(tiny_home, tmp_path, capsys):
+    """``--refine-seconds S`` alone: as many refinement iterations as S seconds allow, then the map is saved."""
+    import re
+
+    out = str(tmp_path / "map")
+    assert main(["--dataset", str(tiny_home), "--out", out, "--threads", "1", "--mapping-iters", "3", "--frames", "4",
+                 "--refine-seconds", "1", "--quiet", *_fast(tmp_path)]) == 0
+    m = re.search(r"refined the map over \d+ keyframes for (\d+) iterations in ([\d.]+) s", capsys.readouterr().err)
+    assert m and int(m.group(1)) > 0, m
+    assert os.path.getsize(os.path.join(out, "params.npz")) > 0
+
+
 def test_run_reports_bad_dataset(tmp_path, capsys):
     assert main(["--dataset", str(tmp_path / "missing"), "--out", str(tmp_path / "o")]) == 2
     assert "error: dataset folder not found" in capsys.readouterr().err
@@ -43,7 +55,10 @@ def test_refine_poses_without_refinement_is_a_usage_error(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         main(["--dataset", str(tmp_path), "--out", str(tmp_path / "o"), "--refine-poses"])
     assert exc.value.code == 2
-    assert "--refine-poses needs --refine-iters N" in capsys.readouterr().err
+    assert "--refine-poses needs --refine-iters N or --refine-seconds S" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["--dataset", str(tmp_path), "--out", str(tmp_path / "o"), "--refine-seconds", "-1"])
+    assert "--refine-seconds must be a finite number >= 0" in capsys.readouterr().err
 
 
 def test_demo_map_builder_writes_a_map_object_query_reads(tmp_path):
