@@ -186,6 +186,9 @@ class MappingConfig:
     # new reference (tracking.frontend_new_keyframe_coverage, or the reference keyframe_every frames old) becomes
     # one without being mapped. Off: the
     # synchronous run's keyframes
+    backlog_motion_m: float = 0.06  # a deferred frame is also kept once it moved this far (m) ...
+    backlog_motion_deg: float = 3.0  # ... or turned this much from the last kept frame or keyframe (times the
+    # thinning factor; <= 0: off)
     backlog_max: int = 64  # deferred frames kept (keyframe_every apart, thinned to span the run when full) for
     # SLAM.refine / catch_up to map after the run; 0: none. Memory: one frame's colour, depth and labels each
     densify_every_frame: bool | None = None  # also add Gaussians (without optimising) on non-keyframes (None: the
@@ -259,6 +262,9 @@ class MappingConfig:
             raise ConfigError("mapping iteration counts must be >= 0")
         if self.keyframe_pixel_stride < 0:
             raise ConfigError("mapping.keyframe_pixel_stride must be >= 0 (0 = pixel_stride)")
+        if not (math.isfinite(self.backlog_motion_m) and math.isfinite(self.backlog_motion_deg)):
+            raise ConfigError(f"mapping.backlog_motion_m and backlog_motion_deg must be finite numbers (<= 0: off), "
+                              f"got {self.backlog_motion_m}, {self.backlog_motion_deg}")
         _check_device_dependent("mapping.refine_coarse_share", self.refine_coarse_share, float)
         if self.refine_coarse_share is not None and not 0 <= self.refine_coarse_share < 1:
             raise ConfigError(f"mapping.refine_coarse_share must be in [0, 1) (the rest of a time budget renders at "

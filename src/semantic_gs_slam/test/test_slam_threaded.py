@@ -201,6 +201,7 @@ def test_spread_order_covers_the_run_evenly_at_every_prefix():
 def test_deferred_frames_are_kept_and_mapped_by_the_refinement(views):
     k, poses, frames = views
     eng = _held_deferring(k, poses)
+    eng.cfg.mapping.backlog_motion_m = eng.cfg.mapping.backlog_motion_deg = 0.0  # kept by frame count alone
     _feed(eng, frames)  # frame 0's mapping holds the thread: every later due keyframe is deferred
     assert [i for i, *_ in eng.backlog] == [3, 6]  # keyframe_every (3) apart, counted from the last keyframe
     eng.gate.set()
@@ -227,14 +228,17 @@ def _kept_while_held(cfg: SlamConfig, poses, frames) -> list[int]:
 
 
 def test_a_deferred_frame_that_moved_far_enough_is_kept_before_keyframe_every(views):
-    """A camera turning fast (here 1.4 degrees a frame against a 2.5-degree keyframe_motion_deg) has its deferred
+    """A camera turning fast (here 1.4 degrees a frame against a 2.5-degree backlog_motion_deg) has its deferred
     frames kept as soon as they turned that far from the last kept one, not only keyframe_every frames apart."""
     k, poses, frames = views
     cfg = _cfg(k, True, queue_size=4)
     cfg.mapping.defer_keyframes, cfg.mapping.keyframe_every = True, 5
-    cfg.mapping.keyframe_motion_deg, cfg.mapping.keyframe_motion_m = 2.5, 0.0
+    cfg.mapping.keyframe_motion_deg = 1.5  # frame 1 is due, deferred, and from then on every frame is due
+    cfg.mapping.backlog_motion_deg, cfg.mapping.backlog_motion_m = 2.5, 0.0
     kept = _kept_while_held(cfg, poses, frames)
     assert kept == [2, 4, 6, 8], kept  # every 2nd frame (2.8 degrees), where keyframe_every alone keeps frame 5
+    cfg.mapping.backlog_motion_deg = 0.0
+    assert _kept_while_held(cfg, poses, frames) == [5], "the motion rule off: keyframe_every apart"
 
 
 def test_a_full_backlog_thins_out_to_span_the_run(views):
@@ -245,6 +249,8 @@ def test_a_full_backlog_thins_out_to_span_the_run(views):
     assert 1 <= len(kept) <= 3 and kept[-1] >= len(frames) - 2 and kept == sorted(kept)
     with pytest.raises(ConfigError, match="backlog_max"):
         SlamConfig(intrinsics=k, mapping=MappingConfig(backlog_max=-1)).check()
+    with pytest.raises(ConfigError, match="backlog_motion"):
+        SlamConfig(intrinsics=k, mapping=MappingConfig(backlog_motion_m=float("nan"))).check()
 
 
 def test_the_keyframe_front_end_starts_from_the_odometry_when_given():
