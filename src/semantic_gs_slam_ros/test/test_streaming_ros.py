@@ -348,8 +348,12 @@ def test_server_ends_the_run_after_frames_in_a_row_it_cannot_use_and_the_client_
     client = Client(ros_domain, seq, size="64x36", rate=20.0)
     assert client.wait(120) == 1, client.text()
     text, log = client.text(), sup.get("run_gs_slam_server").output
-    assert "run failed: 10 frames in a row could not be used (the last, frame 11: only 0.0 % of depth pixels" in text, \
-        text + log()
+    # the last is frame 11 when the frames are processed in the order sent; 12 when the second good frame's depth
+    # was paired after the first unusable one (it is then tracked, which ends the first streak: seen once with three
+    # test workers on two cores)
+    failed = re.compile(r"run failed: 10 frames in a row could not be used \(the last, frame 1[12]: only 0\.0 % of "
+                        r"depth pixels")
+    assert failed.search(text), text + log()
     assert wait_for(lambda: "run finished: 10 frames in a row" in log(), 30), log()
     assert "SLAM failed" not in log() and (work / "map" / "params.npz").is_file()  # the two good frames' map
     assert sup.get("run_gs_slam_server").returncode() is None  # the server is still up for the next goal
