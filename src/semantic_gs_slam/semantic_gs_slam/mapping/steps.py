@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from semantic_gs_slam.config import Intrinsics, device_default
+from semantic_gs_slam.config import Intrinsics
 from semantic_gs_slam.geometry import fill_depth_holes
 from semantic_gs_slam.io.exposure import fit as fit_exposure
 from semantic_gs_slam.io.exposure import to_map
@@ -293,8 +293,7 @@ class MappingSteps:
             t0 = time.monotonic()
             should_stop = _any_of(should_stop, lambda: time.monotonic() > t0 + seconds)
             backlog_stop = _any_of(backlog_stop, lambda: time.monotonic() > t0 + seconds / 2)
-            share = self.cfg.mapping.refine_coarse_share
-            share = device_default("mapping", "refine_coarse_share", self.device.type) if share is None else share
+            share = self.cfg.mapping.refine_coarse_share  # the device's value filled in when the engine started
             coarse_stop = (lambda: time.monotonic() > t0 + share * seconds) if share > 0 else None
         self.drain(600.0)  # a mapping thread (SlamConfig.threaded) finishes first
         if not self.keyframes:
