@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import math
 import os
-import re
 import threading
 from collections.abc import Callable
 
@@ -35,12 +34,11 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from object_query.errors import ObjectMemoryError
 from object_query.memory import Belief, MapObservation, MemoryConfig, ObjectMemory, load_memory
 from object_query.names import normalise_name
-from object_query.semantic_map import ObjectDatabase, QueryResult
+from object_query.semantic_map import ObjectDatabase
 
 #: Latched: a node that subscribes later still receives the current memory.
 MEMORY_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 EVENTS = ("grasped", "grasp_failed", "placed", "set")
-_INSTANCE_ID = re.compile(r"^(.+?)\s*#\s*(\d{1,6})$")  # "cup#2", "cup #2"
 
 
 def stamp_of(t: float) -> Time:
@@ -69,61 +67,6 @@ def memory_to_msg(beliefs: tuple[Belief, ...], revision: int, frame_id: str, sta
 def default_memory_path(map_path: str) -> str:
     """``/maps/home.npz`` → ``/maps/home.memory.json`` (next to the map)."""
     return os.path.splitext(map_path)[0] + ".memory.json"
-
-
-def answer_query(memory: ObjectMemory, db: ObjectDatabase, name: str) -> QueryResult:
-    """``/object_query``'s answer: the current belief, the seed's contract kept.
-
-    While every belief of the class is just what the map shows (source ``map``, state ``seen``),
-    the map answers as before (its ``query_position``, its messages). Once the robot or a person
-    changed something (held, placed, unseen after a failed grasp, set), the memory's best belief
-    answers. ``name`` may be an instance id (``cup#2``: the memory's ids equal the map's labels
-    until objects move).
-    """
-    label = _INSTANCE_ID.match(normalise_name(name)[:300])
-    if label is not None:
-        key, _ = db.resolve(label.group(1))
-        belief = memory.get(f"{key or normalise_name(label.group(1))}#{int(label.group(2))}")
-        if belief is None or _as_mapped(belief):
-            return db.query(name)
-        return _belief_answer(belief, f"{belief.id} at", memory)
-    key, note = db.resolve(name)
-    if key is None:
-        key = normalise_name(name)
-        group = memory.candidates(key)
-        if not group:
-            return QueryResult(False, (0.0, 0.0, 0.0), note)
-        if all(b.source == "map" and b.state == "unseen" for b in group):
-            # the map no longer has the class at all and nothing since says where it is: not found
-            # (a stale position must not send the robot there), with where it was last seen
-            b = group[0]
-            x, y, z = b.position
-            return QueryResult(False, (0.0, 0.0, 0.0),
-                               f"{note}; {key} was last seen at ({x:.3f}, {y:.3f}, {z:.3f}) ({b.id}), "
-                               "but the current map no longer shows it")
-    group = memory.candidates(key)
-    if not group or all(_as_mapped(b) for b in group):
-        return db.query(name)
-    return _belief_answer(group[0], f"{key} at", memory)
-
-
-def _as_mapped(b: Belief) -> bool:
-    return b.source == "map" and b.state == "seen"
-
-
-def _belief_answer(belief: Belief, head: str, memory: ObjectMemory) -> QueryResult:
-    x, y, z = belief.position
-    at = f" at {belief.place}" if belief.place else ""
-    where = {"held": "in the robot's gripper", "placed": f"put down by the robot{at}",
-             "unseen": "not seen there lately", "seen": "seen in the map"}[belief.state]
-    msg = f"{head} ({x:.3f}, {y:.3f}, {z:.3f}): {belief.id}, {where}; source {belief.source}, " \
-          f"confidence {belief.confidence:.2f}"
-    if belief.note:
-        msg += f" ({belief.note})"
-    n = len(memory.candidates(belief.name))
-    if n > 1:
-        msg += f"; {n} instances of {belief.name}, this is the current best belief; see /object_memory"
-    return QueryResult(True, (x, y, z), msg)
 
 
 class MemoryInterface:

@@ -55,9 +55,10 @@ from std_msgs.msg import ColorRGBA, String
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
+from object_query.answers import answer_query, object_list
 from object_query.errors import MapLoadError, SynonymsError
 from object_query.memory import MemoryConfig
-from object_query.memory_ros import MemoryInterface, answer_query, default_memory_path
+from object_query.memory_ros import MemoryInterface, default_memory_path
 from object_query.names import load_synonyms
 from object_query.semantic_map import DatabaseConfig, FileSignature, ObjectDatabase, load_semantic_map
 from object_query.staged import StagedBuild
@@ -333,17 +334,12 @@ class ObjectQueryServer(Node):
                                config=config)
 
     def _publish_object_list(self) -> None:
-        """``/object_list`` from the memory: each class's current best position (the map's for the rest)."""
+        """``/object_list``: each name's ``/object_query`` position (answers.object_list)."""
         with self._lock:
             db = self._db
         if db is None:
             return
-        doc = json.loads(db.to_json())
-        for name in list(doc):
-            best = self.memory.memory.best(name)
-            if best is not None:
-                doc[name] = [round(v, 4) for v in best.position]
-        self._list_pub.publish(String(data=json.dumps(doc)))
+        self._list_pub.publish(String(data=json.dumps(object_list(self.memory.memory, db))))
 
     def _publish(self, db: ObjectDatabase) -> None:
         mtime = [m for (_, m, _) in self._signature_now().entries[:1] if m >= 0]

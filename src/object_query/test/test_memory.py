@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 
 import pytest
@@ -182,7 +183,7 @@ def _blob_db(classes: dict[int, str], centres: dict[int, tuple[float, float, flo
 
 
 def test_object_query_does_not_send_the_robot_to_a_class_the_new_map_no_longer_has() -> None:
-    from object_query.memory_ros import answer_query
+    from object_query.answers import answer_query
     old = _blob_db({1: "placeholder", 2: "chair"}, {1: (1.0, 1.0, 0.5), 2: (3.0, 1.0, 0.5)})
     new = _blob_db({2: "chair"}, {2: (3.0, 1.0, 0.5)})
     mem = ObjectMemory(clock=Clock())
@@ -195,3 +196,33 @@ def test_object_query_does_not_send_the_robot_to_a_class_the_new_map_no_longer_h
     # what the robot itself did still counts when the map lacks the class: the held object is found
     mem.grasped("placeholder", (1.0, 1.0, 0.0))
     assert answer_query(mem, new, "placeholder").found
+
+
+def test_object_list_gives_each_name_its_object_query_position() -> None:
+    """``/object_list`` agrees with ``/object_query``: while the map alone places the cups the largest one (the map's
+    ``query_position``), not the cup the memory happened to see first; after a grasp the held cup."""
+    import numpy as np
+
+    from object_query.answers import answer_query, object_list
+    from object_query.semantic_map import ObjectDatabase, SemanticMap
+
+    def db_of(blobs: list[tuple[int, tuple[float, float, float], int]]) -> ObjectDatabase:
+        rng = np.random.default_rng(0)
+        means = np.concatenate([rng.normal(c, 0.02, (n, 3)) for _, c, n in blobs]).astype(np.float32)
+        ids = np.concatenate([np.full(n, k) for k, _, n in blobs])
+        return ObjectDatabase.from_map(SemanticMap(means, ids, {1: "cup", 2: "chair"}))
+
+    small, large, chair = (4.6, 0.35, 0.95), (2.8, 2.6, 0.8), (1.0, 1.0, 0.5)
+    first = db_of([(1, small, 60), (2, chair, 100)])  # only the small cup seen yet: it becomes cup#1
+    later = db_of([(1, small, 60), (1, large, 300), (2, chair, 100)])
+    mem = ObjectMemory(clock=Clock())
+    for db, at in ((first, 900.0), (later, 950.0)):
+        mem.merge_map((MapObservation(i.name, i.centre) for i in db.all_instances()), observed_at=at)
+    assert mem.best("cup").id == "cup#1" and math.dist(mem.best("cup").position, small) < 0.05
+    listed = object_list(mem, later)
+    assert set(listed) == {"cup", "chair"}
+    assert math.dist(listed["cup"], large) < 0.05, listed  # the map's largest cup, as /object_query says
+    assert listed["cup"] == [round(v, 4) for v in answer_query(mem, later, "cup").position]
+    assert math.dist(listed["chair"], chair) < 0.05
+    mem.grasped("cup", small)  # the robot picked up the small cup: now the memory answers
+    assert object_list(mem, later)["cup"] == [round(v, 4) for v in mem.get("cup#1").position]
