@@ -91,6 +91,11 @@ def test_explores_maps_and_the_object_database_serves_the_self_built_map(launch_
     assert lists and lists[0] == {}  # the database started with no map ...
     objects = lists[-1]  # ... and serves the self-built one after the reload
     truth = json.loads(SAMPLE_OBJECTS)
+    from object_query.semantic_map import ObjectDatabase
+
+    db = ObjectDatabase.from_files(str(map_dir / "params.npz"), str(map_dir / "semantic.json"))
+    for name in ("bottle", "trash", "cup"):  # what the answer was chosen from (read when an assertion below fails)
+        print(name, [(tuple(round(v, 3) for v in i.centre), i.point_count) for i in db.instances(name).instances])
     assert {"bottle", "table", "trash"} <= set(objects), objects
     for name in ("bottle", "trash", "cup"):
         if name not in objects:
