@@ -186,10 +186,11 @@ class MappingConfig:
     # new reference (tracking.frontend_new_keyframe_coverage, or the reference keyframe_every frames old) becomes
     # one without being mapped. Off: the
     # synchronous run's keyframes
-    backlog_motion_m: float = 0.06  # a deferred frame is also kept once it moved this far (m) ...
+    backlog_motion_m: float = 0.06  # a deferred frame, or (defer_keyframes) a frame between keyframes while mapping
+    # keeps up, is kept once it moved this far (m) ...
     backlog_motion_deg: float = 3.0  # ... or turned this much from the last kept frame or keyframe (times the
     # thinning factor; <= 0: off)
-    backlog_max: int = 64  # deferred frames kept (keyframe_every or backlog_motion_* apart, thinned to span the run
+    backlog_max: int = 64  # frames kept as views (keyframe_every or backlog_motion_* apart, thinned to span the run
     # when full) for SLAM.refine / catch_up to map after the run; 0: none. Memory: one frame's colour, depth and
     # labels each
     densify_every_frame: bool | None = None  # also add Gaussians (without optimising) on non-keyframes (None: the

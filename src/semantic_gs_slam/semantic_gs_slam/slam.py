@@ -356,6 +356,11 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
         if is_kf:
             self._kf_due = False
             self._last_kf_index = idx
+        elif keyframe_fe and not unmapped and not self._kf_due and idx > 0 and self._defers() and self._keeps(idx):
+            # a frame between keyframes, far enough from the last kept one, is kept as a view for the refinement
+            # whether or not mapping is busy: a camera read at 5 Hz lets the thread keep up, and the refinement
+            # then had only the keyframes as views
+            self._keep_deferred(idx, *self._device_frame(host))
         if (is_kf or new_reference) and keyframe_fe:
             self._fe_add_keyframe(idx, depth_np, rgb_np)
         if not unmapped and source != "ground_truth":
@@ -424,8 +429,8 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
                 None if sem is None else torch.as_tensor(sem, device=dev))
 
     def _keeps(self, idx: int) -> bool:
-        """Whether deferred frame ``idx`` goes into the backlog: ``mapping.backlog_max`` > 0 and it lies
-        ``keyframe_every`` frames past the last keyframe or kept frame, or moved or turned past
+        """Whether frame ``idx`` (deferred, or between keyframes) goes into the backlog: ``mapping.backlog_max`` > 0
+        and it lies ``keyframe_every`` frames past the last keyframe or kept frame, or moved or turned past
         ``mapping.backlog_motion_*`` from it (both times the thinning factor). A camera read at 5 or 15 Hz moves
         that far in fewer frames, so the refinement's views stay about as far apart as at 30 Hz (kitchen frames
         0-249 after 30 s, every 6th frame: 8 -> 23 views, PSNR 22.90 -> 24.47 dB; every 2nd: 15 -> 30 views,
@@ -450,10 +455,13 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
             self._backlog_spacing *= 2
         self.backlog.append((idx, rgb_t, depth_t, sem_t))
 
+    def _defers(self) -> bool:
+        """Whether keyframes are deferred while the mapping thread is busy (mapping.defer_keyframes, threaded)."""
+        return bool(self.cfg.threaded and self.cfg.mapping.defer_keyframes and self._worker is not None)
+
     def _mapping_busy(self) -> bool:
-        """Whether keyframes are deferred now (mapping.defer_keyframes, threaded): the mapping thread has work."""
-        return bool(self.cfg.threaded and self.cfg.mapping.defer_keyframes and self._worker is not None
-                    and self._worker.pending > 0)
+        """Whether keyframes are deferred now (:meth:`_defers`): the mapping thread has work."""
+        return self._defers() and self._worker.pending > 0
 
     def _note_lost(self, idx: int, failed: bool, unmapped: bool) -> None:
         """Record lost frames (tracking failed; a frame relocalised at once counts too) and lost -> recovered spans

@@ -241,6 +241,29 @@ def test_a_deferred_frame_that_moved_far_enough_is_kept_before_keyframe_every(vi
     assert _kept_while_held(cfg, poses, frames) == [5], "the motion rule off: keyframe_every apart"
 
 
+def test_views_between_keyframes_are_kept_while_mapping_keeps_up(views):
+    """A camera read slowly (here 1.4 degrees a frame against a 2.5-degree backlog_motion_deg) lets the mapping thread
+    keep up, so no keyframe is deferred; the frames between keyframes that moved far enough are still kept as views
+    for the refinement, which maps them."""
+    k, poses, frames = views
+    cfg = _cfg(k, True, queue_size=4)
+    cfg.mapping.defer_keyframes, cfg.mapping.keyframe_every = True, 5
+    cfg.mapping.backlog_motion_deg, cfg.mapping.backlog_motion_m = 2.5, 0.0
+    eng = SLAM(cfg, initial_c2w=poses[0])
+    _feed(eng, frames, wait=True)  # the thread is idle at every frame
+    # frame 4 is a keyframe by the front end's coverage, 5 by keyframe_every; none deferred
+    assert [lg.index for lg in eng.logs if lg.keyframe] == [0, 4, 5] and eng.stats()["deferred_keyframes"] == 0
+    assert [i for i, *_ in eng.backlog] == [2, 7], "2.8 degrees past keyframes 0 and 5 (frames 3, 6, 8: 1.4)"
+    n_before = len(eng.map)
+    eng.refine(2)
+    assert eng.backlog == [] and eng.stats()["caught_up"] == 2 and len(eng.map) >= n_before
+    eng.finish(120.0)
+    cfg.mapping.defer_keyframes = False  # keyframes mapped whenever due: the refinement has the keyframes only
+    eng = SLAM(cfg, initial_c2w=poses[0])
+    _feed(eng, frames, wait=True)
+    assert eng.backlog == []
+    eng.finish(120.0)
+
 def test_a_full_backlog_thins_out_to_span_the_run(views):
     k, poses, frames = views
     cfg = _cfg(k, True, queue_size=len(frames))
