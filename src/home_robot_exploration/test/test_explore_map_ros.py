@@ -81,6 +81,21 @@ def test_explores_maps_and_the_object_database_serves_the_self_built_map(launch_
             return isinstance(p, dict) and p["state"] == "done"
 
     assert wait_for(done, timeout=600, interval=0.5), f"exploration and mapping did not end: {got.get('progress')}"
+    # the SLAM server had the final map reloaded before it ended the run, so /object_query answers from it now;
+    # /object_list, each name's /object_query position, was published by that reload, but this node may take it
+    # after "done" (another subscription): wait until the last list received is the final map's
+    from object_query.object_query_client import ObjectQueryClient
+
+    queries = ObjectQueryClient(ros_node)
+    assert queries.wait_for_service(20.0)
+    answers = {n: queries.query(n, 10.0) for n in ("bottle", "trash", "cup")}
+
+    def final_list() -> bool:
+        with lock:
+            last = got["lists"][-1] if got["lists"] else {}
+        return all(n in last and math.dist(last[n], a.position) < 1e-3 for n, a in answers.items() if a.found)
+
+    assert wait_for(final_list, 20.0), f"/object_list {got['lists'][-1:]} is not /object_query's {answers}"
     with lock:
         progress, states, lists = dict(got["progress"]), list(got["states"]), list(got["lists"])
     mapping = progress["mapping"]
