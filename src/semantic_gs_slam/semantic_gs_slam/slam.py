@@ -350,16 +350,14 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
             stale = idx - self._fe_ref_idx >= self.cfg.mapping.keyframe_every
             self._kf_due, due, new_reference, needed = True, False, needed or stale, False
             self.deferred_keyframes += 1
-            if self._keeps(idx):
-                self._keep_deferred(idx, *self._device_frame(host))
         is_kf = (due or needed) and not unmapped
         if is_kf:
             self._kf_due = False
             self._last_kf_index = idx
-        elif keyframe_fe and not unmapped and not self._kf_due and idx > 0 and self._defers() and self._keeps(idx):
-            # a frame between keyframes, far enough from the last kept one, is kept as a view for the refinement
-            # whether or not mapping is busy: a camera read at 5 Hz lets the thread keep up, and the refinement
-            # then had only the keyframes as views
+        elif not unmapped and idx > 0 and self._defers() and self._keeps(idx):
+            # a deferred keyframe, or a frame between keyframes far enough from the last kept one, is kept as a view
+            # for the refinement whether or not mapping is busy: a camera read at 5 Hz lets the thread keep up, and
+            # the refinement then had only the keyframes as views
             self._keep_deferred(idx, *self._device_frame(host))
         if (is_kf or new_reference) and keyframe_fe:
             self._fe_add_keyframe(idx, depth_np, rgb_np)
