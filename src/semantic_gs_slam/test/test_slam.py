@@ -666,15 +666,21 @@ def test_map_rendered_at_half_resolution_is_the_full_render_averaged(mapped_on_t
 
 @pytest.mark.slow
 @pytest.mark.xdist_group("slam_refinement")
-def test_refinement_with_a_time_budget_goes_coarse_then_fine(mapped_on_true_poses):
+def test_refinement_with_a_time_budget_goes_coarse_then_fine(mapped_on_true_poses, monkeypatch):
     """``refine(seconds=S)``: the first ``mapping.refine_coarse_share`` of the budget renders at half resolution,
     the rest at full resolution, and the map fits its keyframes better afterwards; share 0 renders every iteration
-    at full resolution; a bad budget is refused."""
+    at full resolution; a bad budget is refused. The budget is read from a clock that advances 20 ms per
+    iteration, so the run does 100 iterations however loaded the machine is (the wall clock gave 2 s to a few
+    iterations at load 5)."""
     from copy import deepcopy
+    from types import SimpleNamespace
 
     from semantic_gs_slam.eval.metrics import psnr
+    from semantic_gs_slam.mapping import steps
 
     _, base = mapped_on_true_poses
+    clock = [0.0]
+    monkeypatch.setattr(steps, "time", SimpleNamespace(monotonic=lambda: clock[0]))
 
     def run(share: float) -> tuple[list[int], float, float]:
         eng = deepcopy(base)
@@ -684,6 +690,7 @@ def test_refinement_with_a_time_budget_goes_coarse_then_fine(mapped_on_true_pose
 
         def spy(g, w2c, plane=True, k=None):  # the real renderer; records each iteration's image width
             widths.append((k or eng.k).width)
+            clock[0] += 0.02
             return render(g, w2c, plane=plane, k=k)
 
         def fit() -> float:
@@ -702,6 +709,8 @@ def test_refinement_with_a_time_budget_goes_coarse_then_fine(mapped_on_true_pose
     w = base.k.width
     assert set(widths) == {w // 2, w}, set(widths)
     assert widths == sorted(widths), "every half-resolution iteration comes before the full-resolution ones"
+    assert len(widths) == 100 and widths.count(w // 2) == 50, (len(widths), widths.count(w // 2))
+    print(f"fit {before:.2f} -> {after:.2f} dB")
     assert after > before + 0.5, (before, after)
     widths, _, _ = run(0.0)
     assert set(widths) == {w}

@@ -264,6 +264,7 @@ def test_views_between_keyframes_are_kept_while_mapping_keeps_up(views):
     assert eng.backlog == []
     eng.finish(120.0)
 
+
 def test_a_full_backlog_thins_out_to_span_the_run(views):
     k, poses, frames = views
     cfg = _cfg(k, True, queue_size=len(frames))
