@@ -59,7 +59,15 @@ from decision_maker.execution.stage0 import ExplorationGate
 from decision_maker.memory.link import MemoryLink
 from decision_maker.nl_planner import PlanningContext, make_planner
 from decision_maker.planning.stop_words import is_stop_command
-from decision_maker.topics import CANCEL_QOS, COMMAND_QOS, HARDWARE_STOP, OBJECT_LIST_QOS, SERVICE_QOS, SUBMIT_COMMAND
+from decision_maker.topics import (
+    CANCEL_QOS,
+    COMMAND_QOS,
+    HARDWARE_STOP,
+    OBJECT_LIST_QOS,
+    SERVICE_QOS,
+    STATUS_QOS,
+    SUBMIT_COMMAND,
+)
 
 #: Longest /object_list message parsed (characters); a longer one is ignored with a warning.
 MAX_OBJECT_LIST_CHARS = 1_000_000
@@ -141,7 +149,7 @@ class DecisionMakerNode(Node):
         self._input_group = MutuallyExclusiveCallbackGroup()
         self._client_group = ReentrantCallbackGroup()
 
-        self._status_pub = self.create_publisher(String, "task_status", COMMAND_QOS)
+        self._status_pub = self.create_publisher(String, "task_status", STATUS_QOS)
         cancel_pub = self.create_publisher(String, HARDWARE_STOP, CANCEL_QOS)
         self.robot = RosRobot(
             self, self._client_group, cancel_pub, frames,

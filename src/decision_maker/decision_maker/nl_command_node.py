@@ -31,7 +31,7 @@ from decision_maker.client.command_client import Ack, CommandClient
 from decision_maker.client.console import stdin_lines, wait_for_listeners
 from decision_maker.command_types import sanitize_text, shorten
 from decision_maker.execution.engine import TaskState, TaskStatus
-from decision_maker.topics import COMMAND_QOS
+from decision_maker.topics import STATUS_QOS
 
 
 class CommandSender:
@@ -47,7 +47,7 @@ class CommandSender:
         self.client = CommandClient(node, answer_timeout_s=answer_timeout_s,
                                     log=lambda text: print(f"warning: {text}", file=sys.stderr, flush=True))
         self._pub = self.client._pub
-        node.create_subscription(String, "task_status", self._on_status, COMMAND_QOS)
+        node.create_subscription(String, "task_status", self._on_status, STATUS_QOS)
         self._cond = threading.Condition()  # guards _pending, _pending_ids, _final_ids, failures
         self._pending: collections.Counter[str] = collections.Counter()
         self._pending_ids: set[int] = set()

@@ -12,8 +12,14 @@ SUBMIT_COMMAND = "submit_command"
 HARDWARE_STOP = "hardware_stop"
 OBJECT_LIST = "object_list"
 
-#: Commands and statuses: reliable with a deep history, so a burst is queued, not dropped.
+#: Commands: reliable with a deep history, so a burst is queued, not dropped.
 COMMAND_QOS = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
+#: /task_status, publisher and every subscriber: one update per state change, so a burst of N commands
+#: makes more than N updates at once (each one's "queued" or "rejected", the running one's steps).
+#: A reliable keep-last writer overwrites what a slow reader has not yet acknowledged, so the history
+#: is twice the largest burst tested (1000 requests, test_reliability_ros): at depth 200 a loaded
+#: reader once missed the running command's "running" among a thousand "rejected".
+STATUS_QOS = QoSProfile(depth=2000, reliability=ReliabilityPolicy.RELIABLE)
 #: The submit_command service (requests and replies): deep, so a burst is queued, not overwritten
 #: (the services default, depth 10, drops a burst silently). A sender that still gets no answer
 #: is told so by its own deadline (CommandClient), never left guessing. Twice the largest burst tested

@@ -18,13 +18,13 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
 from decision_maker.execution.engine import TaskState, TaskStatus
+from decision_maker.topics import COMMAND_QOS, STATUS_QOS
 from home_robot_bringup.nodeset import find_executable, load_nodeset
 from home_robot_bringup.process import node_environment
 from home_robot_bringup.testing import wait_for
 
 pytestmark = pytest.mark.ros
 
-COMMAND_QOS = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 FAST = ["mock_nav_server.speed=8.0", "mock_nav_server.turn_rate=30.0",
         "mock_grasp_server.grasp_duration_s=0.2", "mock_grasp_server.place_duration_s=0.2"]
@@ -44,7 +44,7 @@ class Robot:
         self.status_times: list[float] = []
         self._cmd = node.create_publisher(String, "manual_command", COMMAND_QOS)
         self._cancel = node.create_publisher(String, "cancel_command", QoSProfile(depth=10))
-        node.create_subscription(String, "task_status", self._on_status, COMMAND_QOS)
+        node.create_subscription(String, "task_status", self._on_status, STATUS_QOS)
         node.create_subscription(String, "cancel_command", self._on_cancel, 10)
         node.create_subscription(String, "hardware_stop", self._on_cancel, 10)  # the brain's own stop
         node.create_subscription(String, "sim/world_state", self._on_world, LATCHED)

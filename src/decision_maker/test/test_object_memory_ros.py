@@ -26,11 +26,12 @@ from object_query_interfaces.srv import MemoryQuery
 from std_msgs.msg import String
 
 from decision_maker.execution.engine import TaskState, TaskStatus
+from decision_maker.topics import COMMAND_QOS, STATUS_QOS
 from home_robot_bringup.nodeset import load_nodeset
 from home_robot_bringup.testing import wait_for
 from object_query.object_query_server import bundled_map_paths
 
-from .test_decision_maker_ros import BIN_DROP, COMMAND_QOS, FAST, LATCHED, USER_DROP
+from .test_decision_maker_ros import BIN_DROP, FAST, LATCHED, USER_DROP
 
 pytestmark = pytest.mark.ros
 
@@ -46,7 +47,7 @@ class Person:
         self.world: dict | None = None
         self.memory: ObjectMemoryMsg | None = None
         self._cmd = node.create_publisher(String, "manual_command", COMMAND_QOS)
-        node.create_subscription(String, "task_status", self._on_status, COMMAND_QOS)
+        node.create_subscription(String, "task_status", self._on_status, STATUS_QOS)
         node.create_subscription(String, "sim/world_state", self._on_world, LATCHED)
         node.create_subscription(ObjectMemoryMsg, "object_memory", self._on_memory, LATCHED)
         self.move_client = node.create_client(MoveObject, "sim/move_object")

@@ -22,12 +22,12 @@ from std_msgs.msg import String
 
 from decision_maker.client.command_client import Ack, CommandClient
 from decision_maker.execution.engine import TaskState, TaskStatus
+from decision_maker.topics import COMMAND_QOS, STATUS_QOS
 from home_robot_bringup.testing import wait_for
 from home_robot_ros.actions import ActionClient
 
 pytestmark = pytest.mark.ros
 
-COMMAND_QOS = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 
 
@@ -41,7 +41,7 @@ class Operator:
         self.client = CommandClient(node, answer_timeout_s=30.0)
         self._cmd = node.create_publisher(String, "manual_command", COMMAND_QOS)
         self._cancel = node.create_publisher(String, "cancel_command", QoSProfile(depth=10))
-        node.create_subscription(String, "task_status", self._on_status, COMMAND_QOS)
+        node.create_subscription(String, "task_status", self._on_status, STATUS_QOS)
         node.create_subscription(String, "sim/world_state", self._on_world, LATCHED)
 
     def _on_status(self, msg: String) -> None:

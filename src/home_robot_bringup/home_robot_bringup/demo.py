@@ -49,7 +49,7 @@ class Operator:
     def __init__(self, domain_id: int, echo=sys.stdout) -> None:
         from std_msgs.msg import String
 
-        from decision_maker.topics import CANCEL_QOS, COMMAND_QOS, OBJECT_LIST_QOS
+        from decision_maker.topics import CANCEL_QOS, COMMAND_QOS, OBJECT_LIST_QOS, STATUS_QOS
 
         self._String = String
         self._echo = echo
@@ -61,7 +61,7 @@ class Operator:
         node = self._ros.node
         self._cmd = node.create_publisher(String, "manual_command", COMMAND_QOS)
         self._cancel = node.create_publisher(String, "cancel_command", CANCEL_QOS)
-        node.create_subscription(String, "task_status", self._on_status, COMMAND_QOS)
+        node.create_subscription(String, "task_status", self._on_status, STATUS_QOS)
         node.create_subscription(String, "sim/world_state", self._on_world, OBJECT_LIST_QOS)
 
     def _on_status(self, msg) -> None:

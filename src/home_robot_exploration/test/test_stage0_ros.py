@@ -15,13 +15,13 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
 from decision_maker.execution.engine import TaskState, TaskStatus
+from decision_maker.topics import COMMAND_QOS, STATUS_QOS
 from home_robot_bringup.nodeset import load_nodeset
 from home_robot_bringup.testing import wait_for
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
-COMMAND_QOS = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
 SMALL_CAMERA = ["sim_camera.width=100", "sim_camera.height=57", "sim_camera.rate_hz=3.0"]
 
 
@@ -38,7 +38,7 @@ class Watch:
         self.statuses: list[TaskStatus] = []
         self.progress: list[dict] = []
         self.cmd = node.create_publisher(String, "manual_command", COMMAND_QOS)
-        node.create_subscription(String, "task_status", self._on_status, COMMAND_QOS)
+        node.create_subscription(String, "task_status", self._on_status, STATUS_QOS)
         node.create_subscription(String, "exploration/progress", self._on_progress, LATCHED)
 
     def _on_status(self, msg: String) -> None:

@@ -40,7 +40,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
 from decision_maker.client.command_client import Ack, CommandClient
-from decision_maker.topics import CANCEL_COMMAND, CANCEL_QOS, COMMAND_QOS, TASK_STATUS
+from decision_maker.topics import CANCEL_COMMAND, CANCEL_QOS, STATUS_QOS, TASK_STATUS
 from home_robot_web.auth import AttemptLimiter, Gate, generate_token, read_token_file
 from home_robot_web.errors import ConfigError, ServerError
 from home_robot_web.protocol import goal_event, memory_event, robot_event, status_event
@@ -107,7 +107,7 @@ class WebUiNode(Node):
         self.server.start()  # raises ServerError (a ConfigError for main: address in use, ...)
         self._show_map(str(v["map_path"]) or bundled_map(), int(v["max_map_points"]))
 
-        self.create_subscription(String, TASK_STATUS, self._on_status, COMMAND_QOS, callback_group=group)
+        self.create_subscription(String, TASK_STATUS, self._on_status, STATUS_QOS, callback_group=group)
         self.create_subscription(ObjectMemory, "object_memory", self._on_memory, LATCHED, callback_group=group)
         self.create_subscription(PoseStamped, str(v["pose_topic"]), self._on_pose, LATCHED, callback_group=group)
         self.create_subscription(GoalStatusArray, str(v["nav_status_topic"]), self._on_goals, GOAL_STATUS_QOS,
