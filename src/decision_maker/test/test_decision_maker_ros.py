@@ -44,7 +44,7 @@ class Robot:
         self.status_times: list[float] = []
         self._cmd = node.create_publisher(String, "manual_command", COMMAND_QOS)
         self._cancel = node.create_publisher(String, "cancel_command", QoSProfile(depth=10))
-        node.create_subscription(String, "task_status", self._on_status, STATUS_QOS)
+        self._status = node.create_subscription(String, "task_status", self._on_status, STATUS_QOS)
         node.create_subscription(String, "cancel_command", self._on_cancel, 10)
         node.create_subscription(String, "hardware_stop", self._on_cancel, 10)  # the brain's own stop
         node.create_subscription(String, "sim/world_state", self._on_world, LATCHED)
@@ -73,8 +73,8 @@ class Robot:
         return self.snapshot()
 
     def wait_connected(self) -> None:
-        assert wait_for(lambda: self._cmd.get_subscription_count() > 0 and self._cancel.get_subscription_count() > 0,
-                        20.0), "decision maker not subscribed"
+        assert wait_for(lambda: self._cmd.get_subscription_count() > 0 and self._cancel.get_subscription_count() > 0
+                        and self._status.get_publisher_count() > 0, 20.0), "decision maker not connected"
         assert wait_for(lambda: (self.snapshot() or {}).get("robot") is not None, 20.0), "no world state"
 
     def wait_knows(self, name: str, timeout: float = 40.0) -> None:

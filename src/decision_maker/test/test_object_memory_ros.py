@@ -47,7 +47,7 @@ class Person:
         self.world: dict | None = None
         self.memory: ObjectMemoryMsg | None = None
         self._cmd = node.create_publisher(String, "manual_command", COMMAND_QOS)
-        node.create_subscription(String, "task_status", self._on_status, STATUS_QOS)
+        self._status = node.create_subscription(String, "task_status", self._on_status, STATUS_QOS)
         node.create_subscription(String, "sim/world_state", self._on_world, LATCHED)
         node.create_subscription(ObjectMemoryMsg, "object_memory", self._on_memory, LATCHED)
         self.move_client = node.create_client(MoveObject, "sim/move_object")
@@ -69,7 +69,8 @@ class Person:
         """Send a command and return its one final status."""
         # a command published before the brain's subscription has matched ours is lost (a topic
         # has no acknowledgement): wait for the match first
-        assert wait_for(lambda: self._cmd.get_subscription_count() > 0, 20.0), "decision maker not subscribed"
+        assert wait_for(lambda: self._cmd.get_subscription_count() > 0 and self._status.get_publisher_count() > 0,
+                        20.0), "decision maker not connected"
         with self._lock:
             n = len(self.statuses)
         self._cmd.publish(String(data=text))

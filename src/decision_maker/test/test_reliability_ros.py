@@ -41,7 +41,7 @@ class Operator:
         self.client = CommandClient(node, answer_timeout_s=30.0)
         self._cmd = node.create_publisher(String, "manual_command", COMMAND_QOS)
         self._cancel = node.create_publisher(String, "cancel_command", QoSProfile(depth=10))
-        node.create_subscription(String, "task_status", self._on_status, STATUS_QOS)
+        self._status = node.create_subscription(String, "task_status", self._on_status, STATUS_QOS)
         node.create_subscription(String, "sim/world_state", self._on_world, LATCHED)
 
     def _on_status(self, msg: String) -> None:
@@ -54,8 +54,8 @@ class Operator:
 
     def wait_connected(self) -> None:
         assert self.client.wait_for_service(30.0), "no submit_command service"
-        assert wait_for(lambda: self._cmd.get_subscription_count() > 0 and self._cancel.get_subscription_count() > 0,
-                        20.0), "decision maker not subscribed"
+        assert wait_for(lambda: self._cmd.get_subscription_count() > 0 and self._cancel.get_subscription_count() > 0
+                        and self._status.get_publisher_count() > 0, 20.0), "decision maker not connected"
 
     def by_id(self, cid: int) -> list[TaskStatus]:
         with self._lock:

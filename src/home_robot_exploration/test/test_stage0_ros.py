@@ -38,7 +38,7 @@ class Watch:
         self.statuses: list[TaskStatus] = []
         self.progress: list[dict] = []
         self.cmd = node.create_publisher(String, "manual_command", COMMAND_QOS)
-        node.create_subscription(String, "task_status", self._on_status, STATUS_QOS)
+        self.status_sub = node.create_subscription(String, "task_status", self._on_status, STATUS_QOS)
         node.create_subscription(String, "exploration/progress", self._on_progress, LATCHED)
 
     def _on_status(self, msg: String) -> None:
@@ -61,7 +61,7 @@ class Watch:
 def test_command_waits_for_exploration_then_runs(launch_nodes, ros_node):
     launch_nodes(nodes=specs(True), set=SMALL_CAMERA + ["decision_maker.exploration_mode=queue"], ready_timeout=120)
     w = Watch(ros_node)
-    assert wait_for(lambda: w.cmd.get_subscription_count() > 0, 20.0)
+    assert wait_for(lambda: w.cmd.get_subscription_count() > 0 and w.status_sub.get_publisher_count() > 0, 20.0)
     w.cmd.publish(String(data="give me the bottle"))
     assert wait_for(lambda: w.of("give me the bottle"), 20.0)
     first = w.of("give me the bottle")[0]
@@ -80,7 +80,7 @@ def test_command_waits_for_exploration_then_runs(launch_nodes, ros_node):
 def test_stop_ends_exploration(launch_nodes, ros_node):
     launch_nodes(nodes=specs(False), set=SMALL_CAMERA + ["decision_maker.exploration_mode=queue"], ready_timeout=120)
     w = Watch(ros_node)
-    assert wait_for(lambda: w.cmd.get_subscription_count() > 0, 20.0)
+    assert wait_for(lambda: w.cmd.get_subscription_count() > 0 and w.status_sub.get_publisher_count() > 0, 20.0)
     assert wait_for(lambda: w.last_progress().get("goals", 0) >= 1, 60.0), w.last_progress()
     w.cmd.publish(String(data="stop"))
     assert wait_for(lambda: w.last_progress().get("state") == "done", 30.0), w.last_progress()
