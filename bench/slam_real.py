@@ -126,6 +126,7 @@ def run_ours(ds, idx: list[int], args: argparse.Namespace) -> dict:
         _, res["refine_done"] = eng.refine(args.refine_iters if args.refine_iters > 0 else 10 ** 9,
                                            poses=args.refine_poses, seconds=max(args.refine_seconds, 0.0))
         res["refine_s"] = time.perf_counter() - t1
+        res["refine_poses"] = eng.cfg.mapping.refine_poses if args.refine_poses is None else args.refine_poses
         res["refined"] = evaluate(eng, ds, idx, every=args.eval_every)
     # FPS over frames 1..n as bench/slam_synthetic.py and bench/slam_gpu.py count it (frame 0's initial mapping,
     # mapping.first_frame_iters iterations, printed apart), and over all frames
@@ -212,8 +213,10 @@ def main() -> int:
     ap.add_argument("--profile", default="realtime", choices=list(PROFILES),
                     help="a named SlamConfig profile (config.PROFILES) under --config's overrides: realtime (the "
                          "default: every frame of a real camera at its rate) or default (the engine's base settings)")
-    ap.add_argument("--refine-poses", action="store_true",
-                    help="the refinement also optimises the keyframes' poses (bundle adjustment through the renderer)")
+    ap.add_argument("--refine-poses", action=argparse.BooleanOptionalAction, default=None,
+                    help="the refinement also optimises the poses of its views, keyframes and deferred frames (bundle "
+                         "adjustment through the renderer); default: the profile's mapping.refine_poses (on with "
+                         "realtime)")
     ap.add_argument("--quiet", action="store_true", help="no per-frame lines")
     ap.add_argument("--colour-calib", default="auto",
                     help="auto (the dataset's own or the layout's default), none (colour as recorded), or a file")
@@ -274,7 +277,7 @@ def main() -> int:
     masked = f"{ours['psnr_masked']:.2f}"
     if "refined" in ours:
         r = ours["refined"]
-        if args.refine_poses:
+        if ours["refine_poses"]:
             rows[0] = ("ATE RMSE (cm, aligned)", f"{ate_o:.2f} (refined: {r['ate_rmse_cm']:.2f})")
         rows[1:4] = [("PSNR (dB)", f"{ours['psnr']:.2f} (refined: {r['psnr']:.2f})"),
                      ("SSIM", f"{ours['ssim']:.3f} (refined: {r['ssim']:.3f})"),
@@ -283,7 +286,7 @@ def main() -> int:
         views = f" and {ours['stats'].get('caught_up', 0)} deferred frames" if ours["stats"].get("caught_up") else ""
         print(f"refined: {ours['refine_done']} Adam iterations over all {ours['keyframes']} keyframes{views} after the "
               "run"
-              f"{', their poses too' if args.refine_poses else ''}, {ours['refine_s']:.0f} s (not counted in FPS; "
+              f"{', their poses too' if ours['refine_poses'] else ''}, {ours['refine_s']:.0f} s (not counted in FPS; "
               "the per-frame error curve is the online run's)")
     rows.insert(2, ("PSNR (dB), SplaTAM's protocol (pixels without depth zeroed)", masked))
     rows.insert(3, ("PSNR (dB), pixels with depth / without", f"{ours['psnr_with_depth']:.2f} / "

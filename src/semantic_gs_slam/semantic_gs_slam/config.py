@@ -242,6 +242,11 @@ class MappingConfig:
     # resolution before the rest at full resolution (None: the device's, DEVICE_DEFAULTS: 0.8 on the CPU, 0 on
     # CUDA, where it was not measured); 0: full resolution throughout. Chosen on kitchen frames 0-249
     # (docs/design/slam.md "Refinement at the end", bench/refine_schedule.py)
+    refine_poses: bool = False  # SLAM.refine(poses=None) also optimises the poses of its views (keyframes and the
+    # deferred frames it maps; a bundle adjustment through the renderer), each frame moved with the view before it.
+    # The realtime profile turns it on: the views it maps after the run were placed by the front end alone
+    # (docs/design/slam.md "Refinement at the end"); the CLI's --refine-poses / --no-refine-poses and the streaming
+    # server's refine_poses choose per run
     refine_pose_prior: float = 0.001  # SLAM.refine(poses=True): weight w of a prior that holds each keyframe's pose
     # correction near zero, w * (|t|^2 / (1 cm)^2 + |q_v|^2 / 0.004^2) per rendered keyframe. Where pixels are too
     # coarse to see a pose error the poses would random-walk under Adam (2.7 cm on the synthetic home at 120x68);
@@ -347,7 +352,7 @@ PROFILES: dict[str, dict[str, Any]] = {
     "default": {},
     "realtime": {"tracking": {"frontend": "keyframe", "frontend_downsample": 0}, "threaded": True,
                  "mapping": {"keyframe_every": 8, "densify_every_frame": False, "defer_keyframes": True,
-                             "first_frame_iters": 15, "iters": 5}},
+                             "first_frame_iters": 15, "iters": 5, "refine_poses": True}},
 }
 
 

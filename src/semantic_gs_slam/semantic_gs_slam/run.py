@@ -230,9 +230,10 @@ def main(argv: list[str] | None = None) -> int:
                     help="refine for at most S seconds after the run (with --refine-iters: whichever ends first; "
                          "alone: as many iterations as fit), the deferred frames first, coarse to fine "
                          "(mapping.refine_coarse_share)")
-    ap.add_argument("--refine-poses", action="store_true",
-                    help="the refinement also optimises the keyframes' poses (bundle adjustment through the renderer; "
-                         "on real data it gives a sharper map and a better trajectory)")
+    ap.add_argument("--refine-poses", action=argparse.BooleanOptionalAction, default=None,
+                    help="the refinement also optimises the poses of its views, keyframes and deferred frames (bundle "
+                         "adjustment through the renderer; on real data it gives a sharper map and a better "
+                         "trajectory); default: the profile's mapping.refine_poses (on with realtime)")
     ap.add_argument("--eval", action="store_true", help="print the evaluation table at the end")
     ap.add_argument("--quiet", action="store_true", help="no per-frame log lines")
     args = ap.parse_args(argv)
@@ -324,7 +325,8 @@ def main(argv: list[str] | None = None) -> int:
                 t1 = time.perf_counter()
                 _, its = eng.refine(args.refine_iters if args.refine_iters > 0 else 10 ** 9, poses=args.refine_poses,
                                     should_stop=lambda: interrupt.requested, seconds=args.refine_seconds)
-                what = "the map and the keyframes' poses" if args.refine_poses else "the map"
+                poses = eng.cfg.mapping.refine_poses if args.refine_poses is None else args.refine_poses
+                what = "the map and its views' poses" if poses else "the map"
                 print(f"refined {what} over "
                       f"{len(eng.keyframes)} keyframes for {its} iterations in "
                       f"{time.perf_counter() - t1:.1f} s", file=sys.stderr)

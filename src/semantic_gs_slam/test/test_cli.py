@@ -26,7 +26,7 @@ def test_run_checkpoint_resume_and_eval(tiny_home, tmp_path, capsys):
     assert main(args + ["--frames", "6", "--resume", "--eval", "--refine-iters", "4", "--refine-poses"]) == 0
     cap = capsys.readouterr()
     assert "resumed from" in cap.err and "frame     5" in cap.err
-    assert "refined the map and the keyframes' poses over 2 keyframes for 4 iterations" in cap.err
+    assert "refined the map and its views' poses over 2 keyframes for 4 iterations" in cap.err
     assert "| ATE RMSE (cm, aligned) |" in cap.out and "| semantic mIoU |" in cap.out
     for name in ("params.npz", "semantic.json", "map.ply"):
         assert os.path.getsize(os.path.join(out, name)) > 0

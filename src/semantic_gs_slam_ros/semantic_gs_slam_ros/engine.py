@@ -60,11 +60,12 @@ class EngineAdapter:
     def save_checkpoint(self, ckpt_dir: str) -> None:
         self.slam.checkpoint(ckpt_dir)
 
-    def refine(self, iters: int, poses: bool = False, should_stop: Callable[[], bool] | None = None,
+    def refine(self, iters: int, poses: bool | None = None, should_stop: Callable[[], bool] | None = None,
                seconds: float = 0.0) -> int:
         """``iters`` Adam iterations over all keyframes, within ``seconds`` when > 0
-        (:meth:`semantic_gs_slam.slam.SLAM.refine`; ``poses``: the keyframes' poses too); returns the iterations
-        done (fewer when ``should_stop`` said so or the time ran out)."""
+        (:meth:`semantic_gs_slam.slam.SLAM.refine`; ``poses``: the views' poses too, None: the engine's
+        ``mapping.refine_poses``); returns the iterations done (fewer when ``should_stop`` said so or the time ran
+        out)."""
         return self.slam.refine(iters, poses=poses, should_stop=should_stop, seconds=seconds)[1]
 
     @property
@@ -79,6 +80,11 @@ class EngineAdapter:
     @property
     def num_keyframes(self) -> int:
         return len(self.slam.keyframes)
+
+    @property
+    def refines_poses(self) -> bool:
+        """Whether :meth:`refine` with ``poses`` None optimises the views' poses too (``mapping.refine_poses``)."""
+        return bool(self.slam.cfg.mapping.refine_poses)
 
     def run_note(self) -> str:
         """What the engine did with the frames it was given (the session logs it at the end of a run): frames

@@ -79,7 +79,7 @@ class SlamServer(Node):
         p("checkpoint_every", 20)
         p("export_every", 0)
         p("refine_iters", 0)  # Adam iterations over all keyframes after the last frame, before the map is written
-        p("refine_poses", False)  # the refinement also optimises the keyframes' poses
+        p("refine_poses", False)  # the refinement also optimises its views' poses (false: mapping.refine_poses decides)
         p("refine_seconds", 0.0)  # the refinement's time budget in s (0 = none; with refine_iters 0: this long)
         p("slam_config", "")  # YAML of the engine's SlamConfig ("" = defaults)
         p("profile", "")  # named engine settings under slam_config ("" = none; realtime: every frame of a real

@@ -99,7 +99,9 @@ class SessionConfig:
         refine_iters: after the last frame and before the final map is written, this many Adam iterations
             over all keyframes (what ``semantic_gs_slam.run --refine-iters`` does). 0 = none; a cancelled run
             skips it, and a cancel during it keeps what is done and writes the map.
-        refine_poses: the refinement also optimises the keyframes' poses (``--refine-poses``).
+        refine_poses: the refinement also optimises the poses of its views (keyframes and deferred frames;
+            ``--refine-poses``); False: as the engine's settings say (``mapping.refine_poses``, on in the
+            ``realtime`` profile).
         refine_seconds: the refinement ends after this many seconds at most (0 = no limit; with refine_iters 0,
             it runs for exactly this long). It first maps the frames deferred while the mapping thread was busy
             (the engine's ``mapping.defer_keyframes``), for at most half of this time.
@@ -517,7 +519,8 @@ class StreamingSession:
         total, seconds = self.cfg.refine_iters, self.cfg.refine_seconds
         if (total <= 0 and seconds <= 0) or refine is None:
             return ""
-        what = "the map and the keyframes' poses" if self.cfg.refine_poses else "the map"
+        poses = self.cfg.refine_poses or bool(getattr(self.engine, "refines_poses", False))
+        what = "the map and its views' poses" if poses else "the map"
         count = getattr(self.engine, "num_keyframes", None)
         over = f"all {count} keyframes" if count is not None else "all keyframes"
         budget = (f"{total} iterations" if total > 0 else "iterations") + (f" (at most {seconds:g} s)" if seconds > 0
@@ -532,7 +535,8 @@ class StreamingSession:
 
         try:  # the engine splits a time budget (deferred frames, coarse to fine: SLAM.refine's seconds)
             extra = {"seconds": seconds} if seconds > 0 else {}
-            done = int(refine(total, poses=self.cfg.refine_poses, should_stop=cancelled, **extra))
+            done = int(refine(total, poses=True if self.cfg.refine_poses else None, should_stop=cancelled,
+                              **extra))
         except Exception as exc:  # noqa: BLE001  (the map as it is is still written)
             self._log(f"map refinement failed: {exc}; the map is written as it is")
             note = f"map refinement failed ({exc})"

@@ -466,7 +466,7 @@ def _short_fits(cfg):
 
 
 def _engine_session(tmp_path, refine_iters: int, log: list[str], refine_poses: bool = False,
-                    refine_seconds: float = 0.0):
+                    refine_seconds: float = 0.0, engine_refines_poses: bool = False):
     """A session around the real engine (EngineAdapter + SLAM) fed four frames of the synthetic home."""
     from semantic_gs_slam.config import SlamConfig
     from semantic_gs_slam.slam import SLAM
@@ -477,6 +477,7 @@ def _engine_session(tmp_path, refine_iters: int, log: list[str], refine_poses: b
     k = default_intrinsics(128, 72)
     cfg = _short_fits(SlamConfig(intrinsics=k, threads=1))
     cfg.mapping.keyframe_every = 2  # frames 0 and 2 are keyframes: a pose to refine besides the gauge
+    cfg.mapping.refine_poses = engine_refines_poses
     engine = EngineAdapter(SLAM(cfg))
     session = StreamingSession(SessionConfig(work_dir=str(tmp_path / "work"), width=0, height=0, checkpoint_every=0,
                                              refine_iters=refine_iters, refine_poses=refine_poses,
@@ -491,17 +492,20 @@ def _engine_session(tmp_path, refine_iters: int, log: list[str], refine_poses: b
     return session, engine
 
 
-@pytest.mark.parametrize("poses", [False, True])
-def test_session_refines_the_map_before_writing_it(tmp_path, poses):
+@pytest.mark.parametrize(("asked", "engine_default"), [(False, False), (True, False), (False, True)])
+def test_session_refines_the_map_before_writing_it(tmp_path, asked, engine_default):
+    """The session's refine_poses asks for the poses too; without it the engine's mapping.refine_poses decides
+    (the realtime profile's)."""
     from semantic_gs_slam.mapping.gaussian_map import load_params
 
     log: list[str] = []
-    session, engine = _engine_session(tmp_path, 25, log, refine_poses=poses)
+    session, engine = _engine_session(tmp_path, 25, log, refine_poses=asked, engine_refines_poses=engine_default)
+    poses = asked or engine_default
     calls: list[tuple[int, bool]] = []
     before: list[np.ndarray] = []  # the map's colours and the last pose when the refinement starts
     refine = engine.refine
 
-    def watched(n, poses=False, should_stop=None):  # the real refinement, its call recorded
+    def watched(n, poses=None, should_stop=None):  # the real refinement, its call recorded
         before.append(engine.slam.map.params["rgb_colors"].detach().cpu().numpy().copy())
         before.append(engine.slam.poses[-1].copy())
         calls.append((n, poses))
@@ -511,8 +515,9 @@ def test_session_refines_the_map_before_writing_it(tmp_path, poses):
     engine.refine = watched
     result = session.run()
     assert result.success and "refined 25 of 25 iterations" in result.message, result.message
-    assert calls == [(25, poses)]
-    assert any("refining the map" in m and "25 iterations over all 2 keyframes in turn" in m for m in log), log
+    assert calls == [(25, True if asked else None)]
+    what = "refining the map and its views' poses:" if poses else "refining the map:"
+    assert any(what in m and "25 iterations over all 2 keyframes in turn" in m for m in log), log
     # the map written is the refined one: the engine's map after the refinement, not the one before it
     written = load_params(result.map_path)
     colours = written["rgb_colors"]
@@ -529,7 +534,7 @@ def test_session_cancel_during_the_refinement_still_writes_the_map(tmp_path):
     session, engine = _engine_session(tmp_path, 100000, log)
     refine = engine.refine
 
-    def refine_and_cancel(n, poses=False, should_stop=None):
+    def refine_and_cancel(n, poses=None, should_stop=None):
         threading.Timer(0.5, session.cancel).start()  # as the action's cancel callback would, from elsewhere
         return refine(n, poses=poses, should_stop=should_stop)
 

@@ -111,7 +111,7 @@ def test_stream_to_map_to_object_query(launch_nodes, ros_node, ros_domain, seque
     oq = NodeSpec("object_query_server", "object_query", "object_query_server", ready="ready:",
                   parameters={"map_path": str(work / "map" / "params.npz"),
                               "semantic_path": str(work / "map" / "semantic.json")})
-    # the map and the keyframes' poses refined before the map is written
+    # the map and its views' poses refined before the map is written
     sup = launch_nodes(nodes=[oq, server_spec(work, sequence, refine_iters=20, refine_poses=True)])
     queries = ObjectQueryClient(ros_node)
     assert queries.wait_for_service(20.0)
@@ -122,7 +122,7 @@ def test_stream_to_map_to_object_query(launch_nodes, ros_node, ros_domain, seque
     assert "map ready" in client.text() and "8 frames processed" in client.text()
     assert "preloaded 8 frames" in client.text()
     assert "refined 20 of 20 iterations" in client.text(), client.text()
-    assert "refining the map and the keyframes' poses: 20 iterations" in sup.get("run_gs_slam_server").output()
+    assert "refining the map and its views' poses: 20 iterations" in sup.get("run_gs_slam_server").output()
     # frames on disk, 64x36 after the server's resize, depth in millimetres
     from PIL import Image
 

@@ -261,15 +261,16 @@ class MappingSteps:
         self.caught_up += len(views)
         return views
 
-    def refine(self, iters: int, poses: bool = False, should_stop: Callable[[], bool] | None = None,
+    def refine(self, iters: int, poses: bool | None = None, should_stop: Callable[[], bool] | None = None,
                backlog: bool = True, backlog_stop: Callable[[], bool] | None = None, seconds: float = 0.0
                ) -> tuple[float, int]:
         """Map refinement after the run: ``iters`` Adam steps cycling over all keyframes (and the deferred frames).
 
         Args:
-            poses: also optimise the keyframes' poses (a bundle adjustment through the renderer; the first
-                keyframe stays where it is). Each keyframe's correction then moves the frames it starts, as a
-                loop closure moves them. False: poses fixed. The deferred frames' poses stay fixed.
+            poses: also optimise the poses of the views, the keyframes and the deferred frames mapped here (a
+                bundle adjustment through the renderer; the first keyframe stays where it is). Each view's
+                correction then moves the frames from it to the next view, as a loop closure moves them. False:
+                poses fixed; None: ``mapping.refine_poses`` (on in the ``realtime`` profile).
             should_stop: asked before each deferred frame and each iteration (a cancel request, a deadline); True
                 ends the refinement there, and what is done is kept.
             backlog: first map the frames deferred while the mapping thread was busy (:meth:`catch_up`) and
@@ -288,6 +289,8 @@ class MappingSteps:
         """
         if not (math.isfinite(seconds) and seconds >= 0):
             raise ValueError(f"refine: seconds must be a finite number >= 0 (0: no time budget), got {seconds!r}")
+        if poses is None:
+            poses = self.cfg.mapping.refine_poses
         coarse_stop = None
         if seconds > 0:
             t0 = time.monotonic()
@@ -302,34 +305,36 @@ class MappingSteps:
         extra = self.catch_up(stop) if backlog else []
         views = self.keyframes + sorted(extra, key=lambda v: v.index)
         deltas = None
-        if poses:
-            deltas = [(torch.zeros(3, device=self.device, requires_grad=n < len(self.keyframes)),
-                       torch.zeros(3, device=self.device, requires_grad=n < len(self.keyframes)))
-                      for n in range(len(views))]
+        if poses:  # views[0], the first keyframe, is the gauge (_optimise leaves its delta out)
+            deltas = [(torch.zeros(3, device=self.device, requires_grad=True),
+                       torch.zeros(3, device=self.device, requires_grad=True)) for _ in views]
         try:
             loss, done = self._optimise(views, iters, deltas, should_stop, coarse_stop)
         finally:  # the map was fitted at the moved poses: they go with it, also when an iteration raised
             if deltas is not None:
-                self._apply_keyframe_deltas(deltas[:len(self.keyframes)])
+                self._apply_view_deltas(views, deltas)
         self.map.prune(self.cfg.mapping.prune_opacity, self.cfg.mapping.prune_max_scale)
         return loss, done
 
-    def _apply_keyframe_deltas(self, deltas: list[tuple[Tensor, Tensor]]) -> None:
-        """Keyframe ``j`` moves to ``inv(delta_j @ w2c_j)``; every frame from it to the next keyframe takes the same
-        world correction (``new @ inv(old)``). A delta still at zero (the gauge, a keyframe never visited, no
-        iteration done) moves nothing, exactly."""
-        old = [self.poses[kf.index] for kf in self.keyframes]
+    def _apply_view_deltas(self, views: list[Keyframe], deltas: list[tuple[Tensor, Tensor]]) -> None:
+        """View ``j`` (a keyframe or a deferred frame mapped by the refinement) moves to ``inv(delta_j @ w2c_j)``;
+        every frame from it to the next view (by frame index) takes the same world correction (``new @ inv(old)``).
+        A delta still at zero (the gauge, a view never rendered, no iteration done) moves nothing, exactly."""
+        order = sorted(range(len(views)), key=lambda j: views[j].index)
+        with self._poses_lock:
+            old = [self.poses[views[j].index] for j in order]
         corr = []
         one = torch.ones(1, dtype=torch.float64, device=self.device)
         with torch.no_grad():
-            for j, (kf, (dq, dt), o) in enumerate(zip(self.keyframes, deltas, old, strict=True)):
-                if j == 0 or not (bool(dq.any()) or bool(dt.any())):
+            for j, o in zip(order, old, strict=True):
+                view, (dq, dt) = views[j], deltas[j]
+                if not (bool(dq.any()) or bool(dt.any())):
                     corr.append(np.eye(4))
                     continue
                 d = w2c_from_quat_trans(torch.cat([one, dq.double()]), dt.double())
-                kf.c2w = torch.linalg.inv(d @ torch.linalg.inv(kf.c2w.double()))
-                corr.append(kf.c2w.cpu().numpy() @ np.linalg.inv(o))
-        self._move_frames([kf.index for kf in self.keyframes], corr)
+                view.c2w = torch.linalg.inv(d @ torch.linalg.inv(view.c2w.double()))
+                corr.append(view.c2w.cpu().numpy() @ np.linalg.inv(o))
+        self._move_frames([views[j].index for j in order], corr)
 
     def _move_frames(self, starts: list[int], corr: list[np.ndarray]) -> None:
         """Frame ``f`` takes the world correction ``corr[k]`` ([4, 4]) of the last segment start ``starts[k] <= f``
