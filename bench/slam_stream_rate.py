@@ -11,8 +11,8 @@ time from the last frame sent to the final map written, and the ATE of the proce
 poses (the map's ``params.npz`` keeps every processed frame's pose and stamp).
 
     source scripts/env.sh && python bench/slam_stream_rate.py [SEQ] [--rate 30] [--frames 500] \\
-        [--profile realtime] [--labels none] [--refine-seconds 0] [--max-behind 0] [--no-preload] \\
-        [--set NODE.PARAM=VALUE ...]
+        [--profile realtime] [--labels none] [--refine-seconds 0] [--max-behind 0] [--checkpoint-every 0] \\
+        [--no-preload] [--set NODE.PARAM=VALUE ...]
 
 Every wait has a deadline (``--timeout``, s, for the whole run after the client starts).
 """
@@ -153,13 +153,15 @@ def run(a: argparse.Namespace) -> int:
     server = NodeSpec("run_gs_slam_server", "semantic_gs_slam_ros", "run_gs_slam_server", ready="ready:",
                       parameters={"work_dir": os.path.join(tmp, "work"), "map_dir": map_dir, "width": w, "height": h,
                                   "profile": a.profile, "labels": a.labels, "refine_seconds": a.refine_seconds,
-                                  "max_behind": a.max_behind, "reload_service": ""})
+                                  "max_behind": a.max_behind, "checkpoint_every": a.checkpoint_every,
+                                  "reload_service": ""})
     client = NodeSpec("run_gs_slam_client", "semantic_gs_slam_ros", "run_gs_slam_client",
                       parameters={"dataset": a.dataset, "size": a.size, "rate": a.rate, "start": a.start,
                                   "max_frames": a.frames, "preload": not a.no_preload})
     server, client = apply_overrides([server, client], a.set)
     print(f"{a.dataset}: {len(indices)} frames from {indices[0]} at {a.rate:g} Hz, {a.size}; server profile "
-          f"{a.profile or '-'}, labels {a.labels}, refine_seconds {a.refine_seconds:g}, max_behind {a.max_behind}"
+          f"{a.profile or '-'}, labels {a.labels}, refine_seconds {a.refine_seconds:g}, max_behind {a.max_behind}, "
+          f"checkpoint_every {a.checkpoint_every}"
           + (f", {' '.join(a.set)}" if a.set else ""))
     print(f"load average at the start: {' '.join(f'{v:.1f}' for v in os.getloadavg())} "
           f"({os.cpu_count()} CPUs; a shared machine makes wall-clock figures noisy)", flush=True)
@@ -262,6 +264,9 @@ def main() -> int:
     ap.add_argument("--labels", default="none", help="the server's labels parameter (auto | geometry | onnx | none)")
     ap.add_argument("--refine-seconds", type=float, default=0.0, help="the server's refine_seconds")
     ap.add_argument("--max-behind", type=int, default=0, help="the server's max_behind (0 = never skip)")
+    ap.add_argument("--checkpoint-every", type=int, default=0,
+                    help="the server's checkpoint_every (0, as docs/slam_streaming.md advises with profile realtime: "
+                         "each checkpoint waits for the mapping thread)")
     ap.add_argument("--no-preload", action="store_true", help="the client reads each frame as it sends it (the "
                     "camera's rate is then also bounded by the reading: 7-Scenes' colour registration, 0.6 s a frame "
                     "on 2 busy cores)")

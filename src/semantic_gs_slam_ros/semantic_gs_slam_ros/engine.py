@@ -82,6 +82,11 @@ class EngineAdapter:
         return len(self.slam.keyframes)
 
     @property
+    def threaded(self) -> bool:
+        """Whether the engine maps in a thread of its own (``SlamConfig.threaded``, the realtime profile)."""
+        return bool(self.slam.cfg.threaded)
+
+    @property
     def refines_poses(self) -> bool:
         """Whether :meth:`refine` with ``poses`` None optimises the views' poses too (``mapping.refine_poses``)."""
         return bool(self.slam.cfg.mapping.refine_poses)

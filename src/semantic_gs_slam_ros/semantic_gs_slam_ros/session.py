@@ -228,6 +228,11 @@ class StreamingSession:
         # after a resume the folder keeps the earlier frames: continue their numbering
         self._writer = AsyncFrameWriter(config.work_dir, self._on_written,
                                         start_index=0 if config.clean_start else _frames_on_record(config.work_dir))
+        if config.checkpoint_every > 0 and getattr(engine, "threaded", False):
+            self._log(f"checkpoint_every {config.checkpoint_every} with a mapping thread (profile realtime): each "
+                      "checkpoint waits for the thread to finish its queue and then writes the map and keyframes, so "
+                      "frames wait meanwhile (docs/slam_streaming.md); 0 turns checkpoints off, a larger value makes "
+                      "them rarer")
 
     # ---------------------------------------------------------------- producer side (callbacks)
     def on_image(self, stream: str, stamp: float, image: np.ndarray) -> None:

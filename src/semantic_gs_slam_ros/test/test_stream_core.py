@@ -394,6 +394,21 @@ def test_max_behind_skips_frames_still_waiting_for_the_disk_writer_and_the_run_e
     assert session.progress().backlog == 0
 
 
+@pytest.mark.parametrize(("threaded", "every", "advised"), [(True, 20, True), (True, 0, False), (False, 20, False)])
+def test_session_says_checkpoints_hold_a_threaded_engine_back(tmp_path, threaded, every, advised):
+    """With a mapping thread (profile realtime) each checkpoint waits for it: the session says so once at the
+    start, when checkpoints are on."""
+    from semantic_gs_slam_ros.session import SessionConfig, StreamingSession
+
+    engine = RecordingEngine()
+    engine.threaded = threaded
+    log: list[str] = []
+    StreamingSession(SessionConfig(work_dir=str(tmp_path / "w"), checkpoint_every=every), engine, log=log.append)
+    said = [m for m in log if "each checkpoint waits for the thread" in m]
+    assert len(said) == int(advised), log
+    assert not advised or said[0].startswith(f"checkpoint_every {every} with a mapping thread"), said
+
+
 def test_session_refuses_a_negative_max_behind(tmp_path):
     from semantic_gs_slam_ros.errors import StreamingError
     from semantic_gs_slam_ros.session import SessionConfig
@@ -440,6 +455,17 @@ def test_session_counts_and_reports_lost_tracks_and_drift_corrections(tmp_path):
     assert result.success and p.processed == 4 and p.lost == 1 and p.drift_corrections == 1
     assert "tracking lost on 1 frames, drift corrected 1 times" in result.message
     assert any("tracking lost" in m for m in logs) and any("drift corrected" in m for m in logs)
+
+
+def test_engine_adapter_says_whether_the_engine_maps_in_a_thread():
+    from semantic_gs_slam.config import SlamConfig
+    from semantic_gs_slam.slam import SLAM
+    from semantic_gs_slam.synthetic.scenes import default_intrinsics
+    from semantic_gs_slam_ros.engine import EngineAdapter
+
+    k = default_intrinsics(64, 48)
+    assert EngineAdapter(SLAM(SlamConfig(intrinsics=k).with_profile("realtime"))).threaded is True
+    assert EngineAdapter(SLAM(SlamConfig(intrinsics=k))).threaded is False
 
 
 def test_engine_adapter_reports_the_engines_last_frame():
