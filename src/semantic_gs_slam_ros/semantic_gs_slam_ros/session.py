@@ -285,9 +285,8 @@ class StreamingSession:
         if stream == "rgb":
             img = rgb_of(image)
             return resize_rgb(img, w, h) if w and h else img
-        if stream == "depth":
-            mm = depth_to_mm(image, self.cfg.depth_scale)
-            return resize_nearest(mm, w, h) if w and h else mm
+        if stream == "depth":  # nearest-neighbour picks pixels: converting after it is the same, on fewer pixels
+            return depth_to_mm(resize_nearest(image, w, h) if w and h else image, self.cfg.depth_scale)
         if stream == "semantic":
             ids = np.asarray(image)
             return resize_nearest(ids, w, h) if w and h else ids
