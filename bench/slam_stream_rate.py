@@ -265,8 +265,7 @@ def main() -> int:
     ap.add_argument("--refine-seconds", type=float, default=0.0, help="the server's refine_seconds")
     ap.add_argument("--max-behind", type=int, default=0, help="the server's max_behind (0 = never skip)")
     ap.add_argument("--checkpoint-every", type=int, default=0,
-                    help="the server's checkpoint_every (0, as docs/slam_streaming.md advises with profile realtime: "
-                         "each checkpoint waits for the mapping thread)")
+                    help="the server's checkpoint_every (0: none; the server's own default is 20)")
     ap.add_argument("--no-preload", action="store_true", help="the client reads each frame as it sends it (the "
                     "camera's rate is then also bounded by the reading: 7-Scenes' colour registration, 0.6 s a frame "
                     "on 2 busy cores)")

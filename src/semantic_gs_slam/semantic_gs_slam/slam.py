@@ -18,6 +18,7 @@ import os
 import shutil
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 
 import numpy as np
@@ -704,14 +705,20 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
         from (the views of the map this run started on, if any, then this run's keyframes'): what :meth:`from_map`
         relocalises against."""
         self.drain()
+        return self._save(out_dir, ply)
+
+    def _save(self, out_dir: str, ply: bool = True, frames: int | None = None) -> dict[str, str]:
+        """:meth:`save` without draining (the mapping thread's own jobs call it), of the first ``frames`` frames
+        (None: all)."""
         os.makedirs(out_dir, exist_ok=True)
         paths = {"params": os.path.join(out_dir, "params.npz"), "semantic": os.path.join(out_dir, "semantic.json")}
         with self._poses_lock:
-            w2c = [np.linalg.inv(p) for p in self.poses]
+            n = len(self.poses) if frames is None else frames
+            w2c = [np.linalg.inv(p) for p in self.poses[:n]]
             views = list(self.start_views) + [self.poses[kf.index].copy() for kf in self.keyframes]
-        gt = [None if g is None else np.linalg.inv(g) for g in self.gt_poses]
-        save_params(paths["params"], self.map, self.k, w2c, gt, [kf.index for kf in self.keyframes], self.timestamps,
-                    views)
+        gt = [None if g is None else np.linalg.inv(g) for g in self.gt_poses[:n]]
+        save_params(paths["params"], self.map, self.k, w2c, gt, [kf.index for kf in self.keyframes],
+                    self.timestamps[:n], views)
         save_semantic_json(paths["semantic"], {i: c for i, c in self.classes.items() if i > 0})
         if ply:
             paths["ply"] = os.path.join(out_dir, "map.ply")
@@ -726,16 +733,57 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
         a complete checkpoint behind; :meth:`resume` falls back to ``.old`` when needed.
         """
         self.drain()
+        with self._poses_lock:
+            n = len(self.poses)
+        self._write_checkpoint(ckpt_dir, n)
+
+    def checkpoint_in_background(self, ckpt_dir: str, then: Callable[[BaseException | None], None]) -> bool:
+        """:meth:`checkpoint` without waiting for it: with a mapping thread (``SlamConfig.threaded``) the checkpoint
+        is that thread's next job, after the jobs queued before it, so it holds the frames tracked until this call
+        and the map they made, while the caller goes on tracking. ``then(error)`` runs in the mapping thread once
+        the files are written (``error`` None) or could not be (an ``OSError``, which does not stop mapping).
+        Without a mapping thread the checkpoint is written now and ``then`` called here.
+
+        Returns:
+            True when written or queued; False when the mapping queue was full (nothing written, ``then`` not
+            called).
+        """
+        if self._worker is None:
+            try:
+                self.checkpoint(ckpt_dir)
+            except OSError as exc:
+                then(exc)
+            else:
+                then(None)
+            return True
+        with self._poses_lock:
+            n = len(self.poses)
+
+        def job() -> None:
+            try:
+                self._write_checkpoint(ckpt_dir, n)
+            except OSError as exc:
+                log.warning("checkpoint of frame %d not written: %s", n - 1, exc)
+                then(exc)
+            else:
+                then(None)
+
+        return self._worker.submit(job, wait=False)
+
+    def _write_checkpoint(self, ckpt_dir: str, n: int) -> None:
+        """The files of :meth:`checkpoint` for the first ``n`` frames (the mapping thread idle or the caller)."""
         final = ckpt_dir.rstrip("/")
         ckpt_dir = final + ".tmp"
         shutil.rmtree(ckpt_dir, ignore_errors=True)
         os.makedirs(ckpt_dir)
-        self.save(ckpt_dir, ply=False)
+        self._save(ckpt_dir, ply=False, frames=n)
         kfs = self.keyframes
+        with self._poses_lock:
+            poses = np.stack(self.poses[:n])
         state = {
-            "poses": np.stack(self.poses), "timestamps": np.array(self.timestamps),
-            "gt_poses": np.stack([g if g is not None else np.full((4, 4), np.nan) for g in self.gt_poses]),
-            "odom_poses": np.stack([o if o is not None else np.full((4, 4), np.nan) for o in self.odom_poses]),
+            "poses": poses, "timestamps": np.array(self.timestamps[:n]),
+            "gt_poses": np.stack([g if g is not None else np.full((4, 4), np.nan) for g in self.gt_poses[:n]]),
+            "odom_poses": np.stack([o if o is not None else np.full((4, 4), np.nan) for o in self.odom_poses[:n]]),
             "kf_index": np.array([kf.index for kf in kfs], np.int64),
             "kf_c2w": np.stack([kf.c2w.cpu().numpy() for kf in kfs]) if kfs else np.zeros((0, 4, 4)),
             "kf_rgb": np.stack([(kf.rgb.cpu().numpy() * 255 + 0.5).astype(np.uint8) for kf in kfs]) if kfs
@@ -749,11 +797,11 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
             "edge_sigma": np.array([[e.sigma_rot, e.sigma_trans] for e in self.edges]).reshape(-1, 2),
             "edge_loop": np.array([e.kind == "loop" for e in self.edges], bool),
             "since_prune": np.array(self._since_prune),
-            "exposures": torch.stack(self.exposures).cpu().numpy() if self.exposures else np.zeros((0, 2, 3)),
-            "exposure_fitted": np.array(self.exposure_fitted, bool)}
+            "exposures": torch.stack(self.exposures[:n]).cpu().numpy() if n else np.zeros((0, 2, 3)),
+            "exposure_fitted": np.array(self.exposure_fitted[:n], bool)}
         np.savez_compressed(os.path.join(ckpt_dir, "state.npz"), **state)
         meta = {"config": self.given_cfg.to_dict(), "classes": {str(k): v for k, v in self.classes.items()},
-                "frames": len(self.poses), "initial_c2w": None if self.initial_c2w is None else
+                "frames": n, "initial_c2w": None if self.initial_c2w is None else
                 self.initial_c2w.tolist(), "start_views": len(self.start_views),
                 "start_pending": None if self.localised else self._ms_prior.tolist()}
         with open(os.path.join(ckpt_dir, "checkpoint.json"), "w") as fh:

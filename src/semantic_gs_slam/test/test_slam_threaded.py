@@ -351,3 +351,49 @@ def test_a_kidnapped_camera_is_relocalised_and_refined_on_the_map_while_the_mapp
     assert [np.isfinite(eng.logs[n].track_agreement) for n in (7, 8, 9)] == [False, refine, refine]
     for n in (8, 9, 10):
         assert pose_error(eng.poses[n], poses[order[n]])[0] < 0.02, (n, sources)
+
+
+def test_a_background_checkpoint_holds_the_frames_tracked_until_it_was_asked_for(views, tmp_path):
+    """``checkpoint_in_background`` returns at once while the mapping thread is busy; the thread writes it after
+    the jobs queued before it, with the frames tracked until the call (not those tracked meanwhile), and
+    :meth:`SLAM.resume` continues from there."""
+    k, poses, frames = views
+    cfg = _cfg(k, True, queue_size=4)
+    cfg.mapping.defer_keyframes = True
+    cfg.mapping.densify_every_frame = cfg.mapping.label_votes = False  # keyframe jobs only, as in realtime
+    eng = _SlowMap(cfg, initial_c2w=poses[0])
+    eng.gate = threading.Event()
+    _feed(eng, frames[:5])  # frame 0's mapping job is held
+    done: list = []
+    assert eng.checkpoint_in_background(str(tmp_path / "ck"), done.append)
+    _feed_from(eng, frames[:8], 5)  # tracking goes on while the checkpoint waits behind frame 0's job
+    assert done == [] and not (tmp_path / "ck").exists()
+    at_call = [p.copy() for p in eng.poses[:5]]
+    eng.gate.set()
+    eng.drain(120.0)
+    assert done == [None]
+    back = SLAM.resume(str(tmp_path / "ck"))
+    assert len(back.poses) == 5 and len(eng.poses) == 8
+    for a, b in zip(back.poses, at_call, strict=True):
+        np.testing.assert_array_equal(a, b)
+    assert [kf.index for kf in back.keyframes] == [0] and len(back.map) == len(eng.map) > 0
+    assert len(back.exposures) == len(back.timestamps) == 5
+
+
+def test_a_background_checkpoint_that_cannot_be_written_says_so_and_mapping_goes_on(views, tmp_path):
+    k, poses, frames = views
+    eng = SLAM(_cfg(k, True), initial_c2w=poses[0])
+    _feed(eng, frames[:3])
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    done: list = []
+    assert eng.checkpoint_in_background(str(blocker / "ck"), done.append)
+    _feed_from(eng, frames[:6], 3)
+    eng.drain(120.0)  # the mapping thread did not stop on it
+    assert len(done) == 1 and isinstance(done[0], OSError)
+    assert not eng._worker.failed
+    eng.finish(120.0)
+    sync = SLAM(_cfg(k, False), initial_c2w=poses[0])  # without a mapping thread: written at once
+    _feed(sync, frames[:2])
+    assert sync.checkpoint_in_background(str(tmp_path / "ck2"), done.append) and done[-1] is None
+    assert len(SLAM.resume(str(tmp_path / "ck2")).poses) == 2

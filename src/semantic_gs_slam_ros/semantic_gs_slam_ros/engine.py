@@ -60,6 +60,12 @@ class EngineAdapter:
     def save_checkpoint(self, ckpt_dir: str) -> None:
         self.slam.checkpoint(ckpt_dir)
 
+    def save_checkpoint_in_background(self, ckpt_dir: str, then: Callable[[BaseException | None], None]) -> bool:
+        """The checkpoint written by the mapping thread between its jobs (the frames given so far), ``then(error)``
+        called there once it is (:meth:`semantic_gs_slam.slam.SLAM.checkpoint_in_background`); False: not queued
+        (the mapping queue was full)."""
+        return self.slam.checkpoint_in_background(ckpt_dir, then)
+
     def refine(self, iters: int, poses: bool | None = None, should_stop: Callable[[], bool] | None = None,
                seconds: float = 0.0) -> int:
         """``iters`` Adam iterations over all keyframes, within ``seconds`` when > 0

@@ -228,11 +228,13 @@ class StreamingSession:
         # after a resume the folder keeps the earlier frames: continue their numbering
         self._writer = AsyncFrameWriter(config.work_dir, self._on_written,
                                         start_index=0 if config.clean_start else _frames_on_record(config.work_dir))
-        if config.checkpoint_every > 0 and getattr(engine, "threaded", False):
-            self._log(f"checkpoint_every {config.checkpoint_every} with a mapping thread (profile realtime): each "
-                      "checkpoint waits for the thread to finish its queue and then writes the map and keyframes, so "
-                      "frames wait meanwhile (docs/slam_streaming.md); 0 turns checkpoints off, a larger value makes "
-                      "them rarer")
+        # a checkpoint of an engine with a mapping thread is written by that thread between its jobs
+        # (save_checkpoint_in_background), so the frames do not wait for it; one at a time: a checkpoint due while
+        # the last one is still being written is skipped (counted)
+        self._ckpt_lock = threading.Lock()  # guards _ckpt_busy, _ckpt_error, _ckpt_skipped
+        self._ckpt_busy = False
+        self._ckpt_error: BaseException | None = None  # a background checkpoint's failure, reported by the run loop
+        self._ckpt_skipped = 0
 
     # ---------------------------------------------------------------- producer side (callbacks)
     def on_image(self, stream: str, stamp: float, image: np.ndarray) -> None:
@@ -426,7 +428,11 @@ class StreamingSession:
                 self._progress.pose = np.asarray(c2w, dtype=float).tolist()
                 self._progress.with_odometry += odom is not None
                 n = self._progress.processed
+            with self._ckpt_lock:
+                ckpt_error = self._ckpt_error
             try:
+                if ckpt_error is not None:
+                    raise ckpt_error
                 if self.cfg.checkpoint_every and n % self.cfg.checkpoint_every == 0:
                     self._checkpoint(ckpt_dir, frame)
                 if self.cfg.export_every and n % self.cfg.export_every == 0:
@@ -449,6 +455,12 @@ class StreamingSession:
         if p.still or p.after_done:
             self._log(f"frames skipped while the camera stood still: {p.still}; images after "
                       f"data_transfer_done ignored: {p.after_done}")
+        with self._ckpt_lock:
+            ckpt_skipped, ckpt_error = self._ckpt_skipped, self._ckpt_error
+        if ckpt_skipped:
+            self._log(f"checkpoints skipped while the last one was still being written: {ckpt_skipped}")
+        if ckpt_error is not None and not message:
+            self._log(f"the last checkpoint could not be written: {ckpt_error}")
         if p.behind:
             self._log(f"frames skipped while SLAM was more than max_behind={self.cfg.max_behind} frames behind: "
                       f"{p.behind}")
@@ -578,15 +590,48 @@ class StreamingSession:
         return None
 
     def _checkpoint(self, ckpt_dir: str, frame: WrittenFrame) -> None:
+        """The engine's checkpoint and the session's place in the stream (``session.json``), written into
+        ``<ckpt_dir>.incoming`` and then moved to ``ckpt_dir``. An engine with a mapping thread writes its part in
+        that thread (the move follows there); a failure there ends the run at the next frame."""
         tmp = ckpt_dir + ".incoming"
+        place = {"last_index": frame.index, "last_stamp": frame.stamp,
+                 "processed": self.cfg.frames_before + self.progress().processed}
+
+        def publish() -> None:
+            with open(os.path.join(tmp, "session.json"), "w") as fh:
+                json.dump(place, fh)
+            if os.path.isdir(ckpt_dir):
+                shutil.rmtree(ckpt_dir)
+            os.replace(tmp, ckpt_dir)
+
+        background = getattr(self.engine, "save_checkpoint_in_background", None)
+        if background is None or not getattr(self.engine, "threaded", False):
+            os.makedirs(tmp, exist_ok=True)
+            self.engine.save_checkpoint(os.path.join(tmp, "engine"))
+            publish()
+            return
+        with self._ckpt_lock:
+            if self._ckpt_busy:
+                self._ckpt_skipped += 1
+                return
+            self._ckpt_busy = True
+
+        def then(error: BaseException | None) -> None:  # the mapping thread
+            if error is None:
+                try:
+                    publish()
+                except OSError as exc:
+                    error = exc
+            with self._ckpt_lock:
+                self._ckpt_busy = False
+                if error is not None and self._ckpt_error is None:
+                    self._ckpt_error = error
+
         os.makedirs(tmp, exist_ok=True)
-        self.engine.save_checkpoint(os.path.join(tmp, "engine"))
-        with open(os.path.join(tmp, "session.json"), "w") as fh:
-            json.dump({"last_index": frame.index, "last_stamp": frame.stamp,
-                       "processed": self.cfg.frames_before + self.progress().processed}, fh)
-        if os.path.isdir(ckpt_dir):
-            shutil.rmtree(ckpt_dir)
-        os.replace(tmp, ckpt_dir)
+        if not background(os.path.join(tmp, "engine"), then):
+            with self._ckpt_lock:
+                self._ckpt_busy = False
+                self._ckpt_skipped += 1
 
     def _export(self) -> tuple[str, str]:
         staging = os.path.join(self.cfg.work_dir, "map.staging")

@@ -394,19 +394,90 @@ def test_max_behind_skips_frames_still_waiting_for_the_disk_writer_and_the_run_e
     assert session.progress().backlog == 0
 
 
-@pytest.mark.parametrize(("threaded", "every", "advised"), [(True, 20, True), (True, 0, False), (False, 20, False)])
-def test_session_says_checkpoints_hold_a_threaded_engine_back(tmp_path, threaded, every, advised):
-    """With a mapping thread (profile realtime) each checkpoint waits for it: the session says so once at the
-    start, when checkpoints are on."""
+class BackgroundCheckpointEngine(RecordingEngine):
+    """A threaded engine whose checkpoints are written later, when the test says (``finish``), as a mapping
+    thread writes them between its jobs."""
+
+    threaded = True
+
+    def __init__(self, queue_full: bool = False) -> None:
+        super().__init__()
+        self.pending: list[tuple[str, object]] = []
+        self.queue_full = queue_full
+
+    def save_checkpoint(self, ckpt_dir):
+        raise AssertionError("a threaded engine's checkpoint is written in the background")
+
+    def save_checkpoint_in_background(self, ckpt_dir, then):
+        if self.queue_full:
+            return False
+        self.pending.append((ckpt_dir, then))
+        return True
+
+    def finish(self, error=None) -> None:
+        ckpt_dir, then = self.pending.pop(0)
+        if error is None:
+            os.makedirs(ckpt_dir, exist_ok=True)
+            with open(os.path.join(ckpt_dir, "checkpoint.json"), "w") as fh:
+                fh.write("{}")
+        then(error)
+
+
+def _checkpointing_session(tmp_path, engine, log):
     from semantic_gs_slam_ros.session import SessionConfig, StreamingSession
 
-    engine = RecordingEngine()
-    engine.threaded = threaded
-    log: list[str] = []
-    StreamingSession(SessionConfig(work_dir=str(tmp_path / "w"), checkpoint_every=every), engine, log=log.append)
-    said = [m for m in log if "each checkpoint waits for the thread" in m]
-    assert len(said) == int(advised), log
-    assert not advised or said[0].startswith(f"checkpoint_every {every} with a mapping thread"), said
+    return StreamingSession(SessionConfig(work_dir=str(tmp_path / "w"), width=0, height=0, checkpoint_every=2),
+                            engine, log=log.append)
+
+
+def test_a_threaded_engines_checkpoint_is_written_in_the_background_one_at_a_time(tmp_path):
+    """The frames do not wait for a threaded engine's checkpoint: it is queued, and the session's place in the
+    stream is published with it once the engine's part is written; a checkpoint due while one is in flight is
+    skipped and counted; the next one after it is taken."""
+    from semantic_gs_slam_ros.session import checkpoint_state
+
+    engine, log = BackgroundCheckpointEngine(), []
+    session = _checkpointing_session(tmp_path, engine, log)
+    ckpt = tmp_path / "w" / "checkpoint"
+    for i in range(4):  # checkpoints due after frames 2 and 4: the second finds the first in flight
+        send(session, float(i))
+    session.data_transfer_done()
+    result = session.run()
+    assert result.success and len(engine.frames) == 4
+    assert len(engine.pending) == 1 and not ckpt.exists()  # queued, not written yet: nothing published
+    engine.finish()
+    assert (ckpt / "engine" / "checkpoint.json").is_file()
+    assert checkpoint_state(str(tmp_path / "w"))["processed"] == 2  # the place when it was asked for
+    assert any("checkpoints skipped while the last one was still being written: 1" in m for m in log), log
+
+
+def test_a_background_checkpoint_failure_ends_the_run_with_its_message(tmp_path):
+    class FailingLater(BackgroundCheckpointEngine):
+        def add_frame(self, *args, **kw):
+            out = super().add_frame(*args, **kw)
+            if len(self.frames) == 3:  # the mapping thread reports the failure while frames go on
+                self.finish(OSError("disk full"))
+            return out
+
+    engine, log = FailingLater(), []
+    session = _checkpointing_session(tmp_path, engine, log)
+    for i in range(10):
+        send(session, float(i))
+    session.data_transfer_done()
+    result = session.run()
+    assert "cannot write the checkpoint or map: disk full" in result.message, result.message
+    assert len(engine.frames) == 3  # the run stopped right after the frame the failure came back with
+    assert os.path.isfile(result.map_path)  # the map so far is still written
+
+
+def test_a_checkpoint_the_mapping_queue_cannot_take_is_skipped(tmp_path):
+    engine, log = BackgroundCheckpointEngine(queue_full=True), []
+    session = _checkpointing_session(tmp_path, engine, log)
+    for i in range(4):
+        send(session, float(i))
+    session.data_transfer_done()
+    assert session.run().success
+    assert any("checkpoints skipped while the last one was still being written: 2" in m for m in log), log
 
 
 def test_session_refuses_a_negative_max_behind(tmp_path):
