@@ -62,8 +62,9 @@ class EngineAdapter:
 
     def save_checkpoint_in_background(self, ckpt_dir: str, then: Callable[[BaseException | None], None]) -> bool:
         """The checkpoint written by the mapping thread between its jobs (the frames given so far), ``then(error)``
-        called there once it is (:meth:`semantic_gs_slam.slam.SLAM.checkpoint_in_background`); False: not queued
-        (the mapping queue was full)."""
+        called there once it is; without a mapping thread written now and ``then`` called here
+        (:meth:`semantic_gs_slam.slam.SLAM.checkpoint_in_background`). False: not queued (the mapping queue was
+        full)."""
         return self.slam.checkpoint_in_background(ckpt_dir, then)
 
     def refine(self, iters: int, poses: bool | None = None, should_stop: Callable[[], bool] | None = None,
@@ -86,11 +87,6 @@ class EngineAdapter:
     @property
     def num_keyframes(self) -> int:
         return len(self.slam.keyframes)
-
-    @property
-    def threaded(self) -> bool:
-        """Whether the engine maps in a thread of its own (``SlamConfig.threaded``, the realtime profile)."""
-        return bool(self.slam.cfg.threaded)
 
     @property
     def refines_poses(self) -> bool:

@@ -230,7 +230,7 @@ class StreamingSession:
                                         start_index=0 if config.clean_start else _frames_on_record(config.work_dir))
         # a checkpoint of an engine with a mapping thread is written by that thread between its jobs
         # (save_checkpoint_in_background), so the frames do not wait for it; one at a time: a checkpoint due while
-        # the last one is still being written is skipped (counted)
+        # the last one is still being written is skipped (counted). Without a mapping thread it is written at once
         self._ckpt_lock = threading.Lock()  # guards _ckpt_busy, _ckpt_error, _ckpt_skipped
         self._ckpt_busy = False
         self._ckpt_error: BaseException | None = None  # a background checkpoint's failure, reported by the run loop
@@ -592,7 +592,8 @@ class StreamingSession:
     def _checkpoint(self, ckpt_dir: str, frame: WrittenFrame) -> None:
         """The engine's checkpoint and the session's place in the stream (``session.json``), written into
         ``<ckpt_dir>.incoming`` and then moved to ``ckpt_dir``. An engine with a mapping thread writes its part in
-        that thread (the move follows there); a failure there ends the run at the next frame."""
+        that thread (``save_checkpoint_in_background``; the move follows there, and a failure there ends the run at
+        the next frame); one without writes it now."""
         tmp = ckpt_dir + ".incoming"
         place = {"last_index": frame.index, "last_stamp": frame.stamp,
                  "processed": self.cfg.frames_before + self.progress().processed}
@@ -605,7 +606,7 @@ class StreamingSession:
             os.replace(tmp, ckpt_dir)
 
         background = getattr(self.engine, "save_checkpoint_in_background", None)
-        if background is None or not getattr(self.engine, "threaded", False):
+        if background is None:  # an engine that only writes its checkpoint when asked
             os.makedirs(tmp, exist_ok=True)
             self.engine.save_checkpoint(os.path.join(tmp, "engine"))
             publish()
@@ -628,10 +629,14 @@ class StreamingSession:
                     self._ckpt_error = error
 
         os.makedirs(tmp, exist_ok=True)
-        if not background(os.path.join(tmp, "engine"), then):
-            with self._ckpt_lock:
+        queued = background(os.path.join(tmp, "engine"), then)
+        with self._ckpt_lock:
+            if not queued:
                 self._ckpt_busy = False
                 self._ckpt_skipped += 1
+            error, self._ckpt_error = self._ckpt_error, None
+        if error is not None:  # written (or not) already, without a mapping thread; or an earlier one's failure
+            raise error
 
     def _export(self) -> tuple[str, str]:
         staging = os.path.join(self.cfg.work_dir, "map.staging")

@@ -398,8 +398,6 @@ class BackgroundCheckpointEngine(RecordingEngine):
     """A threaded engine whose checkpoints are written later, when the test says (``finish``), as a mapping
     thread writes them between its jobs."""
 
-    threaded = True
-
     def __init__(self, queue_full: bool = False) -> None:
         super().__init__()
         self.pending: list[tuple[str, object]] = []
@@ -470,6 +468,24 @@ def test_a_background_checkpoint_failure_ends_the_run_with_its_message(tmp_path)
     assert os.path.isfile(result.map_path)  # the map so far is still written
 
 
+def test_a_checkpoint_written_at_once_that_fails_ends_the_run_at_that_frame(tmp_path):
+    """Without a mapping thread the engine writes the checkpoint during the call (``then`` called there): its
+    failure ends the run at the frame it was due after, as a caller-written checkpoint does."""
+    class WritesAtOnce(BackgroundCheckpointEngine):
+        def save_checkpoint_in_background(self, ckpt_dir, then):
+            then(OSError("read-only file system"))
+            return True
+
+    engine, log = WritesAtOnce(), []
+    session = _checkpointing_session(tmp_path, engine, log)
+    for i in range(6):
+        send(session, float(i))
+    session.data_transfer_done()
+    result = session.run()
+    assert "cannot write the checkpoint or map: read-only file system" in result.message, result.message
+    assert len(engine.frames) == 2
+
+
 def test_a_checkpoint_the_mapping_queue_cannot_take_is_skipped(tmp_path):
     engine, log = BackgroundCheckpointEngine(queue_full=True), []
     session = _checkpointing_session(tmp_path, engine, log)
@@ -526,17 +542,6 @@ def test_session_counts_and_reports_lost_tracks_and_drift_corrections(tmp_path):
     assert result.success and p.processed == 4 and p.lost == 1 and p.drift_corrections == 1
     assert "tracking lost on 1 frames, drift corrected 1 times" in result.message
     assert any("tracking lost" in m for m in logs) and any("drift corrected" in m for m in logs)
-
-
-def test_engine_adapter_says_whether_the_engine_maps_in_a_thread():
-    from semantic_gs_slam.config import SlamConfig
-    from semantic_gs_slam.slam import SLAM
-    from semantic_gs_slam.synthetic.scenes import default_intrinsics
-    from semantic_gs_slam_ros.engine import EngineAdapter
-
-    k = default_intrinsics(64, 48)
-    assert EngineAdapter(SLAM(SlamConfig(intrinsics=k).with_profile("realtime"))).threaded is True
-    assert EngineAdapter(SLAM(SlamConfig(intrinsics=k))).threaded is False
 
 
 def test_engine_adapter_reports_the_engines_last_frame():
