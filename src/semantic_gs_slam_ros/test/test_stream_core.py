@@ -449,41 +449,38 @@ def test_a_threaded_engines_checkpoint_is_written_in_the_background_one_at_a_tim
     assert any("checkpoints skipped while the last one was still being written: 1" in m for m in log), log
 
 
-def test_a_background_checkpoint_failure_ends_the_run_with_its_message(tmp_path):
-    class FailingLater(BackgroundCheckpointEngine):
-        def add_frame(self, *args, **kw):
-            out = super().add_frame(*args, **kw)
-            if len(self.frames) == 3:  # the mapping thread reports the failure while frames go on
-                self.finish(OSError("disk full"))
-            return out
+class FailingLater(BackgroundCheckpointEngine):
+    """The mapping thread reports the first checkpoint's failure while frames go on (after the third)."""
 
-    engine, log = FailingLater(), []
+    def add_frame(self, *args, **kw):
+        out = super().add_frame(*args, **kw)
+        if len(self.frames) == 3:
+            self.finish(OSError("disk full"))
+        return out
+
+
+class WritesAtOnce(BackgroundCheckpointEngine):
+    """No mapping thread: the checkpoint is written (here: fails) during the call, ``then`` called there."""
+
+    def save_checkpoint_in_background(self, ckpt_dir, then):
+        then(OSError("disk full"))
+        return True
+
+
+@pytest.mark.parametrize(("engine_type", "frames_taken"), [(FailingLater, 3), (WritesAtOnce, 2)])
+def test_a_checkpoint_that_cannot_be_written_ends_the_run_with_its_message(tmp_path, engine_type, frames_taken):
+    """A failure reported by the mapping thread ends the run at the next frame; one during the call (no mapping
+    thread) at the frame the checkpoint was due after, as a caller-written checkpoint does. The map so far is
+    still written."""
+    engine, log = engine_type(), []
     session = _checkpointing_session(tmp_path, engine, log)
     for i in range(10):
         send(session, float(i))
     session.data_transfer_done()
     result = session.run()
     assert "cannot write the checkpoint or map: disk full" in result.message, result.message
-    assert len(engine.frames) == 3  # the run stopped right after the frame the failure came back with
-    assert os.path.isfile(result.map_path)  # the map so far is still written
-
-
-def test_a_checkpoint_written_at_once_that_fails_ends_the_run_at_that_frame(tmp_path):
-    """Without a mapping thread the engine writes the checkpoint during the call (``then`` called there): its
-    failure ends the run at the frame it was due after, as a caller-written checkpoint does."""
-    class WritesAtOnce(BackgroundCheckpointEngine):
-        def save_checkpoint_in_background(self, ckpt_dir, then):
-            then(OSError("read-only file system"))
-            return True
-
-    engine, log = WritesAtOnce(), []
-    session = _checkpointing_session(tmp_path, engine, log)
-    for i in range(6):
-        send(session, float(i))
-    session.data_transfer_done()
-    result = session.run()
-    assert "cannot write the checkpoint or map: read-only file system" in result.message, result.message
-    assert len(engine.frames) == 2
+    assert len(engine.frames) == frames_taken
+    assert os.path.isfile(result.map_path)
 
 
 def test_a_checkpoint_the_mapping_queue_cannot_take_is_skipped(tmp_path):
