@@ -8,6 +8,8 @@ Topics:
         layer stops too (the simulated servers obey it like /cancel_command).
     submit_command (decision_maker_interfaces/srv/SubmitCommand, service): the acknowledged way in:
         answers with the command id or the rejection reason (see decision_maker.client.command_client).
+        A call repeated with the same ``key`` (its answer was lost) gets the first answer again and
+        is not run twice (execution/answers.py).
         A spoken/typed "stop" / "cancel" / "stop it" / "abort" there or on /manual_command cancels at
         once, like /cancel_command.
     /object_list (std_msgs/String JSON, in, transient local): known objects, for slot filling.
@@ -52,7 +54,8 @@ from rclpy.node import Node
 from std_msgs.msg import String
 
 from decision_maker.command_types import FrameTransform, load_locations, sanitize_text
-from decision_maker.errors import ConfigError
+from decision_maker.errors import BadKeyError, ConfigError
+from decision_maker.execution.answers import AnswerMemory
 from decision_maker.execution.engine import EngineConfig, ExecutionEngine, TaskState, TaskStatus
 from decision_maker.execution.ros_robot import RosRobot
 from decision_maker.execution.stage0 import ExplorationGate
@@ -168,6 +171,7 @@ class DecisionMakerNode(Node):
                                  callback_group=self._cancel_group)
         self.create_subscription(String, "manual_command", self._on_command, COMMAND_QOS,
                                  callback_group=self._input_group)
+        self._answers: AnswerMemory[TaskStatus] = AnswerMemory()  # keyed calls answered once (repeats of lost answers)
         self.create_service(SubmitCommand, SUBMIT_COMMAND, self._on_submit, qos_profile=SERVICE_QOS,
                             callback_group=self._input_group)
         self.create_subscription(String, "object_list", self._on_object_list, OBJECT_LIST_QOS,
@@ -237,9 +241,18 @@ class DecisionMakerNode(Node):
         self.engine.submit(msg.data)
 
     def _on_submit(self, request: SubmitCommand.Request, response: SubmitCommand.Response) -> SubmitCommand.Response:
-        if is_stop_command(sanitize_text(request.text[:200])):
-            self._stop_exploration(request.text)
-        status = self.engine.submit(request.text)  # never blocks: bounded, then queued or rejected
+        def run() -> TaskStatus:
+            if is_stop_command(sanitize_text(request.text[:200])):
+                self._stop_exploration(request.text)
+            return self.engine.submit(request.text)  # never blocks: bounded, then queued or rejected
+
+        try:
+            status, repeated = self._answers.answer(request.key, run)
+        except BadKeyError as exc:
+            response.accepted, response.state, response.message = False, TaskState.REJECTED.value, f"bad key: {exc}"
+            return response
+        if repeated:
+            self.get_logger().info(f"submit_command: call repeated, answered #{status.id} again ({status.state.value})")
         response.accepted = status.state is not TaskState.REJECTED
         response.id = status.id
         response.state = status.state.value

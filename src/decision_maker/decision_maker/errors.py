@@ -9,6 +9,10 @@ class ConfigError(DecisionMakerError):
     """A configuration file or parameter is malformed (locations file, objects, timeouts)."""
 
 
+class BadKeyError(DecisionMakerError, ValueError):
+    """A command's idempotency key is malformed (too long); the command is not run."""
+
+
 class PlanningError(DecisionMakerError):
     """A command could not be turned into a plan; the message says why, for a person."""
 

@@ -260,6 +260,37 @@ def test_killed_nav_server_fails_the_goal_fast_and_keeps_the_queue(launch_nodes,
     assert final.state is TaskState.FAILED and "object query" in final.message, final
 
 
+def test_a_call_whose_answer_is_late_is_sent_again_and_run_once(launch_nodes, ros_node):
+    """The brain frozen (SIGSTOP) while a command is in flight: the client sends the same call again
+    (same key); thawed, the brain runs the command once and answers every copy with its id."""
+    sup = launch_nodes(nodeset="sim_robot", set=["mock_nav_server.speed=0.1"])
+    op = Operator(ros_node)
+    op.wait_connected()
+    client = CommandClient(ros_node, answer_timeout_s=60.0, retry_s=0.2)
+    assert client.wait_for_service(30.0)
+    acks: list[Ack] = []
+    brain = sup.get("decision_maker").popen.pid
+    os.kill(brain, signal.SIGSTOP)
+    try:
+        client.submit_async("go to the kitchen", acks.append)
+        assert wait_for(lambda: client.resends >= 2, 30.0), client.resends  # no answer: sent again, twice
+        assert acks == []
+    finally:
+        os.kill(brain, signal.SIGCONT)
+    assert wait_for(lambda: len(acks) == 1, 60.0), acks
+    ack = acks[0]
+    assert ack.via == "service" and ack.accepted and ack.state == "queued" and ack.id > 0, ack
+    op.running(ack.id)
+    op.cancel("end of the test")
+    assert op.final(ack.id).state is TaskState.CANCELLED
+    with op._lock:
+        ran = {s.id for s in op.statuses if s.text == "go to the kitchen"}
+    assert ran == {ack.id}, op.statuses  # once, whatever the number of copies sent
+    assert client.pending() == 0 and len(acks) == 1
+    assert "call repeated" in sup.get("decision_maker").output()
+    print(f"\nbrain frozen: {client.resends} repeats of one call, 1 command run (#{ack.id}), 1 answer reported")
+
+
 def test_nl_command_node_falls_back_to_the_topic_with_a_warning(ros_node, ros_domain):
     """No brain (no submit_command service): the command still goes out on /manual_command, and says so."""
     import subprocess

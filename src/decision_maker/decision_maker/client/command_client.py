@@ -15,14 +15,22 @@ Usage from a node (the node is spun elsewhere, e.g. by a MultiThreadedExecutor):
 Threads: ``submit_async`` may be called from any thread, ``on_ack`` runs in an executor thread or,
 for the topic fallback and timeouts, in the caller's thread / the helper's timer. A call whose
 answer does not come within ``answer_timeout_s`` is reported as not acknowledged (never silently).
+
+Lost answers: DDS can drop a service's answer while the brain has not yet matched this client's
+response reader (a discovery race of ROS 2 services, worst while many nodes start). Each command
+carries a unique ``key``; while no answer has come, the same call is sent again after ``retry_s``,
+then after twice, four times... as long (within ``answer_timeout_s``). The brain answers every
+repeat with its first answer without running the command again
+(``decision_maker.execution.answers``). The first answer to arrive is the one reported.
 """
 
 from __future__ import annotations
 
 import threading
 import time
+import uuid
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from decision_maker_interfaces.srv import SubmitCommand
 from rclpy.callback_groups import CallbackGroup
@@ -57,6 +65,19 @@ class Ack:
     message: str = ""
 
 
+@dataclass
+class _Call:
+    """One command in flight: its key, the calls sent for it, when to send again and to give up."""
+
+    text: str
+    key: str
+    on_ack: Callable[[Ack], None] | None
+    deadline: float
+    next_send: float
+    wait_s: float  # before the next send; doubles with each send
+    futures: list[Future] = field(default_factory=list)
+
+
 class CommandClient:
     """The acknowledged way in for commands, with the topic as fallback.
 
@@ -65,26 +86,32 @@ class CommandClient:
         service: name of the brain's SubmitCommand service.
         publisher: an existing ``/manual_command`` publisher to reuse (else one is created).
         callback_group: group of the service client (default: the node's default group).
-        answer_timeout_s: longest wait for the brain's answer to one call (> 0).
+        answer_timeout_s: longest wait for the brain's answer to one command (> 0).
         log: where the one-time fallback warning goes (default: the node's logger).
+        retry_s: while unanswered, the same call (same key) is sent again after this long, then after
+            twice as long each time (> 0).
     """
 
     def __init__(self, node: Node, service: str = SUBMIT_COMMAND, publisher: Publisher | None = None,
                  callback_group: CallbackGroup | None = None, answer_timeout_s: float = 5.0,
-                 log: Callable[[str], None] | None = None) -> None:
+                 log: Callable[[str], None] | None = None, retry_s: float = 1.0) -> None:
         if not answer_timeout_s > 0:
             raise ValueError(f"answer_timeout_s must be > 0, got {answer_timeout_s}")
+        if not retry_s > 0:
+            raise ValueError(f"retry_s must be > 0, got {retry_s}")
         self._node = node
         self._client = node.create_client(SubmitCommand, service, qos_profile=SERVICE_QOS,
                                           callback_group=callback_group)
         self._pub = publisher if publisher is not None else node.create_publisher(String, MANUAL_COMMAND,
                                                                                    COMMAND_QOS)
         self._answer_timeout_s = answer_timeout_s
+        self._retry_s = retry_s
         self._warn = log or (lambda text: node.get_logger().warn(text))
-        self._lock = threading.Lock()  # guards _pending, _warned
-        self._pending: dict[int, tuple[Future, float, str, Callable[[Ack], None] | None]] = {}
+        self._lock = threading.Lock()  # guards _pending, _warned, resends
+        self._pending: dict[str, _Call] = {}  # by key
         self._warned = False
-        self._timer = node.create_timer(0.5, self._expire, callback_group=callback_group)
+        self.resends = 0  # calls sent again because no answer had come
+        self._timer = node.create_timer(min(0.25, retry_s / 2), self._tick, callback_group=callback_group)
 
     @property
     def service_name(self) -> str:
@@ -108,10 +135,12 @@ class CommandClient:
         if not self.service_ready():
             self._publish(text, on_ack)
             return
-        future = self._client.call_async(SubmitCommand.Request(text=text))
+        now = time.monotonic()
+        call = _Call(text, uuid.uuid4().hex, on_ack, now + self._answer_timeout_s, now + self._retry_s,
+                     2 * self._retry_s)
         with self._lock:
-            self._pending[id(future)] = (future, time.monotonic() + self._answer_timeout_s, text, on_ack)
-        future.add_done_callback(self._answered)
+            self._pending[call.key] = call
+        self._send(call)
 
     def submit(self, text: str, timeout_s: float | None = None) -> Ack:
         """Send ``text`` and wait for the answer, at most ``timeout_s`` (default ``answer_timeout_s``).
@@ -132,7 +161,7 @@ class CommandClient:
         return box[0]
 
     def pending(self) -> int:
-        """Calls sent and not answered yet."""
+        """Commands sent and not answered yet."""
         with self._lock:
             return len(self._pending)
 
@@ -148,29 +177,44 @@ class CommandClient:
         if on_ack is not None:
             on_ack(Ack(text, "topic", True, state="sent", message=f"published on /{MANUAL_COMMAND}"))
 
-    def _answered(self, future: Future) -> None:
+    def _send(self, call: _Call) -> None:
+        future = self._client.call_async(SubmitCommand.Request(text=call.text, key=call.key))
         with self._lock:
-            entry = self._pending.pop(id(future), None)
-        if entry is None:  # expired already (reported then)
+            call.futures.append(future)
+        future.add_done_callback(lambda f, key=call.key: self._answered(key, f))
+
+    def _answered(self, key: str, future: Future) -> None:
+        with self._lock:
+            call = self._pending.pop(key, None)
+        if call is None:  # answered by an earlier send, or expired already (reported then)
             return
-        _, _, text, on_ack = entry
+        for other in call.futures:
+            if other is not future:
+                self._client.remove_pending_request(other)
         try:
             resp = future.result()
         except Exception as exc:  # the call failed (context shut down, ...): say so, never drop it silently
-            ack = Ack(text, "service", False, state="no_answer", message=f"call failed: {exc!r}")
+            ack = Ack(call.text, "service", False, state="no_answer", message=f"call failed: {exc!r}")
         else:
-            ack = Ack(text, "service", bool(resp.accepted), int(resp.id), str(resp.state), str(resp.message))
-        if on_ack is not None:
-            on_ack(ack)
+            ack = Ack(call.text, "service", bool(resp.accepted), int(resp.id), str(resp.state), str(resp.message))
+        if call.on_ack is not None:
+            call.on_ack(ack)
 
-    def _expire(self) -> None:
+    def _tick(self) -> None:
         now = time.monotonic()
         with self._lock:
-            late = [(k, e) for k, e in self._pending.items() if e[1] <= now]
-            for k, _ in late:
-                del self._pending[k]
-        for _, (future, _, text, on_ack) in late:
-            self._client.remove_pending_request(future)
-            if on_ack is not None:
-                on_ack(Ack(text, "service", False, state="no_answer",
-                           message=f"the decision maker did not answer within {self._answer_timeout_s:g} s"))
+            late = [c for c in self._pending.values() if c.deadline <= now]
+            for c in late:
+                del self._pending[c.key]
+            again = [c for c in self._pending.values() if c.next_send <= now]
+            for c in again:  # backing off: a busy brain is not flooded with repeats
+                c.next_send, c.wait_s = now + c.wait_s, 2 * c.wait_s
+            self.resends += len(again)
+        for call in again:  # the same key: the brain answers a repeat without running it again
+            self._send(call)
+        for call in late:
+            for future in call.futures:
+                self._client.remove_pending_request(future)
+            if call.on_ack is not None:
+                call.on_ack(Ack(call.text, "service", False, state="no_answer",
+                                message=f"the decision maker did not answer within {self._answer_timeout_s:g} s"))
