@@ -75,11 +75,33 @@ def test_tum_layout_and_association(tmp_path):
     from semantic_gs_slam.config import Intrinsics
 
     ds = load_tum(str(tmp_path), Intrinsics(6, 4, 5.0, 5.0, 2.5, 1.5))
-    # 1.50 has no depth within 0.08 s (1.30 is 0.2 s away): 3 frames
+    # 1.50 has no depth within 0.02 s (1.30 is 0.2 s away): 3 frames
     assert len(ds) == 3
     f = ds[0]
     assert f.depth[0, 0] == pytest.approx(1.0) and f.gt_c2w[0, 3] == pytest.approx(1.0)
+    assert ds[1].gt_c2w[0, 3] == pytest.approx(1.033)  # between the samples at 1.0 and 1.05
     assert associate([0.0, 1.0], [0.05, 2.0], 0.08) == [(0, 0)]
+    assert associate([0.0, 1.0], [0.05, 2.0], 0.02) == []
+
+
+def test_reference_pose_interpolation():
+    from semantic_gs_slam.io.datasets import interpolate_pose
+
+    def pose(yaw_deg: float, x: float) -> np.ndarray:
+        c, s = np.cos(np.radians(yaw_deg)), np.sin(np.radians(yaw_deg))
+        m = np.eye(4)
+        m[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
+        m[0, 3] = x
+        return m
+
+    times = np.array([0.0, 0.01, 0.02, 0.5])
+    poses = [pose(0, 0.0), pose(10, 0.1), pose(20, 0.2), pose(90, 1.0)]
+    mid = interpolate_pose(times, poses, 0.005)
+    np.testing.assert_allclose(mid, pose(5, 0.05), atol=1e-9)  # halfway: 5 degrees, 5 cm
+    np.testing.assert_allclose(interpolate_pose(times, poses, 0.01), poses[1], atol=1e-12)
+    assert interpolate_pose(times, poses, 0.3) is None  # samples 0.48 s apart and none within 0.02 s
+    np.testing.assert_allclose(interpolate_pose(times, poses, 0.51), poses[3])  # past the last: the nearest
+    assert interpolate_pose(times, poses, 0.6) is None and interpolate_pose(times, poses, -0.1) is None
 
 
 def test_bad_input_gives_clear_errors(tmp_path, tiny_home):

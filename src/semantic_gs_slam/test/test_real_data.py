@@ -183,7 +183,7 @@ def test_tum_real_format_sequence(tmp_path):
                                                   .float64)).numpy()
     np.testing.assert_allclose(f.gt_c2w[:3, :3], r, atol=1e-6)
     assert f.gt_c2w[0, 0] == pytest.approx(np.cos(np.pi / 4), abs=1e-6)
-    assert f.gt_c2w[0, 3] == pytest.approx(1.3 + 0.01 * 7, abs=1e-4)  # nearest gt sample (t0 + 0.0667 s ~ j=7)
+    assert f.gt_c2w[0, 3] == pytest.approx(1.3 + 0.01 * 100 * (2 / 30.0), abs=1e-4)  # interpolated at t0 + 2/30 s
     small = ds.resized(32, 24)
     assert small[2].depth.shape == (24, 32) and small.intrinsics.fx == pytest.approx(26.25)
 

@@ -10,7 +10,8 @@ Layouts:
   ``depth/depth_%d.png`` (16-bit, depth_scale default 1000), ``semantic_class/semantic_class_%d.png``,
   ``traj_w_c.txt`` (4x4 camera-to-world per line).
 * ``tum`` — TUM RGB-D: ``rgb.txt``, ``depth.txt``, ``groundtruth.txt`` (t tx ty tz qx qy qz qw),
-  depth scale 5000, rgb/depth/pose associated within 0.08 s.
+  depth scale 5000, colour and depth paired within 0.02 s (TUM's ``associate.py``), the reference pose
+  interpolated between motion-capture samples at the colour image's time.
 * ``7scenes`` — Microsoft 7-Scenes (one ``seq-XX`` folder): ``frame-XXXXXX.color.jpg``,
   ``frame-XXXXXX.depth.png`` (16-bit millimetres, 0 or 65535 = invalid), ``frame-XXXXXX.pose.txt``
   (4x4 camera-to-world), optional ``camera-intrinsics.txt`` (3x3 K; default fx = fy = 585,
@@ -490,22 +491,69 @@ def associate(a: list[float], b: list[float], max_dt: float) -> list[tuple[int, 
     return pairs
 
 
+#: Colour and depth further apart than this are not paired (TUM's own ``associate.py`` default).
+TUM_MAX_DT = 0.02
+#: Reference poses are interpolated between motion-capture samples at most this far apart.
+TUM_GT_MAX_GAP = 0.1
+
+
+def interpolate_pose(times: np.ndarray, poses: list[np.ndarray], t: float, max_gap: float = TUM_GT_MAX_GAP,
+                     max_dt: float = TUM_MAX_DT) -> np.ndarray | None:
+    """The pose at ``t`` from time-sorted samples: translation linear and rotation slerped between the two samples
+    around ``t`` when they are at most ``max_gap`` apart, else the nearest sample within ``max_dt``, else None.
+
+    Args:
+        times: [N] sample times (s), ascending.
+        poses: N [4, 4] camera-to-world samples.
+    """
+    j = int(np.searchsorted(times, t))
+    if 0 < j < len(times) and times[j] - times[j - 1] <= max_gap:
+        t0, t1 = times[j - 1], times[j]
+        a = 0.0 if t1 == t0 else (t - t0) / (t1 - t0)
+        out = np.eye(4)
+        out[:3, 3] = (1 - a) * poses[j - 1][:3, 3] + a * poses[j][:3, 3]
+        out[:3, :3] = _slerp(poses[j - 1][:3, :3], poses[j][:3, :3], a)
+        return out
+    near = [k for k in (j - 1, j) if 0 <= k < len(times)]
+    k = min(near, key=lambda k: abs(times[k] - t)) if near else None
+    return None if k is None or abs(times[k] - t) > max_dt else poses[k].copy()
+
+
+def _slerp(r0: np.ndarray, r1: np.ndarray, a: float) -> np.ndarray:
+    """The rotation a fraction ``a`` of the way from ``r0`` to ``r1`` (both [3, 3]): ``r0 @ exp(a log(r0^T r1))``.
+    Near 180 degrees apart (never between motion-capture samples) the nearer of the two."""
+    rel = r0.T @ r1
+    angle = float(np.arccos(np.clip((np.trace(rel) - 1) / 2, -1.0, 1.0)))
+    w = np.array([rel[2, 1] - rel[1, 2], rel[0, 2] - rel[2, 0], rel[1, 0] - rel[0, 1]])
+    if angle < 1e-9:
+        return r0.copy()
+    if np.linalg.norm(w) < 1e-6:
+        return (r0 if a < 0.5 else r1).copy()
+    x, y, z = w / np.linalg.norm(w)
+    kx = np.array([[0, -z, y], [z, 0, -x], [-y, x, 0]])
+    th = a * angle
+    return r0 @ (np.eye(3) + np.sin(th) * kx + (1 - np.cos(th)) * kx @ kx)
+
+
 def load_tum(root: str, intrinsics: Intrinsics | None = None, depth_scale: float = 5000.0,
-             max_dt: float = 0.08) -> Dataset:
-    """TUM RGB-D (``rgb.txt``, ``depth.txt``, ``groundtruth.txt``), associated within ``max_dt`` seconds."""
+             max_dt: float = TUM_MAX_DT) -> Dataset:
+    """TUM RGB-D (``rgb.txt``, ``depth.txt``, ``groundtruth.txt``): colour and depth paired within ``max_dt``
+    seconds, the reference pose interpolated at the colour image's time (:func:`interpolate_pose`); a frame
+    without a reference pose there is left out."""
     rgb = _read_tum_list(os.path.join(root, "rgb.txt"))
     depth = _read_tum_list(os.path.join(root, "depth.txt"))
     gt_path = os.path.join(root, "groundtruth.txt")
-    gt = _read_tum_list(gt_path) if os.path.isfile(gt_path) else None
+    gt = sorted(_read_tum_list(gt_path), key=lambda e: e[0]) if os.path.isfile(gt_path) else None
+    gt_t = np.array([t for t, _ in gt]) if gt else np.zeros(0)
+    gt_poses = [_quat_pose(v) for _, v in gt] if gt else []
     pairs = associate([t for t, _ in rgb], [t for t, _ in depth], max_dt)
     rgb_p, depth_p, poses, times = [], [], [], []
     for i, j in pairs:
         pose = None
         if gt is not None:
-            k = int(np.argmin(np.abs(np.array([t for t, _ in gt]) - rgb[i][0])))
-            if abs(gt[k][0] - rgb[i][0]) > max_dt:
+            pose = interpolate_pose(gt_t, gt_poses, rgb[i][0], max_dt=max_dt)
+            if pose is None:
                 continue
-            pose = _quat_pose(gt[k][1])
         rgb_p.append(os.path.join(root, rgb[i][1][0]))
         depth_p.append(os.path.join(root, depth[j][1][0]))
         poses.append(pose)
