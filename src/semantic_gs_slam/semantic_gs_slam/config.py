@@ -135,6 +135,10 @@ class TrackingConfig:
     frontend_downsample: int = 1  # "keyframe": track on the frame shrunk by this factor (1, 2 or 4; edge-aware 2x2
     # means of depth): a 640x480 camera tracked at 320x240 costs the front end a quarter; the map keeps every pixel.
     # 0: auto, halved while the image stays at least 320 pixels wide
+    frontend_sigma_geo_z2: float = 0.002  # "keyframe": 1/m; a point z metres deep weighs and agrees (lost or
+    # trusted) at the scale max(1 cm, this * z^2) of its point-to-plane residual: a depth sensor's noise grows with
+    # z^2 (a Kinect's, between two frames, about 0.002 z^2), so far points no longer read as disagreement. Chosen on
+    # kitchen frames 0-249 (0, 0.002, 0.003, 0.005); 0: 1 cm everywhere
     relocalise_every: int = 3  # "keyframe": a lost frame tries to relocalise on its first lost frame and then on
     # every k-th (each try costs about 100 ms of CPU against three keyframes); the others stay lost
     relocalise_candidates: int = 3  # keyframes tried per relocalisation: the best ranked by a 20x15 thumbnail of
@@ -169,6 +173,9 @@ class TrackingConfig:
         if self.frontend_downsample not in (0, 1, 2, 4):
             raise ConfigError(f"tracking.frontend_downsample must be 0 (auto), 1, 2 or 4, got "
                               f"{self.frontend_downsample!r}")
+        if not (math.isfinite(self.frontend_sigma_geo_z2) and self.frontend_sigma_geo_z2 >= 0):
+            raise ConfigError(f"tracking.frontend_sigma_geo_z2 must be a finite number >= 0, got "
+                              f"{self.frontend_sigma_geo_z2!r}")
         if not 0 <= self.frontend_new_keyframe_coverage <= 1:
             raise ConfigError("tracking.frontend_new_keyframe_coverage must be in [0, 1]")
 

@@ -281,14 +281,15 @@ def test_views_between_keyframes_are_kept_while_mapping_keeps_up(views):
     cfg = _cfg(k, True, queue_size=4)
     cfg.mapping.defer_keyframes, cfg.mapping.keyframe_every = True, 5
     cfg.mapping.backlog_motion_deg, cfg.mapping.backlog_motion_m = 2.5, 0.0
+    cfg.mapping.keyframe_motion_m = cfg.mapping.keyframe_motion_deg = 0.0  # (frame 4 is 0.251 m from frame 0)
     eng = SLAM(cfg, initial_c2w=poses[0])
     _feed(eng, frames, wait=True)  # the thread is idle at every frame
-    # frame 4 is a keyframe by the front end's coverage, 5 by keyframe_every; none deferred
-    assert [lg.index for lg in eng.logs if lg.keyframe] == [0, 4, 5] and eng.stats()["deferred_keyframes"] == 0
-    assert [i for i, *_ in eng.backlog] == [2, 7], "2.8 degrees past keyframes 0 and 5 (frames 3, 6, 8: 1.4)"
+    # keyframes by keyframe_every; none deferred
+    assert [lg.index for lg in eng.logs if lg.keyframe] == [0, 5] and eng.stats()["deferred_keyframes"] == 0
+    assert [i for i, *_ in eng.backlog] == [2, 4, 7], "2.8 degrees past keyframe 0, frame 2 and keyframe 5"
     n_before = len(eng.map)
     eng.refine(2)
-    assert eng.backlog == [] and eng.stats()["caught_up"] == 2 and len(eng.map) >= n_before
+    assert eng.backlog == [] and eng.stats()["caught_up"] == 3 and len(eng.map) >= n_before
     eng.finish(120.0)
     cfg.mapping.defer_keyframes = False  # keyframes mapped whenever due: the refinement has the keyframes only
     eng = SLAM(cfg, initial_c2w=poses[0])

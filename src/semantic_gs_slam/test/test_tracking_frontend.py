@@ -45,10 +45,10 @@ def perturb(c2w: np.ndarray, xi: list[float]) -> np.ndarray:
 
 
 @needs_numba
-@pytest.mark.parametrize("photometric", [0.0, 0.5])
-def test_compiled_sums_equal_the_reference(scene, photometric):
+@pytest.mark.parametrize(("photometric", "z2"), [(0.0, 0.0), (0.5, 0.0), (0.0, 0.01), (0.5, 0.01)])
+def test_compiled_sums_equal_the_reference(scene, photometric, z2):
     k, poses, views = scene
-    cfg = replace(CFG, photometric_weight=photometric)
+    cfg = replace(CFG, photometric_weight=photometric, sigma_geo_z2=z2)  # 0.01: every point beyond 1 m scaled
     rgb0, d0, _ = views[0]
     rgb1, d1, _ = views[3]
     model = build_reference(d0, poses[0], k, cfg, rgb=rgb0)
@@ -120,6 +120,26 @@ def test_garbage_depth_is_lost(scene):
     assert "agreement" in res.quality.reason or "coverage" in res.quality.reason
     empty = track(prepare_live(np.zeros((k.height, k.width)), k, CFG), model, poses[3], CFG)
     assert not empty.quality.trusted and "correspondences" in empty.quality.reason
+
+
+def test_noisy_far_depth_agrees_at_its_own_scale(scene):
+    """Two frames of a depth sensor whose noise grows with z^2 (0.0025 z^2 each: 1.6 cm at 2.5 m) from one pose:
+    at a fixed 1 cm scale the far points read as disagreement and the frame is lost; at the depth's own scale
+    (the default sigma_geo_z2) it is trusted, at the right pose."""
+    k, poses, views = scene
+    depth = views[0][1]
+    noisy = []
+    for seed in (0, 1):
+        rng = np.random.default_rng(seed)
+        noisy.append(np.where(depth > 0, depth + rng.standard_normal(depth.shape) * 0.0025 * depth ** 2, 0.0))
+    res = {}
+    for z2 in (0.0, FrontendConfig().sigma_geo_z2):
+        cfg = replace(CFG, sigma_geo_z2=z2, photometric_weight=0.0)
+        res[z2] = track(prepare_live(noisy[1], k, cfg), build_reference(noisy[0], poses[0], k, cfg), poses[0], cfg)
+    fixed, scaled = res[0.0].quality, res[FrontendConfig().sigma_geo_z2].quality
+    assert not fixed.trusted and "agreement" in fixed.reason, fixed
+    assert scaled.trusted and scaled.agreement > fixed.agreement + 0.03, scaled
+    assert pose_error(res[FrontendConfig().sigma_geo_z2].c2w, poses[0])[0] < 0.01
 
 
 def test_a_lone_plane_is_ill_conditioned():

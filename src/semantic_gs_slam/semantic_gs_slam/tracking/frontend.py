@@ -25,6 +25,7 @@ All arrays are NumPy (float64 poses and points): tracking on a CPU touches no to
 from __future__ import annotations
 
 import functools
+import math
 import threading
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
@@ -57,7 +58,9 @@ class FrontendConfig:
     # step's largest component is below min_step (on the kitchen, (6, 6, 8) gave the same ATE at 1.5x the time)
     point_stride: tuple[int, ...] = (2, 1, 1)  # live points: every k-th pixel of that level's image (finest first)
     max_dist: tuple[float, ...] = (0.05, 0.10, 0.20)  # metres; associations farther apart are rejected (per level)
-    sigma_geo: float = 0.01  # metres; Huber threshold and scale of point-to-plane residuals
+    sigma_geo: float = 0.01  # metres; Huber threshold and scale of point-to-plane residuals (the least: see below)
+    sigma_geo_z2: float = 0.002  # 1/m; a point z metres deep in the reference has the scale max(sigma_geo,
+    # sigma_geo_z2 * z^2): a depth sensor's noise grows with the square of the depth (0: the same everywhere)
     photometric_weight: float = 1.0  # weight of the intensity term at the finest level when colour is given (0:
     # geometry only); on the kitchen (frames 0-249) ATE 2.50 -> 1.64 cm at stride 1, 2.18 -> 1.76 at stride 2
     sigma_col: float = 0.05  # intensity units; Huber threshold and scale of the intensity residuals
@@ -72,7 +75,7 @@ class FrontendConfig:
     depth_jump: float = 0.05  # a neighbour more than this fraction of the depth away breaks the normal / pyramid cell
     min_correspondences: int = 200  # fewer at the finest level: lost
     min_coverage: float = 0.25  # lost when fewer of the live points with depth find a close model point
-    min_agreement: float = 0.8  # lost when fewer of the points landing on the model are within 3 sigma_geo
+    min_agreement: float = 0.8  # lost when fewer of the points landing on the model are within 3 scales
     max_condition: float = 1e5  # lost when the Jacobi-scaled normal equations are worse conditioned (a lone plane)
     backend: str = "auto"  # "numba" (compiled kernel), "numpy" (the reference) or "auto" (numba when installed)
 
@@ -87,6 +90,8 @@ class FrontendConfig:
             raise ConfigError("iters must be >= 0 and point_stride >= 1")
         if not all(d > 0 for d in self.max_dist) or not self.sigma_geo > 0 or not self.sigma_col > 0:
             raise ConfigError("max_dist, sigma_geo and sigma_col must be > 0")
+        if not (math.isfinite(self.sigma_geo_z2) and self.sigma_geo_z2 >= 0):
+            raise ConfigError(f"sigma_geo_z2 must be a finite number >= 0, got {self.sigma_geo_z2}")
         if not (self.prior_sigma_trans > 0 and self.prior_sigma_rot > 0):
             raise ConfigError("prior sigmas must be > 0")
         if not 0 <= self.depth_min < self.depth_max:
@@ -135,7 +140,7 @@ class TrackQuality:
 
     correspondences: int  # live points with a close model point
     coverage: float  # correspondences / live points with depth
-    agreement: float  # of the live points landing on a usable model pixel, the share within 3 sigma_geo
+    agreement: float  # of the live points landing on a usable model pixel, the share within 3 scales (sigma_geo)
     residual: float  # RMS point-to-plane residual (m)
     condition: float  # condition number of the Jacobi-scaled 6x6 normal equations (inf: singular)
     trusted: bool  # every figure within FrontendConfig's limits
@@ -483,8 +488,8 @@ def normal_equations(est: np.ndarray, points: np.ndarray, valid: np.ndarray, int
     _kernel()(est, w2c, points, valid, intensity if photometric else np.zeros(1),
               level.vm, level.nm, level.nvalid, level.col if photometric else np.zeros((1, 4)),
               float(k.fx), float(k.fy), float(k.cx), float(k.cy), int(k.width), int(k.height), float(max_dist),
-              float(cfg.sigma_geo), 1.0, photometric, float(cfg.sigma_col), float(cfg.photometric_weight), a, b,
-              stats)
+              float(cfg.sigma_geo), float(cfg.sigma_geo_z2), 1.0, photometric, float(cfg.sigma_col),
+              float(cfg.photometric_weight), a, b, stats)
     return a, b, stats
 
 
@@ -508,7 +513,7 @@ def normal_equations_reference(est: np.ndarray, points: np.ndarray, valid: np.nd
     diff = x - level.vm[pix]
     close = on & (np.linalg.norm(diff, axis=-1) < max_dist)
     r = np.where(close, (diff * n).sum(-1), 0.0)
-    sg = cfg.sigma_geo
+    sg = np.maximum(cfg.sigma_geo, cfg.sigma_geo_z2 * z * z)  # [M] each residual's scale
     w = np.where(np.abs(r) < sg, 1.0, sg / np.maximum(np.abs(r), 1e-30)) / (sg * sg) * close
     jac = np.concatenate([np.cross(x, n), n], -1)  # [M, 6]
     a = (jac * w[:, None]).T @ jac
@@ -628,7 +633,8 @@ def _track_fast(live: LiveFrame, model: ReferenceModel, guess: np.ndarray, guess
         np.array([m.k.fx for m in lv], np.float64), np.array([m.k.fy for m in lv], np.float64),
         np.array([m.k.cx for m in lv], np.float64), np.array([m.k.cy for m in lv], np.float64),
         np.array([m.k.width for m in lv], np.int64), np.array([m.k.height for m in lv], np.int64),
-        np.array(cfg.max_dist, np.float64), float(cfg.sigma_geo), photometric, float(cfg.sigma_col),
+        np.array(cfg.max_dist, np.float64), float(cfg.sigma_geo), float(cfg.sigma_geo_z2), photometric,
+        float(cfg.sigma_col),
         float(cfg.photometric_weight), np.array(cfg.iters, np.int64), float(cfg.min_step), np.array(order, np.int64),
         a, b, st)
     return TrackResult(est, _quality(a, st, max(int(n_live), 1), cfg), int(steps), model.keyframe_id)

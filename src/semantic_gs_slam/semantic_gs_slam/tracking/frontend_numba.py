@@ -250,7 +250,7 @@ def _solve_spd6(h, g, x):
 
 @numba.njit(cache=True, nogil=True)
 def icp_level(est, guess_inv, prior_diag, w2c, lp, lvalid, il, vm, nm, nvalid, col, fx, fy, cx, cy, width, height,
-              max_dist, sg, photometric, sc, w_col, iters, min_step):
+              max_dist, sg, sg_z2, photometric, sc, w_col, iters, min_step):
     """Up to ``iters`` Gauss-Newton steps of one pyramid level, updating est [4, 4] in place; returns the number
     of steps taken. A step: the sums (:func:`icp_accumulate`), plus the prior ``prior_diag`` [6] toward the guess
     (``guess_inv`` [4, 4] its inverse), solved; stops early once a step's largest component is below
@@ -270,7 +270,7 @@ def icp_level(est, guess_inv, prior_diag, w2c, lp, lvalid, il, vm, nm, nvalid, c
         b[:] = 0.0
         stats[:] = 0.0
         icp_accumulate(est, w2c, lp, lvalid, il, vm, nm, nvalid, col, fx, fy, cx, cy, width, height, max_dist, sg,
-                       1.0, photometric, sc, w_col, a, b, stats)
+                       sg_z2, 1.0, photometric, sc, w_col, a, b, stats)
         if stats[0] < 6:
             break
         _matmul4(est, guess_inv, d)
@@ -299,7 +299,7 @@ def icp_level(est, guess_inv, prior_diag, w2c, lp, lvalid, il, vm, nm, nvalid, c
 
 @numba.njit(cache=True, nogil=True)
 def icp_track(est, guess_inv, prior_diag, w2c, lps, lvalids, il, vms, nms, nvalids, col, fx, fy, cx, cy, width,
-              height, max_dist, sg, photometric, sc, w_col, iters, min_step, order, a, b, stats):
+              height, max_dist, sg, sg_z2, photometric, sc, w_col, iters, min_step, order, a, b, stats):
     """``track``'s whole Gauss-Newton loop in one call: :func:`icp_level` on the levels in ``order`` (the tuples
     ``lps``, ``lvalids``, ``vms``, ``nms``, ``nvalids`` and the arrays fx ... max_dist, iters hold one entry per level;
     the intensity term, when ``photometric``, on level 0 only), then the sums at the last level's final estimate into
@@ -310,10 +310,10 @@ def icp_track(est, guess_inv, prior_diag, w2c, lps, lvalids, il, vms, nms, nvali
         lv = order[n]
         steps += icp_level(est, guess_inv, prior_diag, w2c, lps[lv], lvalids[lv], il, vms[lv], nms[lv], nvalids[lv],
                            col, fx[lv], fy[lv], cx[lv], cy[lv], width[lv], height[lv], max_dist[lv], sg,
-                           photometric and lv == 0, sc, w_col, iters[lv], min_step)
+                           sg_z2, photometric and lv == 0, sc, w_col, iters[lv], min_step)
     last = order[len(order) - 1]
     icp_accumulate(est, w2c, lps[last], lvalids[last], il, vms[last], nms[last], nvalids[last], col, fx[last],
-                   fy[last], cx[last], cy[last], width[last], height[last], max_dist[last], sg, 1.0,
+                   fy[last], cx[last], cy[last], width[last], height[last], max_dist[last], sg, sg_z2, 1.0,
                    photometric and last == 0, sc, w_col, a, b, stats)
     n_live = 0
     for i in range(lvalids[last].shape[0]):

@@ -65,7 +65,7 @@ def normal_equations_numba(est: Tensor, lp: Tensor, lvalid: Tensor, il: Tensor |
     _kernel()(arr(est, (4, 4)), arr(w2c_g, (4, 4)), arr(lp, (0, 3)), arr(lvalid, (0,), np.bool_),
               arr(il if photometric else None, (1,)), arr(vm, (0, 3)), arr(nm, (0, 3)), arr(nvalid, (0,), np.bool_),
               arr(col if photometric else None, (1, 4)), float(k.fx), float(k.fy), float(k.cx), float(k.cy),
-              int(k.width), int(k.height), float(cfg.icp_max_dist), float(cfg.icp_sigma_geo),
+              int(k.width), int(k.height), float(cfg.icp_max_dist), float(cfg.icp_sigma_geo), 0.0,
               float(cfg.geometric_weight), photometric, float(cfg.icp_sigma_col), float(cfg.photometric_weight), a, b,
               stats)
     return torch.from_numpy(a), torch.from_numpy(b), torch.from_numpy(stats)

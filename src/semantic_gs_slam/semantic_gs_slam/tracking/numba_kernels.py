@@ -14,7 +14,7 @@ import numpy as np
 
 @numba.njit(cache=True, nogil=True)
 def icp_accumulate(est, w2c_g, lp, lvalid, il, vm, nm, nvalid, col, fx, fy, cx, cy, width, height, max_dist, sg,
-               w_geo, photometric, sc, w_col, a, b, stats):
+               sg_z2, w_geo, photometric, sc, w_col, a, b, stats):
     jac = np.zeros(6)
     n_close = 0.0
     rr = 0.0
@@ -49,7 +49,8 @@ def icp_accumulate(est, w2c_g, lp, lvalid, il, vm, nm, nvalid, col, fx, fy, cx, 
             if np.sqrt(d0 * d0 + d1 * d1 + d2 * d2) < max_dist:
                 r = d0 * n0 + d1 * n1 + d2 * n2
                 ar = abs(r)
-                w = (1.0 if ar < sg else sg / max(ar, 1e-30)) * (w_geo / (sg * sg))
+                s = max(sg, sg_z2 * z * z)  # the residual's scale: a depth sensor's noise grows with depth squared
+                w = (1.0 if ar < s else s / max(ar, 1e-30)) * (w_geo / (s * s))
                 jac[0] = x1 * n2 - x2 * n1
                 jac[1] = x2 * n0 - x0 * n2
                 jac[2] = x0 * n1 - x1 * n0
@@ -61,7 +62,7 @@ def icp_accumulate(est, w2c_g, lp, lvalid, il, vm, nm, nvalid, col, fx, fy, cx, 
                         a[i, j] += wi * jac[j]
                 n_close += 1.0
                 rr += r * r
-                if ar < 3 * sg:
+                if ar < 3 * s:
                     n_agree += 1.0
         if photometric and uf >= 0 and uf < width - 1 and vf >= 0 and vf < height - 1:
             u0 = np.floor(uf)
