@@ -11,6 +11,7 @@ Usage (from the repository root; the data stays outside the repository, mind its
     python bench/slam_real.py <seq> --device cuda                    # on the GPU machine
     python bench/slam_real.py rgbd_dataset_freiburg1_xyz --first 0 --frames 300 --stride 1   # TUM fr1 camera
     python bench/slam_real.py <seq> --intrinsics 525,525,319.5,239.5 --depth-scale 5000     # any camera
+    python bench/slam_real.py <seq> --depth-noise 2 --blur 1    # a noisier, blurrier camera (both trackers)
 
 Runs our engine over the frames and prints the camera used (``--intrinsics``, ``--depth-scale``, ``--camera`` as for
 ``python -m semantic_gs_slam.run``), ATE RMSE (aligned), RPE, PSNR (all pixels, and SplaTAM's depth-masked
@@ -36,6 +37,7 @@ from semantic_gs_slam.eval.evaluate import evaluate
 from semantic_gs_slam.eval.metrics import ate_rmse, rpe_rmse
 from semantic_gs_slam.geometry import pose_error, umeyama_rigid
 from semantic_gs_slam.io.datasets import frame_indices, load_dataset, parse_size
+from semantic_gs_slam.io.degrade import DegradedDataset
 from semantic_gs_slam.labels import LABEL_MODES, LabelConfig, LabelStage
 from semantic_gs_slam.run import add_camera_args, camera_kwargs, label_frame
 from semantic_gs_slam.slam import SLAM
@@ -217,6 +219,11 @@ def main() -> int:
                     help="the refinement also optimises the poses of its views, keyframes and deferred frames (bundle "
                          "adjustment through the renderer); default: the profile's mapping.refine_poses (on with "
                          "realtime)")
+    ap.add_argument("--depth-noise", type=float, default=0.0,
+                    help="add this many times a Kinect v1's depth noise (0.0012 + 0.0019 (z - 0.4)^2 m) to every "
+                         "frame's depth, ours and Open3D's alike (a noisier camera; 0: as recorded)")
+    ap.add_argument("--blur", type=int, default=0,
+                    help="average each frame's colour with the N recorded frames on either side (motion blur)")
     ap.add_argument("--quiet", action="store_true", help="no per-frame lines")
     ap.add_argument("--colour-calib", default="auto",
                     help="auto (the dataset's own or the layout's default), none (colour as recorded), or a file")
@@ -229,6 +236,11 @@ def main() -> int:
         ap.error("--labels-every must be >= 1")
     ds = load_dataset(args.dataset, size=parse_size(args.size) if args.size else None,
                       colour_calib=args.colour_calib, **camera_kwargs(args))
+    if args.depth_noise or args.blur:
+        if not args.depth_noise >= 0 or args.blur < 0:
+            ap.error("--depth-noise and --blur must be >= 0")
+        ds = DegradedDataset(ds, args.depth_noise, args.blur)
+        print(f"frames degraded: {ds.describe()}")
     idx = frame_indices(len(ds), args.start, args.stride, args.frames)
     if ds.poses is None:
         print("the sequence has no reference poses: ATE cannot be computed", file=sys.stderr)

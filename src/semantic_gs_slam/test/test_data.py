@@ -172,3 +172,25 @@ def test_colmap_pose_lines_are_world_to_camera(tmp_path):
     x[:3, 3] = [0.025, 0.0, -0.002]
     a = [c2w, w2c, np.eye(4)]
     np.testing.assert_allclose(fixed_offset(a, [p @ x for p in a]), x, atol=1e-12)
+
+
+def test_degraded_frames_noisier_depth_and_blurred_colour(tiny_home):
+    from semantic_gs_slam.io.degrade import DegradedDataset, kinect_axial_noise, noisy_depth
+
+    depth = np.full((200, 300), 3.0, np.float32)
+    depth[:10] = 0.0
+    out = noisy_depth(depth, 2.0, seed=7)
+    assert (out[:10] == 0).all() and out.dtype == np.float32  # missing stays missing
+    assert np.std(out[10:] - 3.0) == pytest.approx(2 * kinect_axial_noise(np.array(3.0)), rel=0.05)  # 2 x 1.4 cm
+    np.testing.assert_array_equal(out, noisy_depth(depth, 2.0, seed=7))  # repeatable per frame
+    ds = load_dataset(str(tiny_home))
+    deg = DegradedDataset(ds, depth_noise=1.0, blur=1)
+    assert len(deg) == len(ds) and deg.intrinsics == ds.intrinsics and deg.poses is ds.poses
+    f = deg[4]
+    np.testing.assert_allclose(f.rgb, np.mean([ds[3].rgb, ds[4].rgb, ds[5].rgb], axis=0), atol=1e-6)
+    assert f.depth.shape == ds[4].depth.shape and not np.array_equal(f.depth, ds[4].depth)
+    np.testing.assert_allclose(deg[0].rgb, np.mean([ds[0].rgb, ds[1].rgb], axis=0), atol=1e-6)  # the first frame
+    assert "Kinect" in deg.describe() and "3 frames" in deg.describe()
+    for bad in ({"depth_noise": -1.0}, {"depth_noise": float("nan")}, {"blur": -1}):
+        with pytest.raises(ValueError):
+            DegradedDataset(ds, **bad)

@@ -1,0 +1,72 @@
+"""A recording made harder, to test tracking on what a worse camera would give (NumPy, no ROS).
+
+* Depth noise: a structured-light sensor's axial noise grows with the square of the depth; a Kinect v1's is
+  about ``0.0012 + 0.0019 (z - 0.4)^2`` metres (Nguyen, Izadi and Lovell, 3DIMPVT 2012). :func:`noisy_depth` adds
+  ``scale`` times that, independently per pixel and frame (seeded by the frame's index: repeatable).
+* Motion blur: :class:`DegradedDataset` averages each frame's colour with the ``blur`` frames on either side of it
+  in the recording (a longer exposure of the same motion).
+
+Usage::
+
+    ds = DegradedDataset(load_dataset(path), depth_noise=2.0, blur=1)   # any Dataset; indexing as before
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from semantic_gs_slam.io.datasets import Dataset, Frame
+
+
+def kinect_axial_noise(depth: np.ndarray) -> np.ndarray:
+    """A Kinect v1's axial noise (m, one standard deviation) at ``depth`` [...] metres."""
+    return 0.0012 + 0.0019 * (depth - 0.4) ** 2
+
+
+def noisy_depth(depth: np.ndarray, scale: float, seed: int) -> np.ndarray:
+    """``depth`` [H, W] metres (0: none) plus ``scale`` x :func:`kinect_axial_noise`; missing pixels stay 0."""
+    rng = np.random.default_rng(seed)
+    noise = rng.standard_normal(depth.shape) * (scale * kinect_axial_noise(depth))
+    return np.where(depth > 0, np.maximum(depth + noise, 0.0), 0.0).astype(depth.dtype)
+
+
+class DegradedDataset:
+    """A :class:`~semantic_gs_slam.io.datasets.Dataset` whose frames have noisier depth and blurred colour.
+
+    Args:
+        base: the recording.
+        depth_noise: times a Kinect v1's axial noise added to the depth (>= 0; 0: none).
+        blur: colour averaged over the frames ``i - blur .. i + blur`` of the recording (>= 0; 0: none).
+    """
+
+    def __init__(self, base: Dataset, depth_noise: float = 0.0, blur: int = 0) -> None:
+        if not (math.isfinite(depth_noise) and depth_noise >= 0):
+            raise ValueError(f"depth_noise must be a finite number >= 0, got {depth_noise!r}")
+        if blur < 0:
+            raise ValueError(f"blur must be >= 0, got {blur!r}")
+        self.base, self.depth_noise, self.blur = base, float(depth_noise), int(blur)
+
+    def __getattr__(self, name: str):  # intrinsics, poses, sem_paths, camera_line(), ... are the recording's
+        return getattr(self.base, name)
+
+    def __len__(self) -> int:
+        return len(self.base)
+
+    def __getitem__(self, i: int) -> Frame:
+        f = self.base[i]
+        i = f.index
+        if self.blur:
+            near = [self.base[j].rgb for j in range(max(0, i - self.blur), min(len(self.base), i + self.blur + 1))
+                    if j != i]
+            f.rgb = np.mean([f.rgb, *near], axis=0).astype(f.rgb.dtype)
+        if self.depth_noise:
+            f.depth = noisy_depth(f.depth, self.depth_noise, seed=i)
+        return f
+
+    def describe(self) -> str:
+        """One line for logs: what was done to the frames."""
+        parts = ([f"depth noise {self.depth_noise:g} x a Kinect v1's"] if self.depth_noise else []) + \
+            ([f"colour averaged over {2 * self.blur + 1} frames"] if self.blur else [])
+        return ", ".join(parts) or "none"
