@@ -186,11 +186,11 @@ class CommandClient:
     def _answered(self, key: str, future: Future) -> None:
         with self._lock:
             call = self._pending.pop(key, None)
+            others = [f for f in call.futures if f is not future] if call is not None else []
         if call is None:  # answered by an earlier send, or expired already (reported then)
             return
-        for other in call.futures:
-            if other is not future:
-                self._client.remove_pending_request(other)
+        for other in others:  # the repeats' answers are no longer awaited
+            self._client.remove_pending_request(other)
         try:
             resp = future.result()
         except Exception as exc:  # the call failed (context shut down, ...): say so, never drop it silently
