@@ -9,7 +9,7 @@ A frame the reference does not track to a trusted pose (:class:`~semantic_gs_sla
 is tracked again with more steps against the frame before it, which then becomes the reference (a fast move); a frame
 still not trusted is lost: it keeps the previous pose and is not mapped. Lost frames try to relocalise (the first,
 then every ``tracking.relocalise_every``-th) against the keyframes ranked by a thumbnail of depth and intensity plus
-the one nearest the last trusted pose, from their poses and perturbed guesses that widen after the first try. A
+the one nearest the last trusted pose, from their poses and perturbed guesses that widen when the near ones fail. A
 relocalised pose must then be trusted on ``tracking.relocalise_confirm`` frames in a row before mapping resumes; a
 frame that fails meanwhile is lost again.
 """
@@ -207,17 +207,22 @@ class KeyframeTracking:
             self._fe_state = "lost"
         tries = (idx - self._fe_lost_at) // tc.relocalise_every
         if (idx - self._fe_lost_at) % tc.relocalise_every == 0 and self._fe_views:
-            wide = tries >= 1  # the camera has been away longer: reach farther
             cands = self._fe_candidates(thumbnail(depth, rgb))
             with self._poses_lock:
                 last = self.poses[self._fe_last_trusted].copy()
-            try:
-                r = relocalise(live, [self._fe_model(i) for i in cands], fe, extra_guesses=[last],
-                               angles_deg=(10.0, 20.0) if wide else (10.0,),
-                               shifts_m=(0.1, 0.25) if wide else (0.1,))
-            except RelocalisationError as exc:
-                log.warning("frame %d: relocalisation failed against frames %s: %s", idx, cands, exc)
-            else:
+            r = None
+            # the first lost frame tries near guesses, then farther ones (a gap: the camera comes back 40 cm and 10
+            # degrees from the nearest keyframe); later tries go straight to the farther ones
+            for wide in ((False, True) if tries == 0 else (True,)):
+                try:
+                    r = relocalise(live, [self._fe_model(i) for i in cands], fe, extra_guesses=[last],
+                                   angles_deg=(10.0, 20.0) if wide else (10.0,),
+                                   shifts_m=(0.1, 0.25) if wide else (0.1,))
+                    break
+                except RelocalisationError as exc:
+                    if wide:
+                        log.warning("frame %d: relocalisation failed against frames %s: %s", idx, cands, exc)
+            if r is not None:
                 self._fe_ref_idx = r.keyframe_id
                 self._fe_used = (r.keyframe_id, self._fe_model(r.keyframe_id).c2w)
                 self._fe_after_reloc = True
