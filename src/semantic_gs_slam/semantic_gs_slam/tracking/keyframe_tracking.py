@@ -72,7 +72,8 @@ class KeyframeTracking:
 
     def _fe_init(self) -> None:
         self._fe_cfg = FrontendConfig(depth_min=self.cfg.depth_min, depth_max=self.cfg.depth_max,
-                                      sigma_geo_z2=self.cfg.tracking.frontend_sigma_geo_z2)
+                                      sigma_geo_z2=self.cfg.tracking.frontend_sigma_geo_z2,
+                                      model_smoothing=self.cfg.tracking.frontend_model_smoothing)
         ds = self.cfg.tracking.frontend_downsample
         if ds == 0:  # auto: halve while the image stays at least AUTO_MIN_WIDTH wide
             ds = 1
