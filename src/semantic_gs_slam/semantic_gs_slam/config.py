@@ -140,9 +140,8 @@ class TrackingConfig:
     # z^2 (a Kinect's, between two frames, about 0.002 z^2), so far points no longer read as disagreement. Chosen on
     # kitchen frames 0-249 (0, 0.002, 0.003, 0.005); 0: 1 cm everywhere
     frontend_model_smoothing: int = 3  # "keyframe": the reference depth averaged over this odd window (over
-    # neighbours within 5 % of the centre's depth: no blur across edges; 1: raw). Cleaner normals from a noisy camera:
-    # with three times a Kinect's noise, kitchen frames 0-249 every 2nd went from lost at frame 90 on (11.7 cm) to
-    # 1.8 cm; 1.64 / 1.65 / 2.56 cm without added noise at strides 1 / 2 / 6 (1.67 / 1.63 / 2.56 raw)
+    # neighbours within 5 % of the centre's depth: no blur across edges; 1: raw), so a noisy camera's reference has
+    # usable normals. Chosen on kitchen frames 0-249 (docs/design/slam.md, "Real cameras")
     relocalise_every: int = 3  # "keyframe": a lost frame tries to relocalise on its first lost frame and then on
     # every k-th (each try costs about 100 ms of CPU against three keyframes); the others stay lost
     relocalise_candidates: int = 3  # keyframes tried per relocalisation: the best ranked by a 20x15 thumbnail of
