@@ -141,8 +141,7 @@ class TrackingConfig:
     # kitchen frames 0-249 (0, 0.002, 0.003, 0.005); 0: 1 cm everywhere
     frontend_model_smoothing: int = 1  # "keyframe": the reference depth averaged over this odd window (over
     # neighbours within 5 % of the centre's depth: no blur across edges; 1: raw). 3 gives a noisy camera's reference
-    # usable normals (docs/design/slam.md, "Real cameras"); off by default: the streaming server kept a 30-Hz
-    # camera's pace less well with it
+    # usable normals (docs/design/slam.md, "Real cameras"); off by default until measured on every benchmark
     relocalise_every: int = 3  # "keyframe": a lost frame tries to relocalise on its first lost frame and then on
     # every k-th (each try costs about 100 ms of CPU against three keyframes); the others stay lost
     relocalise_candidates: int = 3  # keyframes tried per relocalisation: the best ranked by a 20x15 thumbnail of
