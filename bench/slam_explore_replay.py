@@ -46,7 +46,8 @@ def nearest(poses: dict[int, np.ndarray], stamp: float, tol_ns: int = 5_000_000)
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("run_dir", help="the --map-dir of a demo_explore run")
-    ap.add_argument("--config", default="", help="JSON of SlamConfig sections, e.g. '{\"tracking\": {...}}'")
+    ap.add_argument("--config", default="",
+                    help="SlamConfig overrides: a JSON file, or the JSON itself, e.g. '{\"tracking\": {...}}'")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--true-poses", action="store_true",
                     help="map with the simulator's true poses (no tracking): the objects' error without pose error")
@@ -67,10 +68,7 @@ def main(argv: list[str] | None = None) -> int:
     cfg = SlamConfig(intrinsics=Intrinsics(w, h, float(k[0, 0]), float(k[1, 1]), float(k[0, 2]), float(k[1, 2])),
                      threads=args.threads, device="cpu")
     if args.config:
-        d = cfg.to_dict()
-        for sec, vals in json.loads(args.config).items():
-            d[sec] = {**d[sec], **vals} if isinstance(vals, dict) else vals
-        cfg = SlamConfig.from_dict(d)
+        cfg = cfg.with_json(args.config)
     if args.true_poses:
         cfg.tracking.use_gt_pose = True
     eng = SLAM(cfg, {i: n for i, n, _ in CLASSES if i > 0})

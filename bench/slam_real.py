@@ -26,7 +26,6 @@ run, with the ratios. Timings depend on what else runs on the machine.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 
@@ -77,11 +76,7 @@ def run_ours(ds, idx: list[int], args: argparse.Namespace) -> dict:
     cfg = SlamConfig(intrinsics=ds.intrinsics, threads=args.threads, device=args.device)
     cfg = cfg.with_profile(args.profile)
     if args.config:
-        d = cfg.to_dict()
-        with open(args.config) as fh:
-            for sec, vals in json.load(fh).items():
-                d[sec] = {**d[sec], **vals} if isinstance(vals, dict) else vals
-        cfg = SlamConfig.from_dict(d)
+        cfg = cfg.with_json(args.config)
     eng = SLAM(cfg)
     stage = LabelStage(LabelConfig(mode=args.labels, every=args.labels_every), ds.intrinsics, ds.sem_paths is not None)
     label_s = 0.0
@@ -194,7 +189,8 @@ def main() -> int:
     add_camera_args(ap)
     ap.add_argument("--labels", default="none", choices=list(LABEL_MODES), help="labelling stage (default none)")
     ap.add_argument("--labels-every", type=int, default=1, help="geometry / onnx labels on every k-th frame only")
-    ap.add_argument("--config", help="JSON of SlamConfig overrides, e.g. {\"tracking\": {\"icp_iters\": 20}}")
+    ap.add_argument("--config", help="SlamConfig overrides: a JSON file, or the JSON itself, e.g. "
+                    "'{\"tracking\": {\"icp_iters\": 20}}'")
     ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--eval-every", type=int, default=1, help="render-evaluate every k-th frame")

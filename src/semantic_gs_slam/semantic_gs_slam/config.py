@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 import re
 from dataclasses import asdict, dataclass, field, fields
@@ -453,6 +454,42 @@ class SlamConfig:
             for name, value in values.items():
                 if d[section][name] is None:
                     d[section][name] = value
+        return SlamConfig.from_dict(d)
+
+    def with_json(self, source: str) -> SlamConfig:
+        """A copy with JSON overrides applied: ``source`` is a JSON file's path or, when it starts with ``{``, the
+        JSON itself, e.g. ``{"tracking": {"icp_iters": 20}}``. A section's fields merge into the current ones (the
+        others keep their values); a top-level field is replaced. The command line's and benchmarks' ``--config``.
+
+        Raises:
+            ConfigError: a missing or unreadable file, text that is not a JSON object, an unknown section or field,
+                or a section given a non-object.
+        """
+        text = source.strip()
+        if not text.startswith("{"):
+            try:
+                with open(source, encoding="utf-8") as fh:
+                    text = fh.read()
+            except OSError as exc:
+                raise ConfigError(f"config overrides: cannot read {source!r} ({exc.strerror or exc}); give a JSON "
+                                  "file or the JSON itself, e.g. '{\"tracking\": {\"icp_iters\": 20}}'") from exc
+        try:
+            over = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise ConfigError(f"config overrides: not JSON ({exc})") from exc
+        if not isinstance(over, dict):
+            raise ConfigError(f"config overrides: need a JSON object of sections, got {type(over).__name__}")
+        d = self.to_dict()
+        for section, vals in over.items():
+            if section not in d:
+                raise ConfigError(f"config overrides: unknown section or field {section!r}; known: {', '.join(d)}")
+            if isinstance(d[section], dict):
+                if not isinstance(vals, dict):
+                    raise ConfigError(f"config overrides: section {section!r} needs an object of fields, got "
+                                      f"{vals!r}")
+                d[section] = {**d[section], **vals}
+            else:
+                d[section] = vals
         return SlamConfig.from_dict(d)
 
     def with_overrides(self, sets: list[str]) -> SlamConfig:

@@ -29,7 +29,6 @@ with ``--checkpoint-every``) and exits with 130; a second Ctrl-C quits at once.
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import signal
@@ -143,7 +142,7 @@ def progress_line(done: int, total: int, width: int = 24) -> str:
 
 
 def build_config(args: argparse.Namespace, intrinsics) -> SlamConfig:
-    """SlamConfig from the command line (and an optional JSON file of overrides)."""
+    """SlamConfig from the command line (and optional JSON overrides: a file or the JSON itself)."""
     cfg = SlamConfig(intrinsics=intrinsics, renderer=RendererConfig(backend=args.backend), device=args.device,
                      tracking=TrackingConfig(), mapping=MappingConfig(),
                      checkpoint_every=args.checkpoint_every,
@@ -152,15 +151,7 @@ def build_config(args: argparse.Namespace, intrinsics) -> SlamConfig:
     if args.profile:
         cfg = cfg.with_profile(args.profile)
     if args.config:
-        with open(args.config) as fh:
-            over = json.load(fh)
-        d = cfg.to_dict()
-        for sec, vals in over.items():
-            if isinstance(vals, dict):
-                d[sec].update(vals)
-            else:
-                d[sec] = vals
-        cfg = SlamConfig.from_dict(d)
+        cfg = cfg.with_json(args.config)
     if args.keyframe_every:
         cfg.mapping.keyframe_every = args.keyframe_every
     if args.mapping_iters is not None:
@@ -211,7 +202,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--start-map", metavar="DIR", default="",
                     help="continue the saved map in DIR (params.npz, semantic.json) in its frame: frames are mapped "
                          "once one is relocalised in it (SLAM.from_map); the grown map is written to --out")
-    ap.add_argument("--config", help="JSON file of config overrides, e.g. {\"mapping\": {\"iters\": 20}}")
+    ap.add_argument("--config", help="config overrides: a JSON file, or the JSON itself, e.g. "
+                                     "'{\"mapping\": {\"iters\": 20}}'")
     ap.add_argument("--keyframe-every", type=int, default=0)
     ap.add_argument("--mapping-iters", type=int)
     ap.add_argument("--device", default="auto", help="torch device: auto (CUDA when present), cpu, cuda, cuda:N")

@@ -49,6 +49,15 @@ def test_run_reports_bad_dataset(tmp_path, capsys):
     assert "error: dataset folder not found" in capsys.readouterr().err
 
 
+def test_run_reports_bad_config_overrides(tiny_home, tmp_path, capsys):
+    args = ["--dataset", str(tiny_home), "--out", str(tmp_path / "o"), "--frames", "1", "--quiet"]
+    assert main(args + ["--config", '{"mapping": {"iterz": 3}}']) == 2
+    assert "error: unknown MappingConfig field(s): ['iterz']" in capsys.readouterr().err
+    assert main(args + ["--config", str(tmp_path / "none.json")]) == 2
+    assert "error: config overrides: cannot read" in capsys.readouterr().err
+    assert not os.path.exists(tmp_path / "o" / "params.npz")
+
+
 def test_refine_poses_without_refinement_is_a_usage_error(tmp_path, capsys):
     import pytest
 

@@ -212,6 +212,28 @@ def test_config_overrides_parse_each_fields_type():
             SlamConfig(intrinsics=k).with_overrides([bad])
 
 
+def test_config_json_overrides_from_a_file_or_inline(tmp_path):
+    """``--config``: a JSON file's path or the JSON itself; sections merge, top-level fields are replaced, and every
+    mistake is a :class:`ConfigError` that says what is wrong."""
+    k = Intrinsics(16, 12, 8.0, 8.0, 7.5, 5.5)
+    base = SlamConfig(intrinsics=k)
+    inline = base.with_json(' {"tracking": {"icp_iters": 9}, "depth_max": 4.5}')
+    assert (inline.tracking.icp_iters, inline.depth_max) == (9, 4.5)
+    assert inline.tracking.frontend == base.tracking.frontend  # fields a section does not name keep their values
+    path = tmp_path / "over.json"
+    path.write_text('{"mapping": {"iters": 7}}')
+    assert base.with_json(str(path)).mapping.iters == 7
+    for bad, why in [(str(tmp_path / "missing.json"), "cannot read"), ('{"tracking": ', "not JSON"),
+                     ("[1, 2]", "cannot read"), ('{"trackin": {"icp_iters": 2}}', "unknown section or field 'trackin'"),
+                     ('{"tracking": 3}', "section 'tracking' needs an object"),
+                     ('{"tracking": {"icp_iterz": 3}}', "unknown TrackingConfig field")]:
+        with pytest.raises(ConfigError, match=why):
+            base.with_json(bad)
+    path.write_text("[1, 2]")
+    with pytest.raises(ConfigError, match="need a JSON object of sections, got list"):
+        base.with_json(str(path))
+
+
 def test_window_keeps_the_most_overlapping_and_draws_older_ones(tiny_home):
     import torch
 
