@@ -276,6 +276,9 @@ def main() -> int:
              f"{ours['frame0_s']:.1f} s)"),
             ("tracking failures reported", str(ours["lost"])),
             ("frames lost / recovered (the engine's stats)", lost_summary(ours["stats"], idx)[0]),
+            *([("depth roughness of the last reference (1/m); keyframes smoothed as noisy",
+                f"{ours['stats']['reference_roughness']:.4f}; {ours['stats']['noisy_references']}")]
+              if "noisy_references" in ours["stats"] else []),
             ("drift found and corrected (loop closures)", f"{len(ours['loops'])}" + (
                 f", largest {max(x['found_cm'] for x in ours['loops']):.1f} cm / "
                 f"{max(x['found_deg'] for x in ours['loops']):.2f} deg" if ours["loops"] else "")),

@@ -141,8 +141,12 @@ class TrackingConfig:
     # z^2 (a Kinect's, between two frames, about 0.002 z^2), so far points no longer read as disagreement. Chosen on
     # kitchen frames 0-249 (0, 0.002, 0.003, 0.005); 0: 1 cm everywhere
     frontend_model_smoothing: int = 1  # "keyframe": the reference depth averaged over this odd window (over
-    # neighbours within 5 % of the centre's depth: no blur across edges; 1: raw). 3 gives a noisy camera's reference
-    # usable normals (docs/design/slam.md, "Real cameras"); off by default until measured on every benchmark
+    # neighbours within 5 % of the centre's depth: no blur across edges; 1: raw), for every keyframe
+    frontend_noisy_smoothing: int = 3  # "keyframe": ... and over this odd window for a keyframe whose depth is
+    frontend_noisy_roughness: float = 0.0015  # rougher than this (1/m, frontend.depth_roughness: the median |depth -
+    # the mean of its 4 neighbours| / depth^2; 0: never). A Kinect v1 at 320 x 240 reads 0.0007: its raw depth is
+    # the reference. A camera with more than about twice its noise is smoothed: with three times, the raw reference
+    # lost the kitchen (docs/design/slam.md, "Real cameras"); on clean frames smoothing cost 0.6 cm of ATE
     relocalise_every: int = 3  # "keyframe": a lost frame tries to relocalise on its first lost frame and then on
     # every k-th (each try costs about 100 ms of CPU against three keyframes); the others stay lost
     relocalise_candidates: int = 3  # keyframes tried per relocalisation: the best ranked by a 20x15 thumbnail of
@@ -180,9 +184,13 @@ class TrackingConfig:
         if not (math.isfinite(self.frontend_sigma_geo_z2) and self.frontend_sigma_geo_z2 >= 0):
             raise ConfigError(f"tracking.frontend_sigma_geo_z2 must be a finite number >= 0, got "
                               f"{self.frontend_sigma_geo_z2!r}")
-        if self.frontend_model_smoothing < 1 or self.frontend_model_smoothing % 2 == 0:
-            raise ConfigError(f"tracking.frontend_model_smoothing must be an odd window >= 1, got "
-                              f"{self.frontend_model_smoothing!r}")
+        for name in ("frontend_model_smoothing", "frontend_noisy_smoothing"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1 or v % 2 == 0:
+                raise ConfigError(f"tracking.{name} must be an odd window >= 1, got {v!r}")
+        if not (math.isfinite(self.frontend_noisy_roughness) and self.frontend_noisy_roughness >= 0):
+            raise ConfigError(f"tracking.frontend_noisy_roughness must be a finite number >= 0, got "
+                              f"{self.frontend_noisy_roughness!r}")
         if not 0 <= self.frontend_new_keyframe_coverage <= 1:
             raise ConfigError("tracking.frontend_new_keyframe_coverage must be in [0, 1]")
 

@@ -942,10 +942,13 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
     def stats(self) -> dict:
         """Summary for logs: frames, keyframes, Gaussians, lost frames, lost -> recovered spans ([first lost frame,
         frame mapped again]), frames whose map update the full queue dropped (threaded), whether the frames are in
-        the map's frame (:attr:`localised`: False while a start on a saved map is not relocalised), last frame log."""
+        the map's frame (:attr:`localised`: False while a start on a saved map is not relocalised), the keyframe
+        front end's noisy references (keyframes whose depth was smoothed: tracking.frontend_noisy_roughness) and the
+        last reference's depth roughness, last frame log."""
         return {"frames": len(self.poses), "keyframes": len(self.keyframes), "gaussians": len(self.map),
                 "localised": self.localised,
                 "lost_frames": list(self.lost_frames), "recoveries": [list(r) for r in self.recoveries],
                 "dropped": list(self.dropped_jobs), "deferred_keyframes": self.deferred_keyframes,
                 "backlog": len(self.backlog), "caught_up": self.caught_up,
+                "noisy_references": len(self._fe_noisy), "reference_roughness": self._fe_roughness,
                 "last": asdict(self.logs[-1]) if self.logs else None}

@@ -176,7 +176,9 @@ def test_frontend_downsample_tracks_the_orbit_on_a_quarter_of_the_pixels(views):
     assert auto._fe_halvings == 2  # 1280 -> 320 pixels wide
     with pytest.raises(ConfigError, match="frontend_downsample"):
         SlamConfig(intrinsics=k, tracking=TrackingConfig(frontend="keyframe", frontend_downsample=3)).check()
-    for bad in ({"frontend_model_smoothing": 2}, {"frontend_model_smoothing": 0},
+    for bad in ({"frontend_model_smoothing": 2}, {"frontend_model_smoothing": 0}, {"frontend_noisy_smoothing": 4},
+                {"frontend_noisy_smoothing": True}, {"frontend_noisy_roughness": -1.0},
+                {"frontend_noisy_roughness": float("inf")},
                 {"frontend_sigma_geo_z2": -0.001}, {"frontend_sigma_geo_z2": float("nan")}):
         with pytest.raises(ConfigError, match=next(iter(bad))):
             SlamConfig(intrinsics=k, tracking=TrackingConfig(frontend="keyframe", **bad)).check()

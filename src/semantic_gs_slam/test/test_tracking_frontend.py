@@ -17,6 +17,7 @@ from semantic_gs_slam.tracking.frontend import (
     FrontendConfig,
     RelocalisationError,
     build_reference,
+    depth_roughness,
     downsample_frame,
     normal_equations,
     normal_equations_reference,
@@ -134,12 +135,51 @@ def test_noisy_far_depth_agrees_at_its_own_scale(scene):
         noisy.append(np.where(depth > 0, depth + rng.standard_normal(depth.shape) * 0.0025 * depth ** 2, 0.0))
     res = {}
     for z2 in (0.0, FrontendConfig().sigma_geo_z2):
-        cfg = replace(CFG, sigma_geo_z2=z2, photometric_weight=0.0)
+        cfg = replace(CFG, sigma_geo_z2=z2, photometric_weight=0.0, noisy_roughness=0.0)  # raw: the scale alone
         res[z2] = track(prepare_live(noisy[1], k, cfg), build_reference(noisy[0], poses[0], k, cfg), poses[0], cfg)
     fixed, scaled = res[0.0].quality, res[FrontendConfig().sigma_geo_z2].quality
     assert not fixed.trusted and "agreement" in fixed.reason, fixed
     assert scaled.trusted and scaled.agreement > fixed.agreement + 0.03, scaled
     assert pose_error(res[FrontendConfig().sigma_geo_z2].c2w, poses[0])[0] < 0.01
+
+
+def test_depth_roughness_reads_a_noise_that_grows_with_depth_squared(scene):
+    """A rendered view is smooth; noise a z^2 reads about 0.75 a (the median of |the 4-neighbour Laplacian| of
+    Gaussian noise), near and far alike; too few usable pixels read 0 (no evidence)."""
+    depth = scene[2][0][1]
+    assert depth_roughness(depth) < 1e-4
+    for a in (0.001, 0.002):
+        rng = np.random.default_rng(0)
+        noisy = np.where(depth > 0, depth + rng.standard_normal(depth.shape) * a * depth ** 2, 0.0)
+        assert 0.6 * a < depth_roughness(noisy) < 0.9 * a
+    assert depth_roughness(np.zeros((20, 20))) == 0.0 and depth_roughness(depth[:10, :10]) == 0.0
+
+
+def test_a_noisy_reference_is_smoothed_and_tracks_closer(scene):
+    """Depth with noise 0.01 z^2 (about 5 times a Kinect's at 2 m) in both frames: the reference reads as noisy and
+    is averaged over 3 x 3 pixels; the live frame then agrees with it more and lands within 1 cm, where the raw
+    reference (the smoothing off) leaves 3-13 cm."""
+    k, poses, views = scene
+    d0, d3 = views[0][1], views[3][1]
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        n0, n3 = (np.where(d > 0, d + rng.standard_normal(d.shape) * 0.01 * d ** 2, 0.0) for d in (d0, d3))
+        res = {}
+        for rough in (0.0, FrontendConfig().noisy_roughness):
+            cfg = replace(CFG, photometric_weight=0.0, noisy_roughness=rough)
+            model = build_reference(n0, poses[0], k, cfg)
+            assert model.smoothing == (1 if rough == 0.0 else 3) and (model.roughness > rough) == (rough > 0)
+            res[rough] = (track(prepare_live(n3, k, cfg), model, poses[0], cfg), model)
+        raw, smooth = res[0.0][0], res[FrontendConfig().noisy_roughness][0]
+        assert smooth.quality.agreement > raw.quality.agreement + 0.05, (raw.quality, smooth.quality)
+        assert pose_error(smooth.c2w, poses[3])[0] < 0.01
+        assert pose_error(raw.c2w, poses[3])[0] > 0.02
+    clean = build_reference(d0, poses[0], k, CFG)  # a clean view stays raw
+    assert clean.smoothing == 1 and clean.roughness < CFG.noisy_roughness
+    with pytest.raises(ConfigError, match="noisy_smoothing"):
+        build_reference(d0, poses[0], k, replace(CFG, noisy_smoothing=2))
+    with pytest.raises(ConfigError, match="noisy_roughness"):
+        build_reference(d0, poses[0], k, replace(CFG, noisy_roughness=float("nan")))
 
 
 def test_a_lone_plane_is_ill_conditioned():

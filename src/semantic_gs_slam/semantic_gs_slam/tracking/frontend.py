@@ -71,6 +71,9 @@ class FrontendConfig:
     depth_max: float = 4.0
     model_smoothing: int = 1  # the reference depth is averaged over this window (odd; 1: off), over neighbours
     # within depth_jump of the centre only (no blur across edges): sensor depth as a stand-in for a rendered map
+    noisy_smoothing: int = 3  # ... and over this window (odd; 1: never) when the depth is rougher than:
+    noisy_roughness: float = 0.0015  # 1/m; depth_roughness() above which a reference counts as noisy (0: never). A
+    # Kinect v1 at 320 x 240 reads 0.0007, with its noise added once more 0.0014, twice 0.0025 (kitchen, 0-499)
     normal_radius: int = 2  # normals from central differences over this many pixels (finest level; 1 coarser)
     depth_jump: float = 0.05  # a neighbour more than this fraction of the depth away breaks the normal / pyramid cell
     min_correspondences: int = 200  # fewer at the finest level: lost
@@ -96,8 +99,11 @@ class FrontendConfig:
             raise ConfigError("prior sigmas must be > 0")
         if not 0 <= self.depth_min < self.depth_max:
             raise ConfigError(f"need 0 <= depth_min < depth_max, got {self.depth_min}, {self.depth_max}")
-        if self.model_smoothing < 1 or self.model_smoothing % 2 == 0:
-            raise ConfigError(f"model_smoothing must be an odd window >= 1, got {self.model_smoothing}")
+        for name in ("model_smoothing", "noisy_smoothing"):
+            if getattr(self, name) < 1 or getattr(self, name) % 2 == 0:
+                raise ConfigError(f"{name} must be an odd window >= 1, got {getattr(self, name)}")
+        if not (math.isfinite(self.noisy_roughness) and self.noisy_roughness >= 0):
+            raise ConfigError(f"noisy_roughness must be a finite number >= 0, got {self.noisy_roughness}")
         if self.normal_radius < 1:
             raise ConfigError(f"normal_radius must be >= 1, got {self.normal_radius}")
         if self.backend not in ("auto", "numba", "numpy"):
@@ -123,6 +129,8 @@ class ReferenceModel:
     w2c: np.ndarray  # [4, 4] float64 its inverse
     levels: list[ModelLevel]  # finest first
     keyframe_id: int = -1  # the caller's id of the keyframe (e.g. its frame index)
+    roughness: float = 0.0  # depth_roughness() of its depth (1/m; 0: not measured)
+    smoothing: int = 1  # the window its depth was averaged over (1: raw)
 
 
 @dataclass
@@ -260,6 +268,26 @@ def downsample_frame(depth: np.ndarray, rgb: np.ndarray | None, k: Intrinsics, t
     return depth, rgb, cams[-1]
 
 
+def depth_roughness(depth: np.ndarray, jump: float = 0.05, min_pixels: int = 500) -> float:
+    """How noisy a depth image is: the median over pixels of |d - the mean of its 4 neighbours| / d^2 (1/m), where
+    the 4 neighbours have depth within ``jump`` times d (no edges). A depth sensor's noise grows with d^2, so this is
+    about the same near and far; 0.0 when fewer than ``min_pixels`` pixels qualify (no evidence).
+
+    Args:
+        depth: [H, W] metres, 0 = missing.
+    """
+    c = depth[1:-1, 1:-1]
+    nbs = (depth[:-2, 1:-1], depth[2:, 1:-1], depth[1:-1, :-2], depth[1:-1, 2:])
+    ok = c > 0
+    for nb in nbs:
+        ok &= (nb > 0) & (np.abs(nb - c) < jump * c)
+    if int(ok.sum()) < min_pixels:
+        return 0.0
+    cc = c[ok]
+    lap = cc - 0.25 * sum(nb[ok] for nb in nbs)
+    return float(np.median(np.abs(lap) / (cc * cc)))
+
+
 def _smooth_depth(depth: np.ndarray, size: int, jump: float) -> np.ndarray:
     """``depth`` [H, W] averaged over a ``size`` x ``size`` window, over the neighbours with depth within ``jump``
     times the centre's (edges stay sharp); pixels without depth stay 0."""
@@ -318,6 +346,10 @@ def build_reference(depth: np.ndarray, c2w: np.ndarray, k: Intrinsics, cfg: Fron
                     keyframe_id: int = -1) -> ReferenceModel:
     """The reference model of a keyframe view (depth rendered from the map, or a sensor depth as a stand-in).
 
+    The depth is averaged over ``cfg.model_smoothing`` pixels, or over ``cfg.noisy_smoothing`` when its
+    :func:`depth_roughness` exceeds ``cfg.noisy_roughness`` (a noisier camera than a Kinect v1: a single raw image
+    is then too noisy a reference to track against; the model records both).
+
     Args:
         depth: [H, W] metres along the optical axis, 0 = no surface.
         c2w: [4, 4] the keyframe's camera-to-world pose.
@@ -341,7 +373,12 @@ def build_reference(depth: np.ndarray, c2w: np.ndarray, k: Intrinsics, cfg: Fron
     rgb = _check_image("rgb", rgb, k, 3)
     normals = _check_image("normals", normals, k, 3)
     d = np.where((d >= cfg.depth_min) & (d <= cfg.depth_max), d, 0.0)
-    d = _smooth_depth(d, cfg.model_smoothing, cfg.depth_jump)
+    window, rough = cfg.model_smoothing, 0.0
+    if cfg.noisy_roughness > 0 and cfg.noisy_smoothing > window:
+        rough = depth_roughness(d, cfg.depth_jump)
+        if rough > cfg.noisy_roughness:
+            window = cfg.noisy_smoothing
+    d = _smooth_depth(d, window, cfg.depth_jump)
     r, t = c2w[:3, :3], c2w[:3, 3]
     fast = _use_numba(cfg)
     levels = []
@@ -379,7 +416,7 @@ def build_reference(depth: np.ndarray, c2w: np.ndarray, k: Intrinsics, cfg: Fron
             col = np.ascontiguousarray(np.stack([im, gx, gy, okc.astype(np.float64)], -1).reshape(-1, 4))
         levels.append(ModelLevel(cam, np.ascontiguousarray(vw), np.ascontiguousarray(nw),
                                  np.ascontiguousarray(nok), col))
-    return ReferenceModel(c2w, np.linalg.inv(c2w), levels, keyframe_id)
+    return ReferenceModel(c2w, np.linalg.inv(c2w), levels, keyframe_id, rough, window)
 
 
 def prepare_live(depth: np.ndarray, k: Intrinsics, cfg: FrontendConfig, rgb: np.ndarray | None = None) -> LiveFrame:

@@ -73,7 +73,9 @@ class KeyframeTracking:
     def _fe_init(self) -> None:
         self._fe_cfg = FrontendConfig(depth_min=self.cfg.depth_min, depth_max=self.cfg.depth_max,
                                       sigma_geo_z2=self.cfg.tracking.frontend_sigma_geo_z2,
-                                      model_smoothing=self.cfg.tracking.frontend_model_smoothing)
+                                      model_smoothing=self.cfg.tracking.frontend_model_smoothing,
+                                      noisy_smoothing=self.cfg.tracking.frontend_noisy_smoothing,
+                                      noisy_roughness=self.cfg.tracking.frontend_noisy_roughness)
         ds = self.cfg.tracking.frontend_downsample
         if ds == 0:  # auto: halve while the image stays at least AUTO_MIN_WIDTH wide
             ds = 1
@@ -89,6 +91,8 @@ class KeyframeTracking:
         self._fe_last_trusted = 0  # frame index of the last trusted, mapped pose
         self._fe_after_reloc = False  # the previous frame was relocalised: no constant velocity yet
         self._fe_prev: tuple[int, np.ndarray, np.ndarray] | None = None  # the last frame tracked (index, depth, rgb)
+        self._fe_noisy: set[int] = set()  # keyframes whose reference depth was smoothed as noisy
+        self._fe_roughness = 0.0  # depth_roughness of the last reference built (1/m; 0: not measured)
 
     def _fe_frame(self, depth: np.ndarray, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The front end's copy of a frame ([H, W] metres, [H, W, 3] in [0, 1]): float64, halved
@@ -107,6 +111,13 @@ class KeyframeTracking:
             v = self._fe_views[index]
             m = build_reference(v.depth, c2w, self._fe_k, self._fe_cfg, rgb=v.rgb, keyframe_id=index)
             self._fe_models[index] = m
+            self._fe_roughness = m.roughness
+            if m.smoothing > self._fe_cfg.model_smoothing and index not in self._fe_noisy:
+                if not self._fe_noisy:
+                    log.info("keyframe %d: depth roughness %.4f > tracking.frontend_noisy_roughness %g: a noisy "
+                             "camera; references are averaged over %d x %d pixels", index, m.roughness,
+                             self._fe_cfg.noisy_roughness, m.smoothing, m.smoothing)
+                self._fe_noisy.add(index)
         self._fe_models.move_to_end(index)
         while len(self._fe_models) > 6:
             self._fe_models.popitem(last=False)
