@@ -145,8 +145,8 @@ class TrackingConfig:
     frontend_noisy_smoothing: int = 3  # "keyframe": ... and over this odd window for a keyframe whose depth is
     frontend_noisy_roughness: float = 0.0015  # rougher than this (1/m, frontend.depth_roughness: the median |depth -
     # the mean of its 4 neighbours| / depth^2; 0: never). A Kinect v1 at 320 x 240 reads 0.0007: its raw depth is
-    # the reference. A camera with more than about twice its noise is smoothed: with three times, the raw reference
-    # lost the kitchen (docs/design/slam.md, "Real cameras"); on clean frames smoothing cost 0.6 cm of ATE
+    # the reference. A camera with about twice its noise or more is smoothed: with three times, the raw reference
+    # lost the kitchen; on clean frames smoothing bought nothing (docs/design/slam.md, "Real cameras")
     relocalise_every: int = 3  # "keyframe": a lost frame tries to relocalise on its first lost frame and then on
     # every k-th (each try costs about 100 ms of CPU against three keyframes); the others stay lost
     relocalise_candidates: int = 3  # keyframes tried per relocalisation: the best ranked by a 20x15 thumbnail of
