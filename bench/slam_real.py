@@ -12,6 +12,7 @@ Usage (from the repository root; the data stays outside the repository, mind its
     python bench/slam_real.py rgbd_dataset_freiburg1_xyz --first 0 --frames 300 --stride 1   # TUM fr1 camera
     python bench/slam_real.py <seq> --intrinsics 525,525,319.5,239.5 --depth-scale 5000     # any camera
     python bench/slam_real.py <seq> --depth-noise 2 --blur 1    # a noisier, blurrier camera (both trackers)
+    python bench/slam_real.py <seq> --gain 0.3                  # exposure swinging by 30 % (both trackers)
 
 Runs our engine over the frames and prints the camera used (``--intrinsics``, ``--depth-scale``, ``--camera`` as for
 ``python -m semantic_gs_slam.run``), ATE RMSE (aligned), RPE, PSNR (all pixels, and SplaTAM's depth-masked
@@ -220,6 +221,9 @@ def main() -> int:
                          "frame's depth, ours and Open3D's alike (a noisier camera; 0: as recorded)")
     ap.add_argument("--blur", type=int, default=0,
                     help="average each frame's colour with the N recorded frames on either side (motion blur)")
+    ap.add_argument("--gain", type=float, default=0.0,
+                    help="swing each frame's exposure: colour times 1 + G sin(2 pi i / 60) for recorded frame i (an "
+                         "auto-exposure changing its mind every 2 s at 30 Hz; 0: as recorded)")
     ap.add_argument("--quiet", action="store_true", help="no per-frame lines")
     ap.add_argument("--colour-calib", default="auto",
                     help="auto (the dataset's own or the layout's default), none (colour as recorded), or a file")
@@ -232,10 +236,10 @@ def main() -> int:
         ap.error("--labels-every must be >= 1")
     ds = load_dataset(args.dataset, size=parse_size(args.size) if args.size else None,
                       colour_calib=args.colour_calib, **camera_kwargs(args))
-    if args.depth_noise or args.blur:
-        if not args.depth_noise >= 0 or args.blur < 0:
-            ap.error("--depth-noise and --blur must be >= 0")
-        ds = DegradedDataset(ds, args.depth_noise, args.blur)
+    if args.depth_noise or args.blur or args.gain:
+        if not args.depth_noise >= 0 or args.blur < 0 or not 0 <= args.gain < 1:
+            ap.error("--depth-noise and --blur must be >= 0, --gain in [0, 1)")
+        ds = DegradedDataset(ds, args.depth_noise, args.blur, args.gain)
         print(f"frames degraded: {ds.describe()}")
     idx = frame_indices(len(ds), args.start, args.stride, args.frames)
     if ds.poses is None:

@@ -191,6 +191,13 @@ def test_degraded_frames_noisier_depth_and_blurred_colour(tiny_home):
     assert f.depth.shape == ds[4].depth.shape and not np.array_equal(f.depth, ds[4].depth)
     np.testing.assert_allclose(deg[0].rgb, np.mean([ds[0].rgb, ds[1].rgb], axis=0), atol=1e-6)  # the first frame
     assert "Kinect" in deg.describe() and "3 frames" in deg.describe()
-    for bad in ({"depth_noise": -1.0}, {"depth_noise": float("nan")}, {"blur": -1}):
+    for bad in ({"depth_noise": -1.0}, {"depth_noise": float("nan")}, {"blur": -1}, {"gain": 1.0}, {"gain": -0.1},
+                {"gain": 0.2, "gain_period": 0.0}):
         with pytest.raises(ValueError):
             DegradedDataset(ds, **bad)
+    swing = DegradedDataset(ds, gain=0.5, gain_period=8.0)  # frame 2: a quarter swing, 1.5 times as bright
+    np.testing.assert_allclose(swing[2].rgb, np.clip(ds[2].rgb * 1.5, 0, 1), atol=1e-6)
+    np.testing.assert_allclose(swing[6].rgb, ds[6].rgb * 0.5, atol=1e-6)
+    np.testing.assert_array_equal(swing[0].rgb, ds[0].rgb)
+    np.testing.assert_array_equal(swing[2].depth, ds[2].depth)  # the depth is left alone
+    assert "±50 % every 8 frames" in swing.describe()

@@ -5,10 +5,12 @@
   ``scale`` times that, independently per pixel and frame (seeded by the frame's index: repeatable).
 * Motion blur: :class:`DegradedDataset` averages each frame's colour with the ``blur`` frames on either side of it
   in the recording (a longer exposure of the same motion).
+* Exposure swings: :class:`DegradedDataset` multiplies frame i's colour by ``1 + gain sin(2 pi i / gain_period)``
+  (clipped to [0, 1]): an auto-exposure that keeps changing its mind, brighter and darker than the recording.
 
 Usage::
 
-    ds = DegradedDataset(load_dataset(path), depth_noise=2.0, blur=1)   # any Dataset; indexing as before
+    ds = DegradedDataset(load_dataset(path), depth_noise=2.0, blur=1, gain=0.3)   # any Dataset; indexing as before
 """
 
 from __future__ import annotations
@@ -39,14 +41,22 @@ class DegradedDataset:
         base: the recording.
         depth_noise: times a Kinect v1's axial noise added to the depth (>= 0; 0: none).
         blur: colour averaged over the frames ``i - blur .. i + blur`` of the recording (>= 0; 0: none).
+        gain: the exposure swing: frame i's colour times ``1 + gain sin(2 pi i / gain_period)`` (in [0, 1); 0:
+            none). gain_period: frames of the recording per swing (> 0; 60: 2 s of a 30-Hz camera).
     """
 
-    def __init__(self, base: Dataset, depth_noise: float = 0.0, blur: int = 0) -> None:
+    def __init__(self, base: Dataset, depth_noise: float = 0.0, blur: int = 0, gain: float = 0.0,
+                 gain_period: float = 60.0) -> None:
         if not (math.isfinite(depth_noise) and depth_noise >= 0):
             raise ValueError(f"depth_noise must be a finite number >= 0, got {depth_noise!r}")
         if blur < 0:
             raise ValueError(f"blur must be >= 0, got {blur!r}")
+        if not 0 <= gain < 1:
+            raise ValueError(f"gain must be in [0, 1), got {gain!r}")
+        if not (math.isfinite(gain_period) and gain_period > 0):
+            raise ValueError(f"gain_period must be a finite number > 0, got {gain_period!r}")
         self.base, self.depth_noise, self.blur = base, float(depth_noise), int(blur)
+        self.gain, self.gain_period = float(gain), float(gain_period)
 
     def __getattr__(self, name: str):  # intrinsics, poses, sem_paths, camera_line(), ... are the recording's
         return getattr(self.base, name)
@@ -63,10 +73,14 @@ class DegradedDataset:
             f.rgb = np.mean([f.rgb, *near], axis=0).astype(f.rgb.dtype)
         if self.depth_noise:
             f.depth = noisy_depth(f.depth, self.depth_noise, seed=i)
+        if self.gain:
+            g = 1.0 + self.gain * math.sin(2.0 * math.pi * i / self.gain_period)
+            f.rgb = np.clip(f.rgb * g, 0.0, 1.0).astype(f.rgb.dtype)
         return f
 
     def describe(self) -> str:
         """One line for logs: what was done to the frames."""
         parts = ([f"depth noise {self.depth_noise:g} x a Kinect v1's"] if self.depth_noise else []) + \
-            ([f"colour averaged over {2 * self.blur + 1} frames"] if self.blur else [])
+            ([f"colour averaged over {2 * self.blur + 1} frames"] if self.blur else []) + \
+            ([f"exposure swinging by ±{100 * self.gain:g} % every {self.gain_period:g} frames"] if self.gain else [])
         return ", ".join(parts) or "none"
