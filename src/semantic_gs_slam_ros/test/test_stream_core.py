@@ -555,6 +555,16 @@ def test_engine_adapter_reports_the_engines_last_frame():
     assert adapter.frame_report() == (False, False, "")
     assert len(adapter.slam.logs) == 1  # the report is the engine's own log of that frame
     assert adapter.run_note().startswith("1 frames tracked, 1 keyframes, 0 keyframes deferred while mapping was busy")
+    assert "noisy" not in adapter.run_note()
+    # the keyframe front end with a noisy camera's depth: the note says its keyframes were smoothed
+    from semantic_gs_slam.config import TrackingConfig
+
+    k = default_intrinsics(64, 48)
+    noisy = EngineAdapter(SLAM(SlamConfig(intrinsics=k, threads=1, tracking=TrackingConfig(frontend="keyframe"))))
+    rng = np.random.default_rng(0)
+    depth = (2.0 + 0.02 * rng.standard_normal((48, 64))).astype(np.float32)
+    noisy.add_frame(np.full((48, 64, 3), 128, np.uint8), depth, None, 0.0)
+    assert "1 keyframes' depth smoothed as a noisy camera's (roughness 0.00" in noisy.run_note(), noisy.run_note()
 
 
 def _short_fits(cfg):
