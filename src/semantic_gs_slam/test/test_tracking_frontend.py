@@ -155,6 +155,22 @@ def test_depth_roughness_reads_a_noise_that_grows_with_depth_squared(scene):
     assert depth_roughness(np.zeros((20, 20))) == 0.0 and depth_roughness(depth[:10, :10]) == 0.0
 
 
+@needs_numba
+def test_compiled_depth_roughness_gives_the_numpy_roughness(scene):
+    from semantic_gs_slam.tracking import frontend_numba as fk
+
+    depth = scene[2][0][1]
+    rng = np.random.default_rng(3)
+    noisy = np.where(depth > 0, depth + rng.standard_normal(depth.shape) * 0.002 * depth ** 2, 0.0)
+    noisy[40:60, 50:90] = 0.0  # a hole
+    for d in (depth, noisy, np.zeros((20, 20)), noisy[:10, :10]):
+        d = np.ascontiguousarray(d)
+        assert fk.depth_roughness(d, 0.05, 500) == pytest.approx(depth_roughness(d, 0.05, 500), rel=1e-12, abs=0)
+    fast = replace(CFG, backend="numba")
+    assert build_reference(noisy, np.eye(4), scene[0], fast).roughness == pytest.approx(
+        build_reference(noisy, np.eye(4), scene[0], CFG).roughness, rel=1e-12)
+
+
 def test_a_noisy_reference_is_smoothed_and_tracks_closer(scene):
     """Depth with noise 0.01 z^2 (about 5 times a Kinect's at 2 m) in both frames: the reference reads as noisy and
     is averaged over 3 x 3 pixels; the live frame then agrees with it more and lands within 1 cm, where the raw

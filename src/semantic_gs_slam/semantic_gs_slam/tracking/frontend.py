@@ -268,10 +268,15 @@ def downsample_frame(depth: np.ndarray, rgb: np.ndarray | None, k: Intrinsics, t
     return depth, rgb, cams[-1]
 
 
-def depth_roughness(depth: np.ndarray, jump: float = 0.05, min_pixels: int = 500) -> float:
+ROUGHNESS_MIN_PIXELS = 500  # depth_roughness: fewer usable pixels are no evidence (0.0)
+
+
+def depth_roughness(depth: np.ndarray, jump: float = 0.05, min_pixels: int = ROUGHNESS_MIN_PIXELS) -> float:
     """How noisy a depth image is: the median over pixels of |d - the mean of its 4 neighbours| / d^2 (1/m), where
     the 4 neighbours have depth within ``jump`` times d (no edges). A depth sensor's noise grows with d^2, so this is
-    about the same near and far; 0.0 when fewer than ``min_pixels`` pixels qualify (no evidence).
+    about the same near and far; 0.0 when fewer than ``min_pixels`` pixels qualify (no evidence). NumPy, the
+    reference of the compiled :func:`~semantic_gs_slam.tracking.frontend_numba.depth_roughness` that
+    :func:`build_reference` calls when numba is there.
 
     Args:
         depth: [H, W] metres, 0 = missing.
@@ -374,13 +379,14 @@ def build_reference(depth: np.ndarray, c2w: np.ndarray, k: Intrinsics, cfg: Fron
     normals = _check_image("normals", normals, k, 3)
     d = np.where((d >= cfg.depth_min) & (d <= cfg.depth_max), d, 0.0)
     window, rough = cfg.model_smoothing, 0.0
+    fast = _use_numba(cfg)
     if cfg.noisy_roughness > 0 and cfg.noisy_smoothing > window:
-        rough = depth_roughness(d, cfg.depth_jump)
+        rough = (_fast().depth_roughness(np.ascontiguousarray(d), float(cfg.depth_jump), ROUGHNESS_MIN_PIXELS) if fast
+                 else depth_roughness(d, cfg.depth_jump, ROUGHNESS_MIN_PIXELS))
         if rough > cfg.noisy_roughness:
             window = cfg.noisy_smoothing
     d = _smooth_depth(d, window, cfg.depth_jump)
     r, t = c2w[:3, :3], c2w[:3, 3]
-    fast = _use_numba(cfg)
     levels = []
     for lv, cam in enumerate(_pyramid_cameras(k, cfg.levels)):
         if lv > 0:

@@ -298,6 +298,31 @@ def icp_level(est, guess_inv, prior_diag, w2c, lp, lvalid, il, vm, nm, nvalid, c
 
 
 @numba.njit(cache=True, nogil=True)
+def depth_roughness(depth, jump, min_pixels):
+    """:func:`semantic_gs_slam.tracking.frontend.depth_roughness` of depth [H, W] in one call (its NumPy steps
+    each wait for the GIL beside a mapping thread): the median of |d - the mean of the 4 neighbours| / d^2 over
+    the pixels whose 4 neighbours have depth within ``jump`` times d; 0.0 below ``min_pixels`` such pixels."""
+    h, w = depth.shape
+    out = np.empty(max((h - 2) * (w - 2), 1))
+    n = 0
+    for y in range(1, h - 1):
+        for x in range(1, w - 1):
+            c = depth[y, x]
+            if not c > 0:
+                continue
+            a0, a1, a2, a3 = depth[y - 1, x], depth[y + 1, x], depth[y, x - 1], depth[y, x + 1]
+            lim = jump * c
+            if not (a0 > 0 and a1 > 0 and a2 > 0 and a3 > 0 and abs(a0 - c) < lim and abs(a1 - c) < lim
+                    and abs(a2 - c) < lim and abs(a3 - c) < lim):
+                continue
+            out[n] = abs(c - 0.25 * (a0 + a1 + a2 + a3)) / (c * c)
+            n += 1
+    if n < min_pixels:
+        return 0.0
+    return np.median(out[:n])
+
+
+@numba.njit(cache=True, nogil=True)
 def icp_track(est, guess_inv, prior_diag, w2c, lps, lvalids, il, vms, nms, nvalids, col, fx, fy, cx, cy, width,
               height, max_dist, sg, sg_z2, photometric, sc, w_col, iters, min_step, order, a, b, stats):
     """``track``'s whole Gauss-Newton loop in one call: :func:`icp_level` on the levels in ``order`` (the tuples
