@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from semantic_gs_slam.config import Intrinsics
 from semantic_gs_slam.errors import DatasetError
 from semantic_gs_slam.geometry import quat_to_rotmat
 from semantic_gs_slam.io.datasets import (
@@ -262,3 +263,30 @@ def test_reference_agreement_bench_fits_the_camera_offset_and_removes_the_scale(
     with pytest.raises(SystemExit):  # a run over other frames is refused
         reference_agreement.main(args + ["--map", str(tmp_path / "params.npz"), "--frames", "4"])
     assert "--start/--stride/--frames" in capsys.readouterr().err
+
+
+def test_a_7scenes_sequence_rewritten_in_tums_layout_reads_back_the_same(tmp_path):
+    """``bench/as_tum.py``: TUM's files (PNG, 5000 per metre, own time stamps, a missing depth image, poses on 2
+    of 3 frames) read back as the same frames: colour, depth in metres, and poses, interpolated where absent."""
+    import sys
+
+    bench = os.path.join(os.path.dirname(__file__), "..", "..", "..", "bench")
+    sys.path.insert(0, bench)
+    try:
+        import as_tum
+    finally:
+        sys.path.remove(bench)
+    src, out = str(tmp_path / "seq"), str(tmp_path / "tum")
+    write_7scenes(src, n=6)
+    assert as_tum.main([src, out, "--drop-depth", "3"]) == 0
+    assert detect_layout(out) == "tum"
+    k = Intrinsics(64, 48, 58.5, 58.5, 32.0, 24.0)
+    a, b = load_dataset(src, intrinsics=k, colour_calib="none"), load_dataset(out, intrinsics=k)  # colour as recorded
+    assert len(b) == 5  # frame 3's colour has no depth within 0.02 s: left out
+    for j, i in enumerate([0, 1, 2, 4, 5]):
+        fa, fb = a[i], b[j]
+        np.testing.assert_array_equal(fb.rgb, fa.rgb)
+        np.testing.assert_allclose(fb.depth, fa.depth, atol=1e-6)  # 65535 ("none" in 7-Scenes) stays none
+        assert fb.depth[0, 1] == 0
+        np.testing.assert_allclose(fb.gt_c2w, fa.gt_c2w, atol=2e-3)  # frames 1 and 4 interpolated between poses
+    assert as_tum.main([str(tmp_path / "nothing"), out]) == 2
