@@ -140,6 +140,10 @@ class TrackingConfig:
     # trusted) at the scale max(1 cm, this * z^2) of its point-to-plane residual: a depth sensor's noise grows with
     # z^2 (a Kinect's, between two frames, about 0.002 z^2), so far points no longer read as disagreement. Chosen on
     # kitchen frames 0-249 (0, 0.002, 0.003, 0.005); 0: 1 cm everywhere
+    frontend_trust_z2_per_roughness: float = 2.5  # "keyframe": against a reference whose depth roughness is r
+    # (frontend_noisy_roughness), a frame's trust test (agreement) takes the z^2 scale max(frontend_sigma_geo_z2,
+    # this * r): a noisier camera is judged at its own noise; the pose is the same. A Kinect v1 (0.0007) stays at
+    # 0.002; three times its noise (0.0036) reads at 0.009. Chosen on kitchen frames 0-249; 0: off
     frontend_model_smoothing: int = 1  # "keyframe": the reference depth averaged over this odd window (over
     # neighbours within 5 % of the centre's depth: no blur across edges; 1: raw), for every keyframe
     frontend_noisy_smoothing: int = 3  # "keyframe": ... and over this odd window for a keyframe whose depth is
@@ -188,6 +192,9 @@ class TrackingConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1 or v % 2 == 0:
                 raise ConfigError(f"tracking.{name} must be an odd window >= 1, got {v!r}")
+        if not (math.isfinite(self.frontend_trust_z2_per_roughness) and self.frontend_trust_z2_per_roughness >= 0):
+            raise ConfigError(f"tracking.frontend_trust_z2_per_roughness must be a finite number >= 0, got "
+                              f"{self.frontend_trust_z2_per_roughness!r}")
         if not (math.isfinite(self.frontend_noisy_roughness) and self.frontend_noisy_roughness >= 0):
             raise ConfigError(f"tracking.frontend_noisy_roughness must be a finite number >= 0, got "
                               f"{self.frontend_noisy_roughness!r}")

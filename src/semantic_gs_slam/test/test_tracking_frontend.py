@@ -135,7 +135,8 @@ def test_noisy_far_depth_agrees_at_its_own_scale(scene):
         noisy.append(np.where(depth > 0, depth + rng.standard_normal(depth.shape) * 0.0025 * depth ** 2, 0.0))
     res = {}
     for z2 in (0.0, FrontendConfig().sigma_geo_z2):
-        cfg = replace(CFG, sigma_geo_z2=z2, photometric_weight=0.0, noisy_roughness=0.0)  # raw: the scale alone
+        cfg = replace(CFG, sigma_geo_z2=z2, photometric_weight=0.0, noisy_roughness=0.0,  # raw: the scale alone
+                      trust_z2_per_roughness=0.0)
         res[z2] = track(prepare_live(noisy[1], k, cfg), build_reference(noisy[0], poses[0], k, cfg), poses[0], cfg)
     fixed, scaled = res[0.0].quality, res[FrontendConfig().sigma_geo_z2].quality
     assert not fixed.trusted and "agreement" in fixed.reason, fixed
@@ -182,7 +183,7 @@ def test_a_noisy_reference_is_smoothed_and_tracks_closer(scene):
         n0, n3 = (np.where(d > 0, d + rng.standard_normal(d.shape) * 0.01 * d ** 2, 0.0) for d in (d0, d3))
         res = {}
         for rough in (0.0, FrontendConfig().noisy_roughness):
-            cfg = replace(CFG, photometric_weight=0.0, noisy_roughness=rough)
+            cfg = replace(CFG, photometric_weight=0.0, noisy_roughness=rough, trust_z2_per_roughness=0.0)
             model = build_reference(n0, poses[0], k, cfg)
             assert model.smoothing == (1 if rough == 0.0 else 3) and (model.roughness > rough) == (rough > 0)
             res[rough] = (track(prepare_live(n3, k, cfg), model, poses[0], cfg), model)
@@ -196,6 +197,33 @@ def test_a_noisy_reference_is_smoothed_and_tracks_closer(scene):
         build_reference(d0, poses[0], k, replace(CFG, noisy_smoothing=2))
     with pytest.raises(ConfigError, match="noisy_roughness"):
         build_reference(d0, poses[0], k, replace(CFG, noisy_roughness=float("nan")))
+
+
+@pytest.mark.parametrize("backend", ["numpy", pytest.param("numba", marks=needs_numba)])
+def test_a_noisy_camera_is_trusted_at_its_own_noise_with_the_same_pose(scene, backend):
+    """Both frames with noise 0.006 z^2 (about three times a Kinect's), raw references, the association gate
+    widened (15 cm) so that the trust tolerance decides: at the fixed z^2 scale the frame reads as lost
+    (agreement); with the trust test at the reference's roughness (the default) it is trusted. Only the test
+    changes: the pose is the same to the last bit, and a clean reference keeps the fixed scale."""
+    k, poses, views = scene
+    d0, d3 = views[0][1], views[3][1]
+    rng = np.random.default_rng(5)
+    n0, n3 = (np.where(d > 0, d + rng.standard_normal(d.shape) * 0.006 * d ** 2, 0.0) for d in (d0, d3))
+    res = {}
+    for c in (0.0, FrontendConfig().trust_z2_per_roughness):
+        cfg = replace(CFG, backend=backend, photometric_weight=0.0, trust_z2_per_roughness=c, noisy_roughness=0.0,
+                      max_dist=(0.15, 0.2, 0.3))
+        res[c] = track(prepare_live(n3, k, cfg), build_reference(n0, poses[0], k, cfg), poses[0], cfg)
+    fixed, own = res[0.0], res[FrontendConfig().trust_z2_per_roughness]
+    assert not fixed.quality.trusted and "agreement" in fixed.quality.reason, fixed.quality
+    assert own.quality.trusted and own.quality.agreement > fixed.quality.agreement + 0.08, own.quality
+    np.testing.assert_array_equal(own.c2w, fixed.c2w)
+    assert pose_error(own.c2w, poses[3])[0] < 0.02
+    clean = replace(CFG, backend=backend)
+    model = build_reference(d0, poses[0], k, clean)
+    assert clean.trust_z2_per_roughness * model.roughness < clean.sigma_geo_z2  # a clean view: the fixed scale
+    with pytest.raises(ConfigError, match="trust_z2_per_roughness"):
+        build_reference(d0, poses[0], k, replace(CFG, trust_z2_per_roughness=-1.0))
 
 
 def test_a_lone_plane_is_ill_conditioned():

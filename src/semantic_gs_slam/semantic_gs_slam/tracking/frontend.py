@@ -71,6 +71,10 @@ class FrontendConfig:
     depth_max: float = 4.0
     model_smoothing: int = 1  # the reference depth is averaged over this window (odd; 1: off), over neighbours
     # within depth_jump of the centre only (no blur across edges): sensor depth as a stand-in for a rendered map
+    trust_z2_per_roughness: float = 2.5  # the trust test (agreement) of a frame tracked against a reference whose
+    # depth_roughness() is r judges its points at max(sigma_geo_z2, this * r) z^2 instead of sigma_geo_z2 z^2: a
+    # noisier camera's residuals at its own noise (the weights, and so the pose, are unchanged). A Kinect v1
+    # (r 0.0007) stays at sigma_geo_z2; 0: off
     noisy_smoothing: int = 3  # ... and over this window (odd; 1: never) when the depth is rougher than:
     noisy_roughness: float = 0.0015  # 1/m; depth_roughness() above which a reference counts as noisy (0: never). A
     # Kinect v1 at 320 x 240 reads 0.0007, with its noise added once more 0.0014, twice 0.0025 (kitchen, 0-499)
@@ -102,6 +106,9 @@ class FrontendConfig:
         for name in ("model_smoothing", "noisy_smoothing"):
             if getattr(self, name) < 1 or getattr(self, name) % 2 == 0:
                 raise ConfigError(f"{name} must be an odd window >= 1, got {getattr(self, name)}")
+        if not (math.isfinite(self.trust_z2_per_roughness) and self.trust_z2_per_roughness >= 0):
+            raise ConfigError(f"trust_z2_per_roughness must be a finite number >= 0, got "
+                              f"{self.trust_z2_per_roughness}")
         if not (math.isfinite(self.noisy_roughness) and self.noisy_roughness >= 0):
             raise ConfigError(f"noisy_roughness must be a finite number >= 0, got {self.noisy_roughness}")
         if self.normal_radius < 1:
@@ -380,11 +387,12 @@ def build_reference(depth: np.ndarray, c2w: np.ndarray, k: Intrinsics, cfg: Fron
     d = np.where((d >= cfg.depth_min) & (d <= cfg.depth_max), d, 0.0)
     window, rough = cfg.model_smoothing, 0.0
     fast = _use_numba(cfg)
-    if cfg.noisy_roughness > 0 and cfg.noisy_smoothing > window:
+    smooth_noisy = cfg.noisy_roughness > 0 and cfg.noisy_smoothing > window
+    if smooth_noisy or cfg.trust_z2_per_roughness > 0:
         rough = (_fast().depth_roughness(np.ascontiguousarray(d), float(cfg.depth_jump), ROUGHNESS_MIN_PIXELS) if fast
                  else depth_roughness(d, cfg.depth_jump, ROUGHNESS_MIN_PIXELS))
-        if rough > cfg.noisy_roughness:
-            window = cfg.noisy_smoothing
+    if smooth_noisy and rough > cfg.noisy_roughness:
+        window = cfg.noisy_smoothing
     d = _smooth_depth(d, window, cfg.depth_jump)
     r, t = c2w[:3, :3], c2w[:3, 3]
     levels = []
@@ -631,8 +639,9 @@ def track(live: LiveFrame, model: ReferenceModel, guess_c2w: np.ndarray, cfg: Fr
     order = list(reversed(range(cfg.levels))) if levels is None else list(levels)
     if not order:
         raise ConfigError("track needs at least one pyramid level to run")
+    score_z2 = max(cfg.sigma_geo_z2, cfg.trust_z2_per_roughness * model.roughness)  # the trust test's scale
     if _use_numba(cfg):  # every level and the score in one compiled call (frontend_numba.icp_track)
-        return _track_fast(live, model, guess, guess_inv, np.diagonal(prior_w).copy(), order, cfg)
+        return _track_fast(live, model, guess, guess_inv, np.diagonal(prior_w).copy(), order, cfg, score_z2)
     sums = normal_equations_reference
     est = guess.copy()
     steps = 0
@@ -654,14 +663,15 @@ def track(live: LiveFrame, model: ReferenceModel, guess_c2w: np.ndarray, cfg: Fr
                 break
     last = order[-1]  # scored at the final estimate on the last level
     a, _, st = sums(est, live.points[last], live.valid[last], live.intensity if last == 0 else None,
-                    model.levels[last], model.w2c, cfg.max_dist[last], cfg, last == 0)
+                    model.levels[last], model.w2c, cfg.max_dist[last],
+                    cfg if score_z2 == cfg.sigma_geo_z2 else replace(cfg, sigma_geo_z2=score_z2), last == 0)
     n_live = max(int(live.valid[last].sum()), 1)
     q = _quality(a, st, n_live, cfg)
     return TrackResult(est, q, steps, model.keyframe_id)
 
 
 def _track_fast(live: LiveFrame, model: ReferenceModel, guess: np.ndarray, guess_inv: np.ndarray,
-                prior_diag: np.ndarray, order: list[int], cfg: FrontendConfig) -> TrackResult:
+                prior_diag: np.ndarray, order: list[int], cfg: FrontendConfig, score_z2: float) -> TrackResult:
     """:func:`track`'s levels and score in one compiled call (:func:`~semantic_gs_slam.tracking.frontend_numba.
     icp_track`): the GIL is let go once per frame, not once per level and once for the score
     (``bench/frontend_gil.py``)."""
@@ -679,7 +689,7 @@ def _track_fast(live: LiveFrame, model: ReferenceModel, guess: np.ndarray, guess
         np.array(cfg.max_dist, np.float64), float(cfg.sigma_geo), float(cfg.sigma_geo_z2), photometric,
         float(cfg.sigma_col),
         float(cfg.photometric_weight), np.array(cfg.iters, np.int64), float(cfg.min_step), np.array(order, np.int64),
-        a, b, st)
+        a, b, st, float(score_z2))
     return TrackResult(est, _quality(a, st, max(int(n_live), 1), cfg), int(steps), model.keyframe_id)
 
 

@@ -75,7 +75,8 @@ class KeyframeTracking:
                                       sigma_geo_z2=self.cfg.tracking.frontend_sigma_geo_z2,
                                       model_smoothing=self.cfg.tracking.frontend_model_smoothing,
                                       noisy_smoothing=self.cfg.tracking.frontend_noisy_smoothing,
-                                      noisy_roughness=self.cfg.tracking.frontend_noisy_roughness)
+                                      noisy_roughness=self.cfg.tracking.frontend_noisy_roughness,
+                                      trust_z2_per_roughness=self.cfg.tracking.frontend_trust_z2_per_roughness)
         ds = self.cfg.tracking.frontend_downsample
         if ds == 0:  # auto: halve while the image stays at least AUTO_MIN_WIDTH wide
             ds = 1
