@@ -32,7 +32,8 @@ import time
 
 import numpy as np
 
-from semantic_gs_slam.config import PROFILES, SlamConfig
+from semantic_gs_slam.config import PROFILES, Intrinsics, SlamConfig
+from semantic_gs_slam.errors import ConfigError
 from semantic_gs_slam.eval.evaluate import evaluate
 from semantic_gs_slam.eval.metrics import ate_rmse, rpe_rmse
 from semantic_gs_slam.geometry import pose_error, umeyama_rigid
@@ -228,6 +229,11 @@ def main() -> int:
     ap.add_argument("--colour-calib", default="auto",
                     help="auto (the dataset's own or the layout's default), none (colour as recorded), or a file")
     args = ap.parse_args()
+    if args.config:  # a typo is named before any frame is read
+        try:
+            SlamConfig(intrinsics=Intrinsics(640, 480, 525.0, 525.0, 319.5, 239.5)).with_json(args.config)
+        except ConfigError as exc:
+            ap.error(f"--config: {exc}")
     if args.refine_seconds is None:  # the real-camera targets: the map judged 30 s after the last frame
         args.refine_seconds = REALTIME_REFINE_S if args.profile == "realtime" and args.refine_iters <= 0 else 0.0
     if args.refine_poses and args.refine_iters <= 0 and args.refine_seconds <= 0:

@@ -71,13 +71,13 @@ class FrontendConfig:
     depth_max: float = 4.0
     model_smoothing: int = 1  # the reference depth is averaged over this window (odd; 1: off), over neighbours
     # within depth_jump of the centre only (no blur across edges): sensor depth as a stand-in for a rendered map
+    noisy_smoothing: int = 3  # ... and over this window (odd; 1: never) when the depth is rougher than:
+    noisy_roughness: float = 0.0015  # 1/m; depth_roughness() above which a reference counts as noisy (0: never). A
+    # Kinect v1 at 320 x 240 reads 0.0007, with its noise added once more 0.0014, twice 0.0025 (kitchen, 0-499)
     trust_z2_per_roughness: float = 2.5  # the trust test (agreement) of a frame tracked against a reference whose
     # depth_roughness() is r judges its points at max(sigma_geo_z2, this * r) z^2 instead of sigma_geo_z2 z^2: a
     # noisier camera's residuals at its own noise (the weights, and so the pose, are unchanged). A Kinect v1
     # (r 0.0007) stays at sigma_geo_z2; 0: off
-    noisy_smoothing: int = 3  # ... and over this window (odd; 1: never) when the depth is rougher than:
-    noisy_roughness: float = 0.0015  # 1/m; depth_roughness() above which a reference counts as noisy (0: never). A
-    # Kinect v1 at 320 x 240 reads 0.0007, with its noise added once more 0.0014, twice 0.0025 (kitchen, 0-499)
     normal_radius: int = 2  # normals from central differences over this many pixels (finest level; 1 coarser)
     depth_jump: float = 0.05  # a neighbour more than this fraction of the depth away breaks the normal / pyramid cell
     min_correspondences: int = 200  # fewer at the finest level: lost
