@@ -193,6 +193,9 @@ def test_a_noisy_reference_is_smoothed_and_tracks_closer(scene):
         assert pose_error(raw.c2w, poses[3])[0] > 0.02
     clean = build_reference(d0, poses[0], k, CFG)  # a clean view stays raw
     assert clean.smoothing == 1 and clean.roughness < CFG.noisy_roughness
+    # a roughness already known (the same depth at a moved pose) is taken as given, not measured again
+    told = build_reference(d0, poses[3], k, CFG, roughness=0.01)
+    assert told.roughness == 0.01 and told.smoothing == 3
     with pytest.raises(ConfigError, match="noisy_smoothing"):
         build_reference(d0, poses[0], k, replace(CFG, noisy_smoothing=2))
     with pytest.raises(ConfigError, match="noisy_roughness"):

@@ -355,7 +355,7 @@ def _intensity(rgb: np.ndarray) -> np.ndarray:
 
 def build_reference(depth: np.ndarray, c2w: np.ndarray, k: Intrinsics, cfg: FrontendConfig,
                     rgb: np.ndarray | None = None, normals: np.ndarray | None = None,
-                    keyframe_id: int = -1) -> ReferenceModel:
+                    keyframe_id: int = -1, roughness: float | None = None) -> ReferenceModel:
     """The reference model of a keyframe view (depth rendered from the map, or a sensor depth as a stand-in).
 
     The depth is averaged over ``cfg.model_smoothing`` pixels, or over ``cfg.noisy_smoothing`` when its
@@ -371,6 +371,8 @@ def build_reference(depth: np.ndarray, c2w: np.ndarray, k: Intrinsics, cfg: Fron
         normals: [H, W, 3] camera-frame unit normals of the view (e.g. rendered), or None (from the depth).
             Used at the finest level; coarser levels take theirs from the depth.
         keyframe_id: the caller's id of the keyframe, carried into :class:`TrackResult`.
+        roughness: the depth's :func:`depth_roughness` when already known (a keyframe's reference rebuilt at a
+            moved pose: its depth is the same), or None (measured here when a setting needs it).
 
     Returns:
         :class:`ReferenceModel`.
@@ -388,7 +390,9 @@ def build_reference(depth: np.ndarray, c2w: np.ndarray, k: Intrinsics, cfg: Fron
     window, rough = cfg.model_smoothing, 0.0
     fast = _use_numba(cfg)
     smooth_noisy = cfg.noisy_roughness > 0 and cfg.noisy_smoothing > window
-    if smooth_noisy or cfg.trust_z2_per_roughness > 0:
+    if roughness is not None:
+        rough = float(roughness)
+    elif smooth_noisy or cfg.trust_z2_per_roughness > 0:
         rough = (_fast().depth_roughness(np.ascontiguousarray(d), float(cfg.depth_jump), ROUGHNESS_MIN_PIXELS) if fast
                  else depth_roughness(d, cfg.depth_jump, ROUGHNESS_MIN_PIXELS))
     if smooth_noisy and rough > cfg.noisy_roughness:

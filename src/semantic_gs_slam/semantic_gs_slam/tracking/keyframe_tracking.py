@@ -110,7 +110,8 @@ class KeyframeTracking:
         m = self._fe_models.get(index)
         if m is None or not np.allclose(m.c2w, c2w, atol=1e-9):
             v = self._fe_views[index]
-            m = build_reference(v.depth, c2w, self._fe_k, self._fe_cfg, rgb=v.rgb, keyframe_id=index)
+            m = build_reference(v.depth, c2w, self._fe_k, self._fe_cfg, rgb=v.rgb, keyframe_id=index,
+                                roughness=None if m is None else m.roughness)  # the same depth: measured once
             self._fe_models[index] = m
             self._fe_roughness = m.roughness
             if m.smoothing > self._fe_cfg.model_smoothing and index not in self._fe_noisy:
