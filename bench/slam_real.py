@@ -13,6 +13,7 @@ Usage (from the repository root; the data stays outside the repository, mind its
     python bench/slam_real.py <seq> --intrinsics 525,525,319.5,239.5 --depth-scale 5000     # any camera
     python bench/slam_real.py <seq> --depth-noise 2 --blur 1    # a noisier, blurrier camera (both trackers)
     python bench/slam_real.py <seq> --gain 0.3                  # exposure swinging by 30 % (both trackers)
+    python bench/slam_real.py <seq> --frames 500 --stride 1 --gap 250:90   # 3 s of a 30-Hz camera missing
 
 Runs our engine over the frames and prints the camera used (``--intrinsics``, ``--depth-scale``, ``--camera`` as for
 ``python -m semantic_gs_slam.run``), ATE RMSE (aligned), RPE, PSNR (all pixels, and SplaTAM's depth-masked
@@ -70,7 +71,8 @@ def lost_summary(stats: dict, idx: list[int]) -> tuple[str, str]:
                                                                    else "")
     detail = (f"lost at dataset frames {', '.join(at(n) for n in lost[:20])}{' ...' if len(lost) > 20 else ''}"
               f"{'; recovered (lost at -> recovered at): ' + spans if rec else '; none recovered'}") if lost else ""
-    return f"{len(lost)} / {len(rec)}", detail
+    rejoined = stats.get("rejoined_frames", 0)
+    return f"{len(lost)} / {len(rec)}" + (f" ({rejoined} lost frames re-posed in the map)" if rejoined else ""), detail
 
 
 def run_ours(ds, idx: list[int], args: argparse.Namespace) -> dict:
@@ -225,6 +227,9 @@ def main() -> int:
     ap.add_argument("--gain", type=float, default=0.0,
                     help="swing each frame's exposure: colour times 1 + G sin(2 pi i / 60) for recorded frame i (an "
                          "auto-exposure changing its mind every 2 s at 30 Hz; 0: as recorded)")
+    ap.add_argument("--gap", action="append", default=[], metavar="FIRST:COUNT",
+                    help="leave out COUNT recorded frames from dataset frame FIRST on (a stream that stalled; both "
+                         "trackers; may be repeated)")
     ap.add_argument("--quiet", action="store_true", help="no per-frame lines")
     ap.add_argument("--colour-calib", default="auto",
                     help="auto (the dataset's own or the layout's default), none (colour as recorded), or a file")
@@ -248,6 +253,18 @@ def main() -> int:
         ds = DegradedDataset(ds, args.depth_noise, args.blur, args.gain)
         print(f"frames degraded: {ds.describe()}")
     idx = frame_indices(len(ds), args.start, args.stride, args.frames)
+    for gap in args.gap:
+        try:
+            first, count = (int(v) for v in gap.split(":"))
+        except ValueError:
+            ap.error(f"--gap {gap!r}: expected FIRST:COUNT, two integers")
+        if first < 0 or count < 1:
+            ap.error(f"--gap {gap!r}: need FIRST >= 0 and COUNT >= 1")
+        left = [i for i in idx if not first <= i < first + count]
+        if len(left) < 2:
+            ap.error(f"--gap {gap!r} leaves fewer than 2 frames")
+        print(f"gap: dataset frames {first}..{first + count - 1} left out ({len(idx) - len(left)} of the selected)")
+        idx = left
     if ds.poses is None:
         print("the sequence has no reference poses: ATE cannot be computed", file=sys.stderr)
         return 2

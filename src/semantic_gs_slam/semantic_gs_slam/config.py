@@ -156,6 +156,10 @@ class TrackingConfig:
     relocalise_candidates: int = 3  # keyframes tried per relocalisation: the best ranked by a 20x15 thumbnail of
     # depth and intensity (cheap), plus the one nearest the last trusted pose
     relocalise_confirm: int = 2  # trusted frames in a row (the relocalised one first) before mapping resumes
+    lost_segment: bool = True  # "keyframe": lost frames are tracked among themselves from the first one's guessed
+    # pose (their pose follows the camera instead of staying at the last trusted one, and is one more relocalisation
+    # guess); once the map takes the camera back, the whole lost stretch is moved into the map's frame. Lost frames
+    # are still not mapped
     relocalise_map_refine: bool = True  # "keyframe": a relocalised frame and the frames confirming it are refined by
     # the "render" front end's ICP against the map rendered at their pose (the map holds more of the scene than the
     # one keyframe they were relocalised against; a mapping thread finishes its job first). On the kitchen, after a

@@ -330,6 +330,8 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
                 if not np.array_equal(self.poses[ref_idx], ref_c2w):
                     c2w = self.poses[ref_idx] @ np.linalg.inv(ref_c2w) @ c2w
             self.poses.append(np.asarray(c2w, np.float64))
+        if source == "recovered":
+            self._fe_rejoin(idx)  # a lost segment relocalised: re-posed in the map's frame (tracking.lost_segment)
         self.gt_poses.append(gt)
         self.odom_poses.append(odom)
         self.timestamps.append(float(idx if timestamp is None else timestamp))
@@ -951,4 +953,5 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
                 "dropped": list(self.dropped_jobs), "deferred_keyframes": self.deferred_keyframes,
                 "backlog": len(self.backlog), "caught_up": self.caught_up,
                 "noisy_references": len(self._fe_noisy), "reference_roughness": self._fe_roughness,
+                "rejoined_frames": self.rejoined_frames,
                 "last": asdict(self.logs[-1]) if self.logs else None}

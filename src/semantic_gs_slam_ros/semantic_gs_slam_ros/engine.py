@@ -96,14 +96,17 @@ class EngineAdapter:
     def run_note(self) -> str:
         """What the engine did with the frames it was given (the session logs it at the end of a run): frames
         tracked, keyframes, keyframes deferred while the mapping thread was busy (``mapping.defer_keyframes``) and
-        what became of them, frames lost, map updates dropped by a full queue, and keyframes whose depth read as a
-        noisy camera's (smoothed before tracking against them: ``tracking.frontend_noisy_roughness``)."""
+        what became of them, frames lost (and how many of them were re-posed in the map once it took the camera back:
+        ``tracking.lost_segment``), map updates dropped by a full queue, and keyframes whose depth read as a noisy
+        camera's (smoothed before tracking against them: ``tracking.frontend_noisy_roughness``)."""
         s = self.slam.stats()
+        rejoined = f" ({s['rejoined_frames']} re-posed in the map once recovered)" if s["rejoined_frames"] else ""
         noisy = (f", {s['noisy_references']} keyframes' depth smoothed as a noisy camera's (roughness "
                  f"{s['reference_roughness']:.4f} /m)" if s["noisy_references"] else "")
         return (f"{s['frames']} frames tracked, {s['keyframes']} keyframes, {s['deferred_keyframes']} keyframes "
                 f"deferred while mapping was busy ({s['backlog']} kept for the refinement, {s['caught_up']} mapped "
-                f"by it), {len(s['lost_frames'])} frames lost, {len(s['dropped'])} map updates dropped{noisy}")
+                f"by it), {len(s['lost_frames'])} frames lost{rejoined}, {len(s['dropped'])} map updates "
+                f"dropped{noisy}")
 
     def frame_report(self) -> tuple[bool, bool, str]:
         """(tracking lost, drift corrected, loop-closure note) of the last frame: what the session reports and

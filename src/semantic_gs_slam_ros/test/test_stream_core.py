@@ -565,6 +565,9 @@ def test_engine_adapter_reports_the_engines_last_frame():
     depth = (2.0 + 0.02 * rng.standard_normal((48, 64))).astype(np.float32)
     noisy.add_frame(np.full((48, 64, 3), 128, np.uint8), depth, None, 0.0)
     assert "1 keyframes' depth smoothed as a noisy camera's (roughness 0.00" in noisy.run_note(), noisy.run_note()
+    assert "re-posed" not in noisy.run_note()
+    noisy.slam.rejoined_frames = 3  # as after a lost stretch re-posed on recovery (test_recovery_real.py runs one)
+    assert "0 frames lost (3 re-posed in the map once recovered)" in noisy.run_note(), noisy.run_note()
 
 
 def _short_fits(cfg):

@@ -12,6 +12,14 @@ then every ``tracking.relocalise_every``-th) against the keyframes ranked by a t
 the one nearest the last trusted pose, from their poses and perturbed guesses that widen when the near ones fail. A
 relocalised pose must then be trusted on ``tracking.relocalise_confirm`` frames in a row before mapping resumes; a
 frame that fails meanwhile is lost again.
+
+While lost (``tracking.lost_segment``), the lost frames are tracked among themselves: a *lost segment* starts at the
+first lost frame, posed at the guess it had (constant velocity, or the odometry's), and each next lost frame is
+tracked against the segment's latest reference frame. Its pose is then the segment's (the camera's motion since the
+loss, from a guessed start) instead of the frozen last pose, and it is one more guess for relocalisation. When the
+map takes the camera back (recovered), the whole segment is moved by the one rigid correction that puts its
+relocalised frame on its relocalised pose: the lost stretch is re-posed in the map's frame. Lost frames are still not
+mapped.
 """
 
 from __future__ import annotations
@@ -49,6 +57,15 @@ class KeyframeView:
     depth: np.ndarray  # [H, W] float64 metres
     rgb: np.ndarray  # [H, W, 3] float64 in [0, 1]
     thumb: np.ndarray  # [2, 15, 20] depth (m) and intensity at a coarse grid
+
+
+@dataclass
+class LostSegment:
+    """Lost frames tracked among themselves (tracking thread only): poses in ``SLAM.poses`` hang from the first
+    frame's guessed pose."""
+
+    frames: list[int]  # the segment's frames, in order (the last one tracked into it last)
+    ref: ReferenceModel  # the latest reference frame, at its segment pose
 
 
 def thumbnail(depth: np.ndarray, rgb: np.ndarray) -> np.ndarray:
@@ -94,6 +111,10 @@ class KeyframeTracking:
         self._fe_prev: tuple[int, np.ndarray, np.ndarray] | None = None  # the last frame tracked (index, depth, rgb)
         self._fe_noisy: set[int] = set()  # keyframes whose reference depth was smoothed as noisy
         self._fe_roughness = 0.0  # depth_roughness of the last reference built (1/m; 0: not measured)
+        self._fe_segment: LostSegment | None = None  # lost frames tracked among themselves (tracking.lost_segment)
+        self._fe_join: tuple[int, np.ndarray, list[int]] | None = None  # relocalised: (its frame, its segment pose,
+        # the segment's earlier frames), joined to the map when recovered
+        self.rejoined_frames = 0  # lost frames re-posed in the map's frame by a recovery (stats())
 
     def _fe_frame(self, depth: np.ndarray, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The front end's copy of a frame ([H, W] metres, [H, W, 3] in [0, 1]): float64, halved
@@ -173,6 +194,54 @@ class KeyframeTracking:
                      self._fe_ref_idx, reason)
         return res
 
+    def _fe_segment_track(self, idx: int, live: LiveFrame, depth: np.ndarray, rgb: np.ndarray,
+                          odom_guess: np.ndarray | None, first_guess: np.ndarray | None) -> np.ndarray:
+        """Lost frame ``idx``'s pose in the lost segment (:class:`LostSegment`): tracked against the segment's
+        reference when the frame before it is the segment's last (from the odometry's guess, else constant velocity
+        within the segment); otherwise, or when that is not trusted, a new segment starts at ``idx``, posed at
+        ``first_guess`` (the first lost frame's tracking guess) or the previous pose."""
+        fe = self._fe_cfg
+        seg = self._fe_segment
+        with self._poses_lock:
+            prev = self.poses[-1].copy()
+            prev2 = self.poses[-2].copy() if len(self.poses) >= 2 else prev
+        if seg is not None and seg.frames[-1] == idx - 1:
+            guess = odom_guess if odom_guess is not None else \
+                prev @ (np.linalg.inv(prev2) @ prev) if len(seg.frames) >= 2 else prev
+            res = track(live, seg.ref, guess, fe)
+            if not res.quality.trusted and guess is not prev:
+                res = track(live, seg.ref, prev, fe)
+            if res.quality.trusted:
+                seg.frames.append(idx)
+                if res.quality.coverage < self.cfg.tracking.frontend_new_keyframe_coverage:
+                    seg.ref = build_reference(depth, res.c2w, self._fe_k, fe, rgb=rgb, keyframe_id=idx,
+                                              roughness=seg.ref.roughness)
+                return res.c2w
+            log.info("frame %d: not tracked in the lost segment of frames %d..%d (%s); a new segment starts",
+                     idx, seg.frames[0], seg.frames[-1], res.quality.reason)
+        start = first_guess if first_guess is not None else (odom_guess if odom_guess is not None else prev)
+        self._fe_segment = LostSegment([idx], build_reference(depth, start, self._fe_k, fe, rgb=rgb,
+                                                               keyframe_id=idx, roughness=self._fe_roughness or None))
+        return start
+
+    def _fe_rejoin(self, idx: int) -> None:
+        """Frame ``idx`` recovered: move the lost segment that was relocalised (``_fe_join``) by the correction that
+        puts its relocalised frame's segment pose on that frame's pose now (refined on the map, possibly)."""
+        join, self._fe_join = self._fe_join, None
+        if join is None:
+            return
+        at, seg_pose, frames = join
+        with self._poses_lock:
+            corr = self.poses[at] @ np.linalg.inv(seg_pose)
+            moved = 0.0
+            for j in frames:
+                new = corr @ self.poses[j]
+                moved = max(moved, float(np.linalg.norm(new[:3, 3] - self.poses[j][:3, 3])))
+                self.poses[j] = new
+        self.rejoined_frames += len(frames)
+        log.warning("frame %d: lost frames %d..%d (%d) re-posed in the map's frame (moved up to %.0f cm)", idx,
+                    frames[0], frames[-1], len(frames), 100 * moved)
+
     def _track_keyframe(self, idx: int, rgb: np.ndarray, depth: np.ndarray, odom_guess: np.ndarray | None = None
                         ) -> tuple[np.ndarray, float, int, bool, str, float]:
         """Track frame ``idx`` ([H, W, 3] in [0, 1], [H, W] metres, both float64) from ``odom_guess`` (the last pose
@@ -190,6 +259,7 @@ class KeyframeTracking:
             prev2 = self.poses[-2].copy() if len(self.poses) >= 2 else prev
         live = prepare_live(depth, self._fe_k, fe, rgb)
         res: TrackResult | None = None
+        first_guess = None  # the first lost frame's tracking guess (where a lost segment starts)
         if self._fe_state != "lost":
             guess = odom_guess if odom_guess is not None else \
                 prev if self._fe_after_reloc else prev @ (np.linalg.inv(prev2) @ prev)
@@ -219,6 +289,11 @@ class KeyframeTracking:
             if self._fe_state == "tracking":
                 self._fe_lost_at = idx
             self._fe_state = "lost"
+            self._fe_join = None  # a relocalisation not confirmed: its segment is not joined
+            self._fe_segment = None
+            first_guess = guess
+        seg_pose = self._fe_segment_track(idx, live, depth, rgb, odom_guess, first_guess) \
+            if tc.lost_segment else None
         tries = (idx - self._fe_lost_at) // tc.relocalise_every
         if (idx - self._fe_lost_at) % tc.relocalise_every == 0 and self._fe_views:
             cands = self._fe_candidates(thumbnail(depth, rgb))
@@ -229,7 +304,8 @@ class KeyframeTracking:
             # degrees from the nearest keyframe); later tries go straight to the farther ones
             for wide in ((False, True) if tries == 0 else (True,)):
                 try:
-                    r = relocalise(live, [self._fe_model(i) for i in cands], fe, extra_guesses=[last],
+                    r = relocalise(live, [self._fe_model(i) for i in cands], fe,
+                                   extra_guesses=[last] if seg_pose is None else [last, seg_pose],
                                    angles_deg=(10.0, 20.0) if wide else (10.0,),
                                    shifts_m=(0.1, 0.25) if wide else (0.1,))
                     break
@@ -242,12 +318,17 @@ class KeyframeTracking:
                 self._fe_after_reloc = True
                 self._fe_confirmed = 1
                 q = r.quality
+                if seg_pose is not None and len(self._fe_segment.frames) > 1:  # joined to the map once recovered
+                    self._fe_join = (idx, seg_pose, self._fe_segment.frames[:-1])  # (SLAM.add_frame: _fe_rejoin)
+                self._fe_segment = None
                 if self._fe_confirmed >= tc.relocalise_confirm:
                     self._fe_state = "tracking"
                     return r.c2w, q.residual, q.correspondences, False, "recovered", q.coverage
                 self._fe_state = "confirming"
-                log.warning("frame %d: relocalised against the keyframe of frame %d; confirming", idx, r.keyframe_id)
+                log.warning("frame %d: relocalised against the keyframe of frame %d (coverage %.2f, agreement %.2f); "
+                            "confirming", idx, r.keyframe_id, q.coverage, q.agreement)
                 return r.c2w, q.residual, q.correspondences, False, "relocalised", q.coverage
         q = res.quality if res is not None else None
-        return (prev, float("nan") if q is None else q.residual, 0 if q is None else q.correspondences, True, "lost",
+        return (prev if seg_pose is None else seg_pose, float("nan") if q is None else q.residual,
+                0 if q is None else q.correspondences, True, "lost",
                 float("nan") if q is None else q.coverage)
