@@ -15,8 +15,9 @@ frame that fails meanwhile is lost again.
 
 While lost (``tracking.lost_segment``), the lost frames are tracked among themselves: a *lost segment* starts at the
 first lost frame, posed at the guess it had (constant velocity, or the odometry's), and each next lost frame is
-tracked against the segment's latest reference frame. Its pose is then the segment's (the camera's motion since the
-loss, from a guessed start) instead of the frozen last pose, and it is one more guess for relocalisation. When the
+tracked against the segment's latest reference frame (a frame it does not track goes on from the constant-velocity
+guess and becomes the reference). Its pose is then the segment's (the camera's motion since the loss, from a guessed
+start) instead of the frozen last pose, and it is one more guess for relocalisation. When the
 map takes the camera back (recovered), the whole segment is moved by the one rigid correction that puts its
 relocalised frame on its relocalised pose: the lost stretch is re-posed in the map's frame. Lost frames are still not
 mapped.
@@ -196,33 +197,38 @@ class KeyframeTracking:
 
     def _fe_segment_track(self, idx: int, live: LiveFrame, depth: np.ndarray, rgb: np.ndarray,
                           odom_guess: np.ndarray | None, first_guess: np.ndarray | None) -> np.ndarray:
-        """Lost frame ``idx``'s pose in the lost segment (:class:`LostSegment`): tracked against the segment's
-        reference when the frame before it is the segment's last (from the odometry's guess, else constant velocity
-        within the segment); otherwise, or when that is not trusted, a new segment starts at ``idx``, posed at
-        ``first_guess`` (the first lost frame's tracking guess) or the previous pose."""
+        """Lost frame ``idx``'s pose in the lost segment (:class:`LostSegment`), tracked against the segment's
+        reference from the odometry's guess, else constant velocity within the segment (then from the previous
+        pose). The first lost frame starts a segment at ``first_guess`` (its tracking guess). A frame the segment does
+        not track goes on the same segment at that guess, from itself as the new reference: the chain then holds to
+        about one frame's motion, where a segment started afresh would keep its guessed frame for good."""
         fe = self._fe_cfg
         seg = self._fe_segment
         with self._poses_lock:
             prev = self.poses[-1].copy()
             prev2 = self.poses[-2].copy() if len(self.poses) >= 2 else prev
-        if seg is not None and seg.frames[-1] == idx - 1:
-            guess = odom_guess if odom_guess is not None else \
-                prev @ (np.linalg.inv(prev2) @ prev) if len(seg.frames) >= 2 else prev
-            res = track(live, seg.ref, guess, fe)
-            if not res.quality.trusted and guess is not prev:
-                res = track(live, seg.ref, prev, fe)
-            if res.quality.trusted:
-                seg.frames.append(idx)
-                if res.quality.coverage < self.cfg.tracking.frontend_new_keyframe_coverage:
-                    seg.ref = build_reference(depth, res.c2w, self._fe_k, fe, rgb=rgb, keyframe_id=idx,
-                                              roughness=seg.ref.roughness)
-                return res.c2w
-            log.info("frame %d: not tracked in the lost segment of frames %d..%d (%s); a new segment starts",
-                     idx, seg.frames[0], seg.frames[-1], res.quality.reason)
-        start = first_guess if first_guess is not None else (odom_guess if odom_guess is not None else prev)
-        self._fe_segment = LostSegment([idx], build_reference(depth, start, self._fe_k, fe, rgb=rgb,
-                                                               keyframe_id=idx, roughness=self._fe_roughness or None))
-        return start
+        if seg is None or seg.frames[-1] != idx - 1:
+            start = first_guess if first_guess is not None else (odom_guess if odom_guess is not None else prev)
+            self._fe_segment = LostSegment([idx], build_reference(depth, start, self._fe_k, fe, rgb=rgb,
+                                                                   keyframe_id=idx,
+                                                                   roughness=self._fe_roughness or None))
+            return start
+        guess = odom_guess if odom_guess is not None else \
+            prev @ (np.linalg.inv(prev2) @ prev) if len(seg.frames) >= 2 else prev
+        res = track(live, seg.ref, guess, fe)
+        if not res.quality.trusted and guess is not prev:
+            res = track(live, seg.ref, prev, fe)
+        seg.frames.append(idx)
+        if res.quality.trusted:
+            pose = res.c2w
+            if res.quality.coverage >= self.cfg.tracking.frontend_new_keyframe_coverage:
+                return pose
+        else:
+            pose = guess
+            log.info("frame %d: not tracked in the lost segment of frames %d..%d (%s); it goes on from the guess",
+                     idx, seg.frames[0], idx - 1, res.quality.reason)
+        seg.ref = build_reference(depth, pose, self._fe_k, fe, rgb=rgb, keyframe_id=idx, roughness=seg.ref.roughness)
+        return pose
 
     def _fe_rejoin(self, idx: int) -> None:
         """Frame ``idx`` recovered: move the lost segment that was relocalised (``_fe_join``) by the correction that
