@@ -159,7 +159,8 @@ class TrackingConfig:
     lost_segment: bool = True  # "keyframe": lost frames are tracked among themselves from the first one's guessed
     # pose (their pose follows the camera instead of staying at the last trusted one, and is one more relocalisation
     # guess); once the map takes the camera back, the whole lost stretch is moved into the map's frame. Lost frames
-    # are still not mapped
+    # are not mapped as they come: once joined, the segment's views join the backlog the refinement maps
+    # (mapping.backlog_max > 0)
     relocalise_map_refine: bool = True  # "keyframe": a relocalised frame and the frames confirming it are refined by
     # the "render" front end's ICP against the map rendered at their pose (the map holds more of the scene than the
     # one keyframe they were relocalised against; a mapping thread finishes its job first). On the kitchen, after a

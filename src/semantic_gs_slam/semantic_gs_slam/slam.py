@@ -158,6 +158,7 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
         self.backlog: list[tuple[int, Tensor, Tensor, Tensor | None]] = []  # deferred frames kept for catch_up
         self._backlog_spacing = 1  # kept frames lie keyframe_every * this apart (doubles when the backlog fills)
         self.caught_up = 0  # deferred frames mapped by catch_up
+        self._lost_views: dict[int, tuple] = {}  # a lost segment's views (host frames), kept until it is joined or not
         self._lost_at: int | None = None
         self._worker: MappingWorker | None = None
         self._fe_init()
@@ -330,8 +331,10 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
                 if not np.array_equal(self.poses[ref_idx], ref_c2w):
                     c2w = self.poses[ref_idx] @ np.linalg.inv(ref_c2w) @ c2w
             self.poses.append(np.asarray(c2w, np.float64))
-        if source == "recovered":
-            self._fe_rejoin(idx)  # a lost segment relocalised: re-posed in the map's frame (tracking.lost_segment)
+        if source == "lost" and self._fe_segment is not None and self._fe_segment.views[-1] == idx:
+            self._keep_lost_view(idx, host)
+        elif source == "recovered":
+            self._join_lost_views(idx)
         self.gt_poses.append(gt)
         self.odom_poses.append(odom)
         self.timestamps.append(float(idx if timestamp is None else timestamp))
@@ -455,6 +458,31 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
             self.backlog = self.backlog[1::2]
             self._backlog_spacing *= 2
         self.backlog.append((idx, rgb_t, depth_t, sem_t))
+
+    def _keep_lost_view(self, idx: int, host: tuple[np.ndarray, np.ndarray, np.ndarray | None]) -> None:
+        """Keep lost frame ``idx``, a new view of the lost segment (tracking.lost_segment), until the segment is
+        joined to the map or dropped (a new segment forgets the old one's); with ``mapping.backlog_max`` 0, none. At
+        most ``backlog_max``: every second one is dropped when full."""
+        if self.cfg.mapping.backlog_max <= 0:
+            return
+        if self._fe_segment.frames[0] == idx:
+            self._lost_views.clear()
+        if len(self._lost_views) >= self.cfg.mapping.backlog_max:
+            self._lost_views = dict(list(self._lost_views.items())[1::2])
+        self._lost_views[idx] = host
+
+    def _join_lost_views(self, idx: int) -> None:
+        """Frame ``idx`` recovered: the lost segment it was relocalised from is re-posed in the map's frame
+        (:meth:`_fe_rejoin`) and its kept views join the backlog, mapped by :meth:`catch_up` (the refinement) at their
+        poses then, as deferred keyframes are."""
+        views = [v for v in self._fe_rejoin(idx) if v in self._lost_views]
+        for v in views:
+            self._keep_deferred(v, *self._device_frame(self._lost_views[v]))
+        if views:
+            self.backlog.sort(key=lambda b: b[0])
+            log.info("frame %d: %d views of the lost stretch kept for the refinement (frames %s)", idx, len(views),
+                     views)
+        self._lost_views.clear()
 
     def _defers(self) -> bool:
         """Whether keyframes are deferred while the mapping thread is busy (mapping.defer_keyframes, threaded)."""

@@ -19,8 +19,9 @@ tracked against the segment's latest reference frame (a frame it does not track 
 guess and becomes the reference). Its pose is then the segment's (the camera's motion since the loss, from a guessed
 start) instead of the frozen last pose, and it is one more guess for relocalisation. When the
 map takes the camera back (recovered), the whole segment is moved by the one rigid correction that puts its
-relocalised frame on its relocalised pose: the lost stretch is re-posed in the map's frame. Lost frames are still not
-mapped.
+relocalised frame on its relocalised pose: the lost stretch is re-posed in the map's frame. Lost frames are not mapped
+as they come; once joined, the segment's views (the frames that became its reference) join the backlog that the
+refinement maps (``SLAM._join_lost_views``).
 """
 
 from __future__ import annotations
@@ -67,6 +68,7 @@ class LostSegment:
 
     frames: list[int]  # the segment's frames, in order (the last one tracked into it last)
     ref: ReferenceModel  # the latest reference frame, at its segment pose
+    views: list[int]  # the frames that became its reference (new views: mapped once the segment is joined)
 
 
 def thumbnail(depth: np.ndarray, rgb: np.ndarray) -> np.ndarray:
@@ -113,8 +115,8 @@ class KeyframeTracking:
         self._fe_noisy: set[int] = set()  # keyframes whose reference depth was smoothed as noisy
         self._fe_roughness = 0.0  # depth_roughness of the last reference built (1/m; 0: not measured)
         self._fe_segment: LostSegment | None = None  # lost frames tracked among themselves (tracking.lost_segment)
-        self._fe_join: tuple[int, np.ndarray, list[int]] | None = None  # relocalised: (its frame, its segment pose,
-        # the segment's earlier frames), joined to the map when recovered
+        self._fe_join: tuple[int, np.ndarray, list[int], list[int]] | None = None  # relocalised: (its frame, its
+        # segment pose, the segment's earlier frames, their views), joined to the map when recovered
         self.rejoined_frames = 0  # lost frames re-posed in the map's frame by a recovery (stats())
 
     def _fe_frame(self, depth: np.ndarray, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -211,7 +213,7 @@ class KeyframeTracking:
             start = first_guess if first_guess is not None else (odom_guess if odom_guess is not None else prev)
             self._fe_segment = LostSegment([idx], build_reference(depth, start, self._fe_k, fe, rgb=rgb,
                                                                    keyframe_id=idx,
-                                                                   roughness=self._fe_roughness or None))
+                                                                   roughness=self._fe_roughness or None), [idx])
             return start
         guess = odom_guess if odom_guess is not None else \
             prev @ (np.linalg.inv(prev2) @ prev) if len(seg.frames) >= 2 else prev
@@ -228,15 +230,21 @@ class KeyframeTracking:
             log.info("frame %d: not tracked in the lost segment of frames %d..%d (%s); it goes on from the guess",
                      idx, seg.frames[0], idx - 1, res.quality.reason)
         seg.ref = build_reference(depth, pose, self._fe_k, fe, rgb=rgb, keyframe_id=idx, roughness=seg.ref.roughness)
+        seg.views.append(idx)
         return pose
 
-    def _fe_rejoin(self, idx: int) -> None:
+    def _fe_rejoin(self, idx: int) -> list[int]:
         """Frame ``idx`` recovered: move the lost segment that was relocalised (``_fe_join``) by the correction that
-        puts its relocalised frame's segment pose on that frame's pose now (refined on the map, possibly)."""
+        puts its relocalised frame's segment pose on that frame's pose now (refined on the map, possibly).
+
+        Returns:
+            The segment's views (frames that became its reference), now in the map's frame; [] when nothing was
+            joined.
+        """
         join, self._fe_join = self._fe_join, None
         if join is None:
-            return
-        at, seg_pose, frames = join
+            return []
+        at, seg_pose, frames, views = join
         with self._poses_lock:
             corr = self.poses[at] @ np.linalg.inv(seg_pose)
             moved = 0.0
@@ -247,6 +255,7 @@ class KeyframeTracking:
         self.rejoined_frames += len(frames)
         log.warning("frame %d: lost frames %d..%d (%d) re-posed in the map's frame (moved up to %.0f cm)", idx,
                     frames[0], frames[-1], len(frames), 100 * moved)
+        return views
 
     def _track_keyframe(self, idx: int, rgb: np.ndarray, depth: np.ndarray, odom_guess: np.ndarray | None = None
                         ) -> tuple[np.ndarray, float, int, bool, str, float]:
@@ -325,7 +334,8 @@ class KeyframeTracking:
                 self._fe_confirmed = 1
                 q = r.quality
                 if seg_pose is not None and len(self._fe_segment.frames) > 1:  # joined to the map once recovered
-                    self._fe_join = (idx, seg_pose, self._fe_segment.frames[:-1])  # (SLAM.add_frame: _fe_rejoin)
+                    seg = self._fe_segment  # (SLAM.add_frame: _fe_rejoin)
+                    self._fe_join = (idx, seg_pose, seg.frames[:-1], [v for v in seg.views if v != idx])
                 self._fe_segment = None
                 if self._fe_confirmed >= tc.relocalise_confirm:
                     self._fe_state = "tracking"
