@@ -7,6 +7,7 @@ is_bigendian, data), so it is unit-tested without ROS.
 from __future__ import annotations
 
 import sys
+from array import array as byte_array
 from typing import Any
 
 import numpy as np
@@ -58,7 +59,9 @@ def image_to_array(msg: Any) -> np.ndarray:
 
 
 def array_to_image_fields(array: np.ndarray, encoding: str) -> dict[str, Any]:
-    """Fields of a ``sensor_msgs/Image`` holding ``array`` (the client's streamer uses it)."""
+    """Fields of a ``sensor_msgs/Image`` holding ``array`` (the client's streamer uses it). ``data`` is an
+    ``array('B')``: a message takes one as it is, where it checks a ``bytes`` value element by element in Python
+    (5 ms for a 320 x 240 colour image, 6.5 ms for its float depth: a third of a core at 30 Hz)."""
     if encoding not in ENCODINGS:
         raise ImageFormatError(f"unsupported image encoding {encoding!r}")
     dtype, ch = ENCODINGS[encoding]
@@ -67,7 +70,7 @@ def array_to_image_fields(array: np.ndarray, encoding: str) -> dict[str, Any]:
         raise ImageFormatError(f"{encoding} needs {'[H, W]' if ch == 1 else f'[H, W, {ch}]'}, got {arr.shape}")
     h, w = arr.shape[:2]
     return {"height": h, "width": w, "encoding": encoding, "is_bigendian": sys.byteorder == "big",
-            "step": w * ch * dtype.itemsize, "data": arr.tobytes()}
+            "step": w * ch * dtype.itemsize, "data": byte_array("B", arr.tobytes())}
 
 
 def rgb_of(array: np.ndarray) -> np.ndarray:

@@ -36,6 +36,21 @@ def test_image_round_trip(encoding, shape, dtype):
     assert np.array_equal(image_to_array(msg(a, encoding)), a)
 
 
+def test_a_sensor_msgs_image_takes_the_fields_and_round_trips():
+    """The fields build a real ``sensor_msgs/Image``; ``data`` is an array('B'), which the message takes as it is
+    (a ``bytes`` value is checked element by element in Python: 5 ms for a 320 x 240 colour image)."""
+    import array
+
+    from sensor_msgs.msg import Image
+
+    a = (np.arange(240 * 320 * 3) % 250).reshape(240, 320, 3).astype(np.uint8)
+    fields = array_to_image_fields(a, "rgb8")
+    assert isinstance(fields["data"], array.array) and fields["data"].typecode == "B"
+    assert np.array_equal(image_to_array(Image(**fields)), a)
+    d = np.linspace(0.5, 4.0, 240 * 320, dtype=np.float32).reshape(240, 320)
+    assert np.array_equal(image_to_array(Image(**array_to_image_fields(d, "32FC1"))), d)
+
+
 def test_bgr_is_converted_and_row_padding_removed():
     rgb = np.random.default_rng(0).integers(0, 255, (3, 5, 3), dtype=np.uint8)
     bgr = rgb[..., ::-1]
