@@ -22,7 +22,8 @@ failures, frames lost and recovered (when the engine's ``stats()`` reports them;
 pose error every ``--curve-every`` frames, and, when ``open3d`` is importable
 (``requirements/bench-real.in``), Open3D's KinectFusion-style frame-to-model tracker
 (``open3d.t.pipelines.slam.Model``, depth only, ``--o3d-voxel`` voxels) on the same frames in the same
-run, with the ratios. Timings depend on what else runs on the machine.
+run, with the ratios. Frames that cannot be read or that the engine refuses (e.g. a covered lens: under 5 % of the
+depth in range) are left out for both trackers and listed. Timings depend on what else runs on the machine.
 """
 
 from __future__ import annotations
@@ -34,7 +35,7 @@ import time
 import numpy as np
 
 from semantic_gs_slam.config import PROFILES, Intrinsics, SlamConfig
-from semantic_gs_slam.errors import ConfigError
+from semantic_gs_slam.errors import ConfigError, DatasetError, FrameError
 from semantic_gs_slam.eval.evaluate import evaluate
 from semantic_gs_slam.eval.metrics import ate_rmse, rpe_rmse
 from semantic_gs_slam.geometry import pose_error, umeyama_rigid
@@ -75,18 +76,37 @@ def lost_summary(stats: dict, idx: list[int]) -> tuple[str, str]:
     return f"{len(lost)} / {len(rec)}" + (f" ({rejoined} lost frames re-posed in the map)" if rejoined else ""), detail
 
 
-def run_ours(ds, idx: list[int], args: argparse.Namespace) -> dict:
-    """Our engine over ``idx``; returns poses, timings, failures and the evaluation."""
+def engine_config(ds, args: argparse.Namespace) -> SlamConfig:
+    """The engine's settings: the camera, ``--profile`` and ``--config``'s overrides."""
     cfg = SlamConfig(intrinsics=ds.intrinsics, threads=args.threads, device=args.device)
     cfg = cfg.with_profile(args.profile)
-    if args.config:
-        cfg = cfg.with_json(args.config)
-    eng = SLAM(cfg)
+    return cfg.with_json(args.config) if args.config else cfg
+
+
+def load_frames(ds, idx: list[int], cfg: SlamConfig) -> tuple[dict, list[tuple[int, str]]]:
+    """Frames ``idx`` decoded (up front, for both trackers: the timing is theirs, not the JPEG decoder's), less those
+    that cannot be read (DatasetError) or that the engine refuses (FrameError: e.g. a covered lens, under 5 % of
+    the depth in range). Returns {index: frame} and [(index, why)] of the frames left out."""
+    checker = SLAM(cfg)
+    frames, refused = {}, []
+    for i in idx:
+        try:
+            f = ds[i]
+            checker.check_frame(f.rgb, f.depth)
+        except (DatasetError, FrameError) as exc:
+            refused.append((i, str(exc)))
+            continue
+        frames[i] = f
+    return frames, refused
+
+
+def run_ours(ds, idx: list[int], args: argparse.Namespace, frames: dict, decode_s: float) -> dict:
+    """Our engine over ``idx`` (``frames``: :func:`load_frames`'s); returns poses, timings, failures and the
+    evaluation."""
+    eng = SLAM(engine_config(ds, args))
     stage = LabelStage(LabelConfig(mode=args.labels, every=args.labels_every), ds.intrinsics, ds.sem_paths is not None)
     label_s = 0.0
-    t1 = time.perf_counter()
-    frames = [ds[i] for i in idx]  # decoded up front, as for Open3D: a mapping thread gets no free time meanwhile
-    decode_s = time.perf_counter() - t1
+    frames = [frames[i] for i in idx]  # decoded up front, as for Open3D: a mapping thread gets no free time meanwhile
     proc = []  # per frame: labelling + SLAM seconds
     lag = []  # --rate: per frame, how late (s) it was handed to the engine after the camera would have sent it
     t_run = time.perf_counter()
@@ -143,7 +163,7 @@ def run_ours(ds, idx: list[int], args: argparse.Namespace) -> dict:
     return res
 
 
-def run_open3d(ds, idx: list[int], voxel: float, depth_max: float, device: str) -> dict | None:
+def run_open3d(ds, idx: list[int], frames: dict, voxel: float, depth_max: float, device: str) -> dict | None:
     """Open3D's frame-to-model tracker (``t.pipelines.slam.Model``) on the same frames; None without open3d."""
     try:
         import open3d as o3d
@@ -155,7 +175,7 @@ def run_open3d(ds, idx: list[int], voxel: float, depth_max: float, device: str) 
     dev = o3c.Device("CUDA:0" if device == "cuda" and o3d.core.cuda.is_available() else "CPU:0")
     k = ds.intrinsics
     intr = o3c.Tensor(np.array(k.as_matrix(), np.float64))
-    frames = [ds[i] for i in idx]  # decoded up front: the timing is the tracker's, not the JPEG decoder's
+    frames = [frames[i] for i in idx]  # decoded up front (load_frames): the timing is the tracker's, not the decoder's
     first = frames[0].gt_c2w if frames[0].gt_c2w is not None else np.eye(4)
     t_cur = o3c.Tensor(np.eye(4))
     model = o3d.t.pipelines.slam.Model(voxel, 16, 40000, t_cur, dev)
@@ -268,6 +288,16 @@ def main() -> int:
     if ds.poses is None:
         print("the sequence has no reference poses: ATE cannot be computed", file=sys.stderr)
         return 2
+    t1 = time.perf_counter()
+    frames, refused = load_frames(ds, idx, engine_config(ds, args))
+    decode_s = time.perf_counter() - t1
+    if refused:  # left out for both trackers, so that they see the same frames
+        print(f"{len(refused)} frames left out (for both trackers): "
+              + "; ".join(f"{i}: {why}" for i, why in refused[:5]) + (" ..." if len(refused) > 5 else ""))
+        idx = [i for i in idx if i in frames]
+        if len(idx) < 2:
+            print("fewer than 2 usable frames: nothing to compare", file=sys.stderr)
+            return 2
     gts = [ds.poses[i] for i in idx]
     k = ds.intrinsics
     print(f"sequence {args.dataset}: frames {idx[0]}..{idx[-1]} every {args.stride} ({len(idx)} frames), "
@@ -277,7 +307,7 @@ def main() -> int:
         (f"{args.refine_seconds:g} s" if args.refine_seconds > 0 else "")
     print(f"profile {args.profile}; map refinement after the last frame: {refine or 'none'}")
     print(ds.camera_line())
-    o3 = None if args.no_open3d else run_open3d(ds, idx, args.o3d_voxel, args.o3d_depth_max, args.device)
+    o3 = None if args.no_open3d else run_open3d(ds, idx, frames, args.o3d_voxel, args.o3d_depth_max, args.device)
     if args.open3d_only:
         if o3 is None:
             return 2
@@ -288,7 +318,7 @@ def main() -> int:
         for n in range(0, len(idx), max(1, args.curve_every)):
             print(f"| {idx[n]} | {e[n] * 100:.2f} |")
         return 0
-    ours = run_ours(ds, idx, args)
+    ours = run_ours(ds, idx, args, frames, decode_s * len(idx) / max(len(frames) + len(refused), 1))
     ate_o = ours["ate_rmse_cm"]
     rows = [("ATE RMSE (cm, aligned)", f"{ate_o:.2f}"), ("PSNR (dB)", f"{ours['psnr']:.2f}"),
             ("SSIM", f"{ours['ssim']:.3f}"), ("depth L1 (cm)", f"{ours['depth_l1_cm']:.2f}"),

@@ -24,3 +24,35 @@ def test_lost_summary_counts_maps_to_dataset_frames_and_says_na_without_the_keys
     assert counts == "3 / 1"
     assert detail == "lost at dataset frames 4, 6, 10; recovered (lost at -> recovered at): 4->8"
     assert lost_summary({"lost_frames": [5], "recoveries": []}, idx)[1] == "lost at dataset frames 10; none recovered"
+
+
+def test_lost_summary_says_how_many_lost_frames_were_re_posed():
+    lost_summary = _bench().lost_summary
+    stats = {"lost_frames": [2, 3, 4], "recoveries": [[2, 5]], "rejoined_frames": 2}
+    assert lost_summary(stats, list(range(6)))[0] == "3 / 1 (2 lost frames re-posed in the map)"
+
+
+def test_frames_that_cannot_be_read_or_that_the_engine_refuses_are_left_out_for_both_trackers(tmp_path):
+    """Real files: frame 1's depth is all zero (a covered lens), frame 2's colour file is missing; frames 0 and 3
+    are kept, the others named with the reason."""
+    import numpy as np
+    from PIL import Image
+
+    from semantic_gs_slam.config import Intrinsics, SlamConfig
+    from semantic_gs_slam.io.datasets import Dataset
+
+    k = Intrinsics(32, 24, 30.0, 30.0, 15.5, 11.5)
+    rgb_paths, depth_paths = [], []
+    for i in range(4):
+        rgb, depth = str(tmp_path / f"{i}.png"), str(tmp_path / f"{i}.depth.png")
+        if i != 2:
+            Image.fromarray(np.full((24, 32, 3), 100 + i, np.uint8)).save(rgb)
+        Image.fromarray(np.full((24, 32), 0 if i == 1 else 1500, np.uint16)).save(depth)
+        rgb_paths.append(rgb)
+        depth_paths.append(depth)
+    ds = Dataset(k, rgb_paths, depth_paths, None, [np.eye(4)] * 4, [0.0, 1.0, 2.0, 3.0], 1000.0)
+    frames, refused = _bench().load_frames(ds, [0, 1, 2, 3], SlamConfig(intrinsics=k))
+    assert sorted(frames) == [0, 3]
+    assert [i for i, _ in refused] == [1, 2]
+    assert "valid" in refused[0][1] and "2.png" in refused[1][1], refused
+    assert np.allclose(frames[3].depth, 1.5)
