@@ -219,7 +219,8 @@ def run(a: argparse.Namespace) -> int:
     unmatched = nums.get("unmatched", "0 / 0 / 0").split(" / ")
     behind = nums.get("behind", f"{a.max_behind} / 0").split(" / ")
     print(f"frames not processed: {sent - processed} - not received {max(sent - watch.received, 0)} (sent while "
-          f"the server had unsubscribed, its backlog above lag_high: {pauses} pauses), unmatched images {unmatched[0]},"
+          f"the server had unsubscribed, its backlog above lag_high: {pauses} pauses; or its subscriptions' queues, "
+          f"image_qos_depth deep, overflowed while its executor was behind), unmatched images {unmatched[0]},"
           f" refused by the writer {unmatched[1]}, refused by SLAM {unmatched[2]}, skipped as SLAM was more than "
           f"max_behind={behind[0]} frames behind {behind[1]}")
     print(f"engine: {nums.get('engine', '(no note)')}")
