@@ -188,6 +188,29 @@ def make_labels(mode: str, onnx_model: str, intrinsics: Any, streamed_labels: bo
         raise StreamingError(f"labels: {exc}") from exc
 
 
+#: s; Python's lock hand-over for a server whose engine runs on the CPU. At Python's 0.005 its threads (executor,
+#: frame writer, SLAM loop, mapping thread) waited up to 5 ms to run again after every wait, several times per
+#: message: on 2 cores the server took 21 frames a second of a 30-Hz camera; at 0.0005 all 30 (docs/figures.md, "At a
+#: camera's rate"). On CUDA a shorter interval made the realtime engine far slower (H200: 250 frames not done in
+#: 110 s against 19.4 FPS; docs/design/slam.md, "Tried and dropped"): it keeps Python's
+CPU_SWITCH_INTERVAL = 0.0005
+
+
+def switch_interval_for(device: str) -> float:
+    """The lock hand-over interval (s) for an engine on ``device`` (the server's ``device`` parameter: auto, cpu,
+    cuda, cuda:N): :data:`CPU_SWITCH_INTERVAL` when it resolves to the CPU, 0 (leave Python's) otherwise, also when
+    it cannot be had (the goal reports that)."""
+    if device == "cpu":
+        return CPU_SWITCH_INTERVAL
+    from semantic_gs_slam.devices import resolve_device
+    from semantic_gs_slam.errors import ConfigError
+
+    try:
+        return CPU_SWITCH_INTERVAL if resolve_device(device).type == "cpu" else 0.0
+    except ConfigError:
+        return 0.0
+
+
 def prepare_renderer(device: str, log: Callable[[str], None]) -> None:
     """Load gsplat's CUDA code now when ``device`` resolves to CUDA and gsplat is installed.
 

@@ -40,7 +40,7 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from semantic_gs_slam_ros.cancels import CancelRouter
-from semantic_gs_slam_ros.engine import make_engine, prepare_renderer
+from semantic_gs_slam_ros.engine import make_engine, prepare_renderer, switch_interval_for
 from semantic_gs_slam_ros.errors import ImageFormatError, StreamingError
 from semantic_gs_slam_ros.images import image_to_array
 from semantic_gs_slam_ros.lag import LagAction
@@ -48,11 +48,6 @@ from semantic_gs_slam_ros.session import Progress, SessionConfig, StreamingSessi
 
 IMAGE_QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
 #: work_dir when the parameter is "" (its default)
-#: s; the server's threads (executor, frame writer, SLAM, mapping) hand Python's lock over at least this often. At
-#: Python's 0.005 a thread that gave it up (a wait set, a lock, a queue) waited up to 5 ms to run again behind the
-#: busy ones, several times per message: on 2 cores the server took 15-23 frames a second of a 30-Hz camera; at
-#: 0.0005 it takes all 30 (docs/figures.md, "At a camera's rate")
-GIL_SWITCH_INTERVAL = 0.0005
 DEFAULT_WORK_DIR = os.path.join(os.path.expanduser("~"), ".local", "share", "home_robot", "slam")
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 
@@ -96,8 +91,9 @@ class SlamServer(Node):
         p("reload_service", "/object_query_server/reload")  # std_srvs/Trigger of object_query_server
         p("done_wait", 10.0)  # s to wait for images still in flight after data_transfer_done
         p("image_qos_depth", 50)
-        p("gil_switch_interval", GIL_SWITCH_INTERVAL)  # s; how long a thread waiting for Python's lock waits at most
-        # while another runs Python (sys.setswitchinterval; Python's default 0.005). 0 = leave it as it is
+        p("gil_switch_interval", -1.0)  # s; how long a thread waiting for Python's lock waits at most while another
+        # runs Python (sys.setswitchinterval; Python's default 0.005). < 0: auto (engine.switch_interval_for: 0.0005
+        # with the engine on the CPU, Python's own on CUDA); 0 = leave it as it is
         p("labels", "auto")  # auto | dataset | geometry | onnx | none (auto: the semantic stream if any, else the
         # installed COCO detector, else geometry)
         p("onnx_model", "")  # ONNX COCO segmenter/detector for labels:=onnx/auto ("" = the installed NanoDet-g)
@@ -108,8 +104,10 @@ class SlamServer(Node):
         p("min_motion_m", 0.0)  # with odometry: skip frames that moved less than this and ...
         p("min_motion_deg", 0.0)  # ... turned less than this since the last mapped one (0 = take every frame)
         switch = float(self.get_parameter("gil_switch_interval").value)
-        if not 0.0 <= switch <= 1.0:
-            raise ValueError(f"gil_switch_interval must be in [0, 1] s, got {switch}")
+        if switch > 1.0 or switch != switch:
+            raise ValueError(f"gil_switch_interval must be at most 1 s (< 0: auto), got {switch}")
+        if switch < 0:
+            switch = switch_interval_for(str(self.get_parameter("device").value))
         if switch > 0:
             sys.setswitchinterval(switch)
         self.get_logger().info(f"threads hand Python's lock over every {sys.getswitchinterval() * 1000:g} ms at most")

@@ -7,7 +7,7 @@ import types
 import pytest
 import torch
 
-from semantic_gs_slam_ros.engine import load_slam_config, make_engine
+from semantic_gs_slam_ros.engine import CPU_SWITCH_INTERVAL, load_slam_config, make_engine, switch_interval_for
 from semantic_gs_slam_ros.errors import StreamingError
 
 CAM = (60.0, 60.0, 59.5, 33.5, 120, 68)
@@ -74,3 +74,12 @@ def test_prepare_renderer_loads_gsplat_before_the_server_is_ready(monkeypatch):
         lines.clear()
         prepare_renderer("cuda", lines.append)
         assert lines[0].startswith("loading gsplat's CUDA code") and said in lines[1], lines
+
+
+def test_the_lock_hand_over_is_short_on_the_cpu_and_left_to_python_on_cuda():
+    """``gil_switch_interval`` auto: 0.5 ms where the engine runs on the CPU, Python's own (0) on CUDA, where a
+    shorter one made the realtime engine far slower, and where the device cannot be had (the goal says why)."""
+    assert switch_interval_for("cpu") == CPU_SWITCH_INTERVAL == 0.0005
+    assert switch_interval_for("auto") == (0.0 if torch.cuda.is_available() else CPU_SWITCH_INTERVAL)
+    assert switch_interval_for("cuda") == 0.0 and switch_interval_for("cuda:7") == 0.0
+    assert switch_interval_for("gpu") == 0.0
