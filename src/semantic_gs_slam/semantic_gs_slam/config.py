@@ -142,8 +142,9 @@ class TrackingConfig:
     # kitchen frames 0-249 (0, 0.002, 0.003, 0.005); 0: 1 cm everywhere
     frontend_trust_z2_per_roughness: float = 2.5  # "keyframe": against a reference whose depth roughness is r
     # (frontend_noisy_roughness), a frame's trust test (agreement) takes the z^2 scale max(frontend_sigma_geo_z2,
-    # this * r): a noisier camera is judged at its own noise; the pose is the same. A Kinect v1 (0.0007) stays at
-    # 0.002; three times its noise (0.0036) reads at 0.009. Chosen on kitchen frames 0-249; 0: off
+    # this * r): a noisier camera is judged at its own noise, and above frontend_sigma_geo_z2 the test associates a
+    # point z deep up to max(max_dist, 3 * that scale * z^2) away; the pose is the same. A Kinect v1 (0.0007) stays
+    # at 0.002 and the 5-cm gate; three times its noise (0.0036) reads at 0.009. Chosen on kitchen frames 0-249; 0: off
     frontend_model_smoothing: int = 1  # "keyframe": the reference depth averaged over this odd window (over
     # neighbours within 5 % of the centre's depth: no blur across edges; 1: raw), for every keyframe
     frontend_noisy_smoothing: int = 3  # "keyframe": ... and over this odd window for a keyframe whose depth is

@@ -46,8 +46,9 @@ def perturb(c2w: np.ndarray, xi: list[float]) -> np.ndarray:
 
 
 @needs_numba
-@pytest.mark.parametrize(("photometric", "z2"), [(0.0, 0.0), (0.5, 0.0), (0.0, 0.01), (0.5, 0.01)])
-def test_compiled_sums_equal_the_reference(scene, photometric, z2):
+@pytest.mark.parametrize(("photometric", "z2", "gate_z2"), [(0.0, 0.0, 0.0), (0.5, 0.0, 0.0), (0.0, 0.01, 0.0),
+                                                       (0.5, 0.01, 0.0), (0.5, 0.01, 0.2)])
+def test_compiled_sums_equal_the_reference(scene, photometric, z2, gate_z2):
     k, poses, views = scene
     cfg = replace(CFG, photometric_weight=photometric, sigma_geo_z2=z2)  # 0.01: every point beyond 1 m scaled
     rgb0, d0, _ = views[0]
@@ -55,9 +56,10 @@ def test_compiled_sums_equal_the_reference(scene, photometric, z2):
     model = build_reference(d0, poses[0], k, cfg, rgb=rgb0)
     live = prepare_live(d1, k, cfg, rgb=rgb1)
     est = perturb(poses[3], [0.01, -0.02, 0.005, 0.02, 0.0, -0.01])
+    wider = []  # with the gate widened: more points associated than within max_dist
     for lv in range(cfg.levels):
         args = (est, live.points[lv], live.valid[lv], live.intensity if lv == 0 else None, model.levels[lv],
-                model.w2c, cfg.max_dist[lv], cfg, lv == 0)
+                model.w2c, cfg.max_dist[lv], cfg, lv == 0, gate_z2)  # 0.2: the gate past 0.05 m beyond 0.5 m
         a, b, st = normal_equations(*args)
         ar, br, sr = normal_equations_reference(*args)
         assert st[0] > 100
@@ -65,6 +67,9 @@ def test_compiled_sums_equal_the_reference(scene, photometric, z2):
         np.testing.assert_allclose(st[1], sr[1], rtol=1e-9)
         np.testing.assert_allclose(a, ar, rtol=1e-9, atol=1e-9 * np.abs(ar).max())
         np.testing.assert_allclose(b, br, rtol=1e-9, atol=1e-9 * np.abs(br).max())
+        if gate_z2:
+            wider.append(st[0] > normal_equations(*args[:-1], 0.0)[2][0])
+    assert not gate_z2 or any(wider)
 
 
 @needs_numba

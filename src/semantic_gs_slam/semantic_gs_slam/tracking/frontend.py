@@ -521,7 +521,7 @@ def _fast():
 
 def normal_equations(est: np.ndarray, points: np.ndarray, valid: np.ndarray, intensity: np.ndarray | None,
                      level: ModelLevel, w2c: np.ndarray, max_dist: float, cfg: FrontendConfig,
-                     photometric: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                     photometric: bool, gate_z2: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The sums of one Gauss-Newton step by the compiled kernel (``icp_accumulate``, ``nogil``).
 
     Args:
@@ -529,6 +529,8 @@ def normal_equations(est: np.ndarray, points: np.ndarray, valid: np.ndarray, int
         valid: [M] bool. intensity: [M] float64 live intensity, or None. level: the model level.
         w2c: [4, 4] the model's world-to-camera. max_dist: association gate (m).
         cfg: weights and scales. photometric: add the intensity term (needs ``intensity`` and ``level.col``).
+        gate_z2: 1/m; a point z metres deep is associated up to max(``max_dist``, this * z^2) away (0: ``max_dist``;
+            the trust test of a noisy camera's frame widens it, :func:`track`).
 
     Returns:
         ``A`` [6, 6], ``b`` [6] of ``A xi = b`` (xi = rotation vector, translation, applied on the left) and
@@ -544,13 +546,14 @@ def normal_equations(est: np.ndarray, points: np.ndarray, valid: np.ndarray, int
               level.vm, level.nm, level.nvalid, level.col if photometric else np.zeros((1, 4)),
               float(k.fx), float(k.fy), float(k.cx), float(k.cy), int(k.width), int(k.height), float(max_dist),
               float(cfg.sigma_geo), float(cfg.sigma_geo_z2), 1.0, photometric, float(cfg.sigma_col),
-              float(cfg.photometric_weight), a, b, stats)
+              float(cfg.photometric_weight), a, b, stats, float(gate_z2))
     return a, b, stats
 
 
 def normal_equations_reference(est: np.ndarray, points: np.ndarray, valid: np.ndarray,
                                intensity: np.ndarray | None, level: ModelLevel, w2c: np.ndarray, max_dist: float,
-                               cfg: FrontendConfig, photometric: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                               cfg: FrontendConfig, photometric: bool, gate_z2: float = 0.0
+                               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`normal_equations` in vectorised NumPy (the reference; arguments and returns as there)."""
     photometric = bool(photometric and intensity is not None and level.col is not None)
     k = level.k
@@ -566,7 +569,7 @@ def normal_equations_reference(est: np.ndarray, points: np.ndarray, valid: np.nd
     on = inside & level.nvalid[pix]
     n = level.nm[pix]
     diff = x - level.vm[pix]
-    close = on & (np.linalg.norm(diff, axis=-1) < max_dist)
+    close = on & (np.linalg.norm(diff, axis=-1) < np.maximum(max_dist, gate_z2 * z * z))
     r = np.where(close, (diff * n).sum(-1), 0.0)
     sg = np.maximum(cfg.sigma_geo, cfg.sigma_geo_z2 * z * z)  # [M] each residual's scale
     w = np.where(np.abs(r) < sg, 1.0, sg / np.maximum(np.abs(r), 1e-30)) / (sg * sg) * close
@@ -644,8 +647,12 @@ def track(live: LiveFrame, model: ReferenceModel, guess_c2w: np.ndarray, cfg: Fr
     if not order:
         raise ConfigError("track needs at least one pyramid level to run")
     score_z2 = max(cfg.sigma_geo_z2, cfg.trust_z2_per_roughness * model.roughness)  # the trust test's scale
+    # ... and its association gate: a point it judges within 3 scales is not cut by max_dist (a noisy camera's far
+    # points; a Kinect's test is unchanged)
+    gate_z2 = 3.0 * score_z2 if score_z2 > cfg.sigma_geo_z2 else 0.0
     if _use_numba(cfg):  # every level and the score in one compiled call (frontend_numba.icp_track)
-        return _track_fast(live, model, guess, guess_inv, np.diagonal(prior_w).copy(), order, cfg, score_z2)
+        return _track_fast(live, model, guess, guess_inv, np.diagonal(prior_w).copy(), order, cfg, score_z2,
+                           gate_z2)
     sums = normal_equations_reference
     est = guess.copy()
     steps = 0
@@ -668,14 +675,15 @@ def track(live: LiveFrame, model: ReferenceModel, guess_c2w: np.ndarray, cfg: Fr
     last = order[-1]  # scored at the final estimate on the last level
     a, _, st = sums(est, live.points[last], live.valid[last], live.intensity if last == 0 else None,
                     model.levels[last], model.w2c, cfg.max_dist[last],
-                    cfg if score_z2 == cfg.sigma_geo_z2 else replace(cfg, sigma_geo_z2=score_z2), last == 0)
+                    cfg if score_z2 == cfg.sigma_geo_z2 else replace(cfg, sigma_geo_z2=score_z2), last == 0, gate_z2)
     n_live = max(int(live.valid[last].sum()), 1)
     q = _quality(a, st, n_live, cfg)
     return TrackResult(est, q, steps, model.keyframe_id)
 
 
 def _track_fast(live: LiveFrame, model: ReferenceModel, guess: np.ndarray, guess_inv: np.ndarray,
-                prior_diag: np.ndarray, order: list[int], cfg: FrontendConfig, score_z2: float) -> TrackResult:
+                prior_diag: np.ndarray, order: list[int], cfg: FrontendConfig, score_z2: float, gate_z2: float
+                ) -> TrackResult:
     """:func:`track`'s levels and score in one compiled call (:func:`~semantic_gs_slam.tracking.frontend_numba.
     icp_track`): the GIL is let go once per frame, not once per level and once for the score
     (``bench/frontend_gil.py``)."""
@@ -693,7 +701,7 @@ def _track_fast(live: LiveFrame, model: ReferenceModel, guess: np.ndarray, guess
         np.array(cfg.max_dist, np.float64), float(cfg.sigma_geo), float(cfg.sigma_geo_z2), photometric,
         float(cfg.sigma_col),
         float(cfg.photometric_weight), np.array(cfg.iters, np.int64), float(cfg.min_step), np.array(order, np.int64),
-        a, b, st, float(score_z2))
+        a, b, st, float(score_z2), float(gate_z2))
     return TrackResult(est, _quality(a, st, max(int(n_live), 1), cfg), int(steps), model.keyframe_id)
 
 

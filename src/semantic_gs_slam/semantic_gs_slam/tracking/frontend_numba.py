@@ -270,7 +270,7 @@ def icp_level(est, guess_inv, prior_diag, w2c, lp, lvalid, il, vm, nm, nvalid, c
         b[:] = 0.0
         stats[:] = 0.0
         icp_accumulate(est, w2c, lp, lvalid, il, vm, nm, nvalid, col, fx, fy, cx, cy, width, height, max_dist, sg,
-                       sg_z2, 1.0, photometric, sc, w_col, a, b, stats)
+                       sg_z2, 1.0, photometric, sc, w_col, a, b, stats, 0.0)
         if stats[0] < 6:
             break
         _matmul4(est, guess_inv, d)
@@ -324,13 +324,14 @@ def depth_roughness(depth, jump, min_pixels):
 
 @numba.njit(cache=True, nogil=True)
 def icp_track(est, guess_inv, prior_diag, w2c, lps, lvalids, il, vms, nms, nvalids, col, fx, fy, cx, cy, width,
-              height, max_dist, sg, sg_z2, photometric, sc, w_col, iters, min_step, order, a, b, stats, score_z2):
+              height, max_dist, sg, sg_z2, photometric, sc, w_col, iters, min_step, order, a, b, stats, score_z2,
+              gate_z2):
     """``track``'s whole Gauss-Newton loop in one call: :func:`icp_level` on the levels in ``order`` (the tuples
     ``lps``, ``lvalids``, ``vms``, ``nms``, ``nvalids`` and the arrays fx ... max_dist, iters hold one entry per level;
     the intensity term, when ``photometric``, on level 0 only), then the sums at the last level's final estimate into
     a [6, 6], b [6] and stats [4] (:func:`icp_accumulate`, the score, at the scale ``score_z2`` instead of
-    ``sg_z2``). Returns (steps taken, live points with
-    depth at the last level)."""
+    ``sg_z2``, a point z deep associated up to max(max_dist, ``gate_z2`` z^2) away). Returns (steps taken, live
+    points with depth at the last level)."""
     steps = 0
     for n in range(len(order)):
         lv = order[n]
@@ -340,7 +341,7 @@ def icp_track(est, guess_inv, prior_diag, w2c, lps, lvalids, il, vms, nms, nvali
     last = order[len(order) - 1]
     icp_accumulate(est, w2c, lps[last], lvalids[last], il, vms[last], nms[last], nvalids[last], col, fx[last],
                    fy[last], cx[last], cy[last], width[last], height[last], max_dist[last], sg, score_z2, 1.0,
-                   photometric and last == 0, sc, w_col, a, b, stats)
+                   photometric and last == 0, sc, w_col, a, b, stats, gate_z2)
     n_live = 0
     for i in range(lvalids[last].shape[0]):
         if lvalids[last][i]:

@@ -67,7 +67,7 @@ def normal_equations_numba(est: Tensor, lp: Tensor, lvalid: Tensor, il: Tensor |
               arr(col if photometric else None, (1, 4)), float(k.fx), float(k.fy), float(k.cx), float(k.cy),
               int(k.width), int(k.height), float(cfg.icp_max_dist), float(cfg.icp_sigma_geo), 0.0,
               float(cfg.geometric_weight), photometric, float(cfg.icp_sigma_col), float(cfg.photometric_weight), a, b,
-              stats)
+              stats, 0.0)
     return torch.from_numpy(a), torch.from_numpy(b), torch.from_numpy(stats)
 
 

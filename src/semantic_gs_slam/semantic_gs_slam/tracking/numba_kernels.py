@@ -14,7 +14,7 @@ import numpy as np
 
 @numba.njit(cache=True, nogil=True)
 def icp_accumulate(est, w2c_g, lp, lvalid, il, vm, nm, nvalid, col, fx, fy, cx, cy, width, height, max_dist, sg,
-               sg_z2, w_geo, photometric, sc, w_col, a, b, stats):
+               sg_z2, w_geo, photometric, sc, w_col, a, b, stats, gate_z2):
     jac = np.zeros(6)
     n_close = 0.0
     rr = 0.0
@@ -46,7 +46,7 @@ def icp_accumulate(est, w2c_g, lp, lvalid, il, vm, nm, nvalid, col, fx, fy, cx, 
             n_ok += 1.0
             n0, n1, n2 = nm[pix, 0], nm[pix, 1], nm[pix, 2]
             d0, d1, d2 = x0 - vm[pix, 0], x1 - vm[pix, 1], x2 - vm[pix, 2]
-            if np.sqrt(d0 * d0 + d1 * d1 + d2 * d2) < max_dist:
+            if np.sqrt(d0 * d0 + d1 * d1 + d2 * d2) < max(max_dist, gate_z2 * z * z):
                 r = d0 * n0 + d1 * n1 + d2 * n2
                 ar = abs(r)
                 s = max(sg, sg_z2 * z * z)  # the residual's scale: a depth sensor's noise grows with depth squared
