@@ -13,6 +13,7 @@ Usage (from the repository root; the data stays outside the repository, mind its
     python bench/slam_real.py <seq> --intrinsics 525,525,319.5,239.5 --depth-scale 5000     # any camera
     python bench/slam_real.py <seq> --depth-noise 2 --blur 1    # a noisier, blurrier camera (both trackers)
     python bench/slam_real.py <seq> --gain 0.3                  # exposure swinging by 30 % (both trackers)
+    python bench/slam_real.py <seq> --holes 0.3                 # 30 % of the depth pixels dropped (both trackers)
     python bench/slam_real.py <seq> --frames 500 --stride 1 --gap 250:90   # 3 s of a 30-Hz camera missing
 
 Runs our engine over the frames and prints the camera used (``--intrinsics``, ``--depth-scale``, ``--camera`` as for
@@ -247,6 +248,9 @@ def main() -> int:
     ap.add_argument("--gain", type=float, default=0.0,
                     help="swing each frame's exposure: colour times 1 + G sin(2 pi i / 60) for recorded frame i (an "
                          "auto-exposure changing its mind every 2 s at 30 Hz; 0: as recorded)")
+    ap.add_argument("--holes", type=float, default=0.0,
+                    help="drop this fraction of each frame's depth pixels at random (a speckled time-of-flight or "
+                         "stereo camera; both trackers; 0: as recorded)")
     ap.add_argument("--gap", action="append", default=[], metavar="FIRST:COUNT",
                     help="leave out COUNT recorded frames from dataset frame FIRST on (a stream that stalled; both "
                          "trackers; may be repeated)")
@@ -267,10 +271,10 @@ def main() -> int:
         ap.error("--labels-every must be >= 1")
     ds = load_dataset(args.dataset, size=parse_size(args.size) if args.size else None,
                       colour_calib=args.colour_calib, **camera_kwargs(args))
-    if args.depth_noise or args.blur or args.gain:
-        if not args.depth_noise >= 0 or args.blur < 0 or not 0 <= args.gain < 1:
-            ap.error("--depth-noise and --blur must be >= 0, --gain in [0, 1)")
-        ds = DegradedDataset(ds, args.depth_noise, args.blur, args.gain)
+    if args.depth_noise or args.blur or args.gain or args.holes:
+        if not args.depth_noise >= 0 or args.blur < 0 or not 0 <= args.gain < 1 or not 0 <= args.holes < 1:
+            ap.error("--depth-noise and --blur must be >= 0, --gain and --holes in [0, 1)")
+        ds = DegradedDataset(ds, args.depth_noise, args.blur, args.gain, holes=args.holes)
         print(f"frames degraded: {ds.describe()}")
     idx = frame_indices(len(ds), args.start, args.stride, args.frames)
     for gap in args.gap:

@@ -152,6 +152,11 @@ class TrackingConfig:
     # the mean of its 4 neighbours| / depth^2; 0: never). A Kinect v1 at 320 x 240 reads 0.0007: its raw depth is
     # the reference. A camera with about twice its noise or more is smoothed: with three times, the raw reference
     # lost the kitchen; on clean frames smoothing bought nothing (docs/design/slam.md, "Real cameras")
+    frontend_speckle_fill: float = 0.02  # "keyframe": a keyframe whose depth has more isolated holes than this
+    # fraction of its pixels (a hole with 3 or 4 of its 4 neighbours valid) has them filled from its neighbours before
+    # it becomes a reference: a normal needs its neighbours. A Kinect v1 reads 0.001-0.002; 30 % of its pixels
+    # dropped at random (a speckled time-of-flight or stereo camera) about 0.17, and was lost from the first frames
+    # without it; 0: never
     relocalise_every: int = 3  # "keyframe": a lost frame tries to relocalise on its first lost frame and then on
     # every k-th (each try costs about 100 ms of CPU against three keyframes); the others stay lost
     relocalise_candidates: int = 3  # keyframes tried per relocalisation: the best ranked by a 20x15 thumbnail of
@@ -204,6 +209,8 @@ class TrackingConfig:
         if not (math.isfinite(self.frontend_noisy_roughness) and self.frontend_noisy_roughness >= 0):
             raise ConfigError(f"tracking.frontend_noisy_roughness must be a finite number >= 0, got "
                               f"{self.frontend_noisy_roughness!r}")
+        if not 0 <= self.frontend_speckle_fill <= 1:
+            raise ConfigError(f"tracking.frontend_speckle_fill must be in [0, 1], got {self.frontend_speckle_fill}")
         if not 0 <= self.frontend_new_keyframe_coverage <= 1:
             raise ConfigError("tracking.frontend_new_keyframe_coverage must be in [0, 1]")
 

@@ -201,3 +201,14 @@ def test_degraded_frames_noisier_depth_and_blurred_colour(tiny_home):
     np.testing.assert_array_equal(swing[0].rgb, ds[0].rgb)
     np.testing.assert_array_equal(swing[2].depth, ds[2].depth)  # the depth is left alone
     assert "±50 % every 8 frames" in swing.describe()
+    holes = DegradedDataset(ds, holes=0.3)  # 30 % of the depth pixels dropped, repeatably, colour untouched
+    had = ds[3].depth > 0
+    dropped = had & (holes[3].depth == 0)
+    assert dropped.sum() / had.sum() == pytest.approx(0.3, abs=0.03)
+    np.testing.assert_array_equal(holes[3].depth[~dropped], ds[3].depth[~dropped])
+    np.testing.assert_array_equal(holes[3].depth, holes[3].depth)  # seeded by the frame
+    np.testing.assert_array_equal(holes[3].rgb, ds[3].rgb)
+    assert "30 % of the depth pixels dropped" in holes.describe()
+    for bad in (1.0, -0.1):
+        with pytest.raises(ValueError, match="holes"):
+            DegradedDataset(ds, holes=bad)

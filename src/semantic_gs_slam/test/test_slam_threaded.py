@@ -179,7 +179,8 @@ def test_frontend_downsample_tracks_the_orbit_on_a_quarter_of_the_pixels(views):
     for bad in ({"frontend_model_smoothing": 2}, {"frontend_model_smoothing": 0}, {"frontend_noisy_smoothing": 4},
                 {"frontend_noisy_smoothing": True}, {"frontend_noisy_roughness": -1.0},
                 {"frontend_noisy_roughness": float("inf")}, {"frontend_trust_z2_per_roughness": -0.5},
-                {"frontend_sigma_geo_z2": -0.001}, {"frontend_sigma_geo_z2": float("nan")}):
+                {"frontend_sigma_geo_z2": -0.001}, {"frontend_sigma_geo_z2": float("nan")},
+                {"frontend_speckle_fill": -0.1}, {"frontend_speckle_fill": float("nan")}):
         with pytest.raises(ConfigError, match=next(iter(bad))):
             SlamConfig(intrinsics=k, tracking=TrackingConfig(frontend="keyframe", **bad)).check()
 

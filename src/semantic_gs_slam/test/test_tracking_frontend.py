@@ -18,7 +18,9 @@ from semantic_gs_slam.tracking.frontend import (
     RelocalisationError,
     build_reference,
     depth_roughness,
+    depth_speckle,
     downsample_frame,
+    fill_isolated_holes,
     normal_equations,
     normal_equations_reference,
     prepare_live,
@@ -232,6 +234,38 @@ def test_a_noisy_camera_is_trusted_at_its_own_noise_with_the_same_pose(scene, ba
     assert clean.trust_z2_per_roughness * model.roughness < clean.sigma_geo_z2  # a clean view: the fixed scale
     with pytest.raises(ConfigError, match="trust_z2_per_roughness"):
         build_reference(d0, poses[0], k, replace(CFG, trust_z2_per_roughness=-1.0))
+
+
+@pytest.mark.parametrize("backend", ["numpy", pytest.param("numba", marks=needs_numba)])
+def test_a_speckled_camera_has_its_isolated_holes_filled_and_tracks(scene, backend):
+    """30 % of both frames' depth pixels dropped at random: the reference reads as speckled, its isolated holes are
+    filled (a normal needs its neighbours) and so are the live frame's; the frame is then trusted within 2 cm, where
+    without the filling it is not trusted (coverage). A clean view is left as it is."""
+    k, poses, views = scene
+    (rgb0, d0, _), (rgb3, d3, _) = views[0], views[3]
+    rng = np.random.default_rng(2)
+    h0, h3 = (np.where(rng.random(d.shape) < 0.3, 0.0, d) for d in (d0, d3))
+    fill = FrontendConfig().speckle_fill
+    assert depth_speckle(d0) < fill < depth_speckle(h0)
+    res = {}
+    for f in (0.0, fill):
+        cfg = replace(CFG, backend=backend, speckle_fill=f)
+        model = build_reference(h0, poses[0], k, cfg, rgb=rgb0)
+        res[f] = model, track(prepare_live(h3, k, cfg, rgb=rgb3, fill_holes=f > 0), model, poses[0], cfg)
+    (m_off, off), (m_on, on) = res[0.0], res[fill]
+    assert m_on.speckle > fill and m_on.levels[0].nvalid.mean() > 2 * m_off.levels[0].nvalid.mean()
+    assert on.quality.trusted and pose_error(on.c2w, poses[3])[0] < 0.02, on.quality
+    assert not off.quality.trusted and "coverage" in off.quality.reason, off.quality
+    clean, raw = (build_reference(d0, poses[0], k, replace(CFG, backend=backend, speckle_fill=f)) for f in (fill, 0.0))
+    np.testing.assert_array_equal(clean.levels[0].vm, raw.levels[0].vm)
+    # a hole between two surfaces (a depth edge) stays a hole; one inside a surface takes its neighbours' mean
+    edge = np.full((5, 6), 1.0)
+    edge[:, 3:] = 2.0
+    edge[2, 2] = edge[2, 4] = 0.0
+    out = fill_isolated_holes(edge)
+    assert out[2, 2] == 0.0 and out[2, 4] == pytest.approx(2.0)
+    with pytest.raises(ConfigError, match="speckle_fill"):
+        build_reference(d0, poses[0], k, replace(CFG, speckle_fill=2.0))
 
 
 def test_a_lone_plane_is_ill_conditioned():

@@ -7,10 +7,13 @@
   in the recording (a longer exposure of the same motion).
 * Exposure swings: :class:`DegradedDataset` multiplies frame i's colour by ``1 + gain sin(2 pi i / gain_period)``
   (clipped to [0, 1]): an auto-exposure that keeps changing its mind, brighter and darker than the recording.
+* Depth dropouts: :class:`DegradedDataset` drops ``holes`` of the depth pixels at random, independently per pixel and
+  frame (seeded by the frame's index): a speckled time-of-flight or stereo camera, where a structured-light one
+  leaves holes in regions.
 
 Usage::
 
-    ds = DegradedDataset(load_dataset(path), depth_noise=2.0, blur=1, gain=0.3)   # any Dataset; indexing as before
+    ds = DegradedDataset(load_dataset(path), depth_noise=2.0, blur=1, gain=0.3, holes=0.3)   # any Dataset
 """
 
 from __future__ import annotations
@@ -43,10 +46,11 @@ class DegradedDataset:
         blur: colour averaged over the frames ``i - blur .. i + blur`` of the recording (>= 0; 0: none).
         gain: the exposure swing: frame i's colour times ``1 + gain sin(2 pi i / gain_period)`` (in [0, 1); 0:
             none). gain_period: frames of the recording per swing (> 0; 60: 2 s of a 30-Hz camera).
+        holes: the fraction of depth pixels dropped (set to 0) at random (in [0, 1); 0: none).
     """
 
     def __init__(self, base: Dataset, depth_noise: float = 0.0, blur: int = 0, gain: float = 0.0,
-                 gain_period: float = 60.0) -> None:
+                 gain_period: float = 60.0, holes: float = 0.0) -> None:
         if not (math.isfinite(depth_noise) and depth_noise >= 0):
             raise ValueError(f"depth_noise must be a finite number >= 0, got {depth_noise!r}")
         if blur < 0:
@@ -56,7 +60,9 @@ class DegradedDataset:
         if not (math.isfinite(gain_period) and gain_period > 0):
             raise ValueError(f"gain_period must be a finite number > 0, got {gain_period!r}")
         self.base, self.depth_noise, self.blur = base, float(depth_noise), int(blur)
-        self.gain, self.gain_period = float(gain), float(gain_period)
+        if not 0 <= holes < 1:
+            raise ValueError(f"holes must be in [0, 1), got {holes!r}")
+        self.gain, self.gain_period, self.holes = float(gain), float(gain_period), float(holes)
 
     def __getattr__(self, name: str):  # intrinsics, poses, sem_paths, camera_line(), ... are the recording's
         return getattr(self.base, name)
@@ -76,11 +82,16 @@ class DegradedDataset:
         if self.gain:
             g = 1.0 + self.gain * math.sin(2.0 * math.pi * i / self.gain_period)
             f.rgb = np.clip(f.rgb * g, 0.0, 1.0).astype(f.rgb.dtype)
+        if self.holes:
+            drop = np.random.default_rng(1_000_003 + i).random(f.depth.shape) < self.holes  # not the noise's stream
+            f.depth = np.where(drop, 0.0, f.depth).astype(f.depth.dtype)
         return f
 
     def describe(self) -> str:
         """One line for logs: what was done to the frames."""
+        swing = f"exposure swinging by ±{100 * self.gain:g} % every {self.gain_period:g} frames"
         parts = ([f"depth noise {self.depth_noise:g} x a Kinect v1's"] if self.depth_noise else []) + \
             ([f"colour averaged over {2 * self.blur + 1} frames"] if self.blur else []) + \
-            ([f"exposure swinging by ±{100 * self.gain:g} % every {self.gain_period:g} frames"] if self.gain else [])
+            ([swing] if self.gain else []) + \
+            ([f"{100 * self.holes:g} % of the depth pixels dropped at random"] if self.holes else [])
         return ", ".join(parts) or "none"

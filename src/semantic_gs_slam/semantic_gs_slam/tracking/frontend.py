@@ -78,6 +78,10 @@ class FrontendConfig:
     # depth_roughness() is r judges its points at max(sigma_geo_z2, this * r) z^2 instead of sigma_geo_z2 z^2: a
     # noisier camera's residuals at its own noise (the weights, and so the pose, are unchanged). A Kinect v1
     # (r 0.0007) stays at sigma_geo_z2; 0: off
+    speckle_fill: float = 0.02  # a reference whose depth has more isolated holes than this fraction of its pixels
+    # (depth_speckle: a hole with 3 or 4 of its 4 neighbours valid) has them filled (fill_isolated_holes) before its
+    # normals: a normal needs its neighbours, so 30 % of pixels dropped at random left a sixth of the normals. A
+    # Kinect v1 at 320 x 240 reads 0.001-0.002 (kitchen); 0: never
     normal_radius: int = 2  # normals from central differences over this many pixels (finest level; 1 coarser)
     depth_jump: float = 0.05  # a neighbour more than this fraction of the depth away breaks the normal / pyramid cell
     min_correspondences: int = 200  # fewer at the finest level: lost
@@ -111,6 +115,8 @@ class FrontendConfig:
                               f"{self.trust_z2_per_roughness}")
         if not (math.isfinite(self.noisy_roughness) and self.noisy_roughness >= 0):
             raise ConfigError(f"noisy_roughness must be a finite number >= 0, got {self.noisy_roughness}")
+        if not 0 <= self.speckle_fill <= 1:
+            raise ConfigError(f"speckle_fill must be in [0, 1], got {self.speckle_fill}")
         if self.normal_radius < 1:
             raise ConfigError(f"normal_radius must be >= 1, got {self.normal_radius}")
         if self.backend not in ("auto", "numba", "numpy"):
@@ -138,6 +144,7 @@ class ReferenceModel:
     keyframe_id: int = -1  # the caller's id of the keyframe (e.g. its frame index)
     roughness: float = 0.0  # depth_roughness() of its depth (1/m; 0: not measured)
     smoothing: int = 1  # the window its depth was averaged over (1: raw)
+    speckle: float = 0.0  # depth_speckle() of its depth (its isolated holes were filled above cfg.speckle_fill)
 
 
 @dataclass
@@ -300,6 +307,30 @@ def depth_roughness(depth: np.ndarray, jump: float = 0.05, min_pixels: int = ROU
     return float(np.median(np.abs(lap) / (cc * cc)))
 
 
+def depth_speckle(depth: np.ndarray) -> float:
+    """The fraction of the pixels of ``depth`` [H, W] (metres, 0 = missing) that are isolated holes: no depth, and
+    3 or 4 of their 4 neighbours with depth. A structured-light camera's holes are regions (edges, out of range,
+    shiny surfaces): a Kinect v1 reads 0.001-0.002; pixels dropped at random read about their fraction times 0.6."""
+    v = depth > 0
+    p = np.pad(v, 1)
+    nb = p[:-2, 1:-1].astype(np.int8) + p[2:, 1:-1] + p[1:-1, :-2] + p[1:-1, 2:]
+    return float(((~v) & (nb >= 3)).mean())
+
+
+def fill_isolated_holes(depth: np.ndarray, jump: float = 0.05) -> np.ndarray:
+    """``depth`` [H, W] with each hole that has 4 or more of its 8 neighbours with depth, all within ``jump`` times
+    their mean of each other (one surface: no hole at an edge is filled), set to that mean; one pass."""
+    h, w = depth.shape
+    p = np.pad(depth, 1)
+    nb = np.stack([p[1 + dy:h + 1 + dy, 1 + dx:w + 1 + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx])
+    ok = nb > 0  # [8, H, W]
+    n = ok.sum(0)
+    mean = np.where(ok, nb, 0.0).sum(0) / np.maximum(n, 1)
+    spread = np.where(ok, nb, -np.inf).max(0) - np.where(ok, nb, np.inf).min(0)
+    fill = (depth <= 0) & (n >= 4) & (spread <= jump * mean)
+    return np.where(fill, mean, depth)
+
+
 def _smooth_depth(depth: np.ndarray, size: int, jump: float) -> np.ndarray:
     """``depth`` [H, W] averaged over a ``size`` x ``size`` window, over the neighbours with depth within ``jump``
     times the centre's (edges stay sharp); pixels without depth stay 0."""
@@ -397,6 +428,9 @@ def build_reference(depth: np.ndarray, c2w: np.ndarray, k: Intrinsics, cfg: Fron
                  else depth_roughness(d, cfg.depth_jump, ROUGHNESS_MIN_PIXELS))
     if smooth_noisy and rough > cfg.noisy_roughness:
         window = cfg.noisy_smoothing
+    speckle = depth_speckle(d) if cfg.speckle_fill > 0 else 0.0
+    if speckle > cfg.speckle_fill:  # after the roughness: a filled hole is its neighbours' mean, not a measurement
+        d = fill_isolated_holes(d, cfg.depth_jump)
     d = _smooth_depth(d, window, cfg.depth_jump)
     r, t = c2w[:3, :3], c2w[:3, 3]
     levels = []
@@ -434,15 +468,18 @@ def build_reference(depth: np.ndarray, c2w: np.ndarray, k: Intrinsics, cfg: Fron
             col = np.ascontiguousarray(np.stack([im, gx, gy, okc.astype(np.float64)], -1).reshape(-1, 4))
         levels.append(ModelLevel(cam, np.ascontiguousarray(vw), np.ascontiguousarray(nw),
                                  np.ascontiguousarray(nok), col))
-    return ReferenceModel(c2w, np.linalg.inv(c2w), levels, keyframe_id, rough, window)
+    return ReferenceModel(c2w, np.linalg.inv(c2w), levels, keyframe_id, rough, window, speckle)
 
 
-def prepare_live(depth: np.ndarray, k: Intrinsics, cfg: FrontendConfig, rgb: np.ndarray | None = None) -> LiveFrame:
+def prepare_live(depth: np.ndarray, k: Intrinsics, cfg: FrontendConfig, rgb: np.ndarray | None = None,
+                 fill_holes: bool = False) -> LiveFrame:
     """The live frame's points per pyramid level.
 
     Args:
         depth: [H, W] metres, 0 = missing. k: the camera. cfg: front-end settings.
         rgb: [H, W, 3] colour in [0, 1], or None (no photometric term).
+        fill_holes: fill the isolated holes first (:func:`fill_isolated_holes`; a speckled camera, whose coarser
+            levels would otherwise keep almost no point: a coarse cell needs its four pixels).
 
     Returns:
         :class:`LiveFrame`.
@@ -452,6 +489,9 @@ def prepare_live(depth: np.ndarray, k: Intrinsics, cfg: FrontendConfig, rgb: np.
     """
     cfg.check()
     fast = _use_numba(cfg)
+    if fill_holes:
+        d = _check_image("depth", depth, k, None)
+        depth = fill_isolated_holes(np.where((d >= cfg.depth_min) & (d <= cfg.depth_max), d, 0.0), cfg.depth_jump)
     if fast:
         return _prepare_live_fast(depth, k, cfg, rgb)
     d = _check_image("depth", depth, k, None)

@@ -96,7 +96,8 @@ class KeyframeTracking:
                                       model_smoothing=self.cfg.tracking.frontend_model_smoothing,
                                       noisy_smoothing=self.cfg.tracking.frontend_noisy_smoothing,
                                       noisy_roughness=self.cfg.tracking.frontend_noisy_roughness,
-                                      trust_z2_per_roughness=self.cfg.tracking.frontend_trust_z2_per_roughness)
+                                      trust_z2_per_roughness=self.cfg.tracking.frontend_trust_z2_per_roughness,
+                                      speckle_fill=self.cfg.tracking.frontend_speckle_fill)
         ds = self.cfg.tracking.frontend_downsample
         if ds == 0:  # auto: halve while the image stays at least AUTO_MIN_WIDTH wide
             ds = 1
@@ -114,6 +115,8 @@ class KeyframeTracking:
         self._fe_prev: tuple[int, np.ndarray, np.ndarray] | None = None  # the last frame tracked (index, depth, rgb)
         self._fe_noisy: set[int] = set()  # keyframes whose reference depth was smoothed as noisy
         self._fe_roughness = 0.0  # depth_roughness of the last reference built (1/m; 0: not measured)
+        self._fe_speckled = False  # a reference's isolated holes were filled (logged once)
+        self._fe_fill_live = False  # the last reference built was speckled: live frames' isolated holes are filled
         self._fe_segment: LostSegment | None = None  # lost frames tracked among themselves (tracking.lost_segment)
         self._fe_join: tuple[int, np.ndarray, list[int], list[int]] | None = None  # relocalised: (its frame, its
         # segment pose, the segment's earlier frames, their views), joined to the map when recovered
@@ -138,12 +141,18 @@ class KeyframeTracking:
                                 roughness=None if m is None else m.roughness)  # the same depth: measured once
             self._fe_models[index] = m
             self._fe_roughness = m.roughness
+            self._fe_fill_live = m.speckle > self._fe_cfg.speckle_fill  # the camera's frames are speckled too
             if m.smoothing > self._fe_cfg.model_smoothing and index not in self._fe_noisy:
                 if not self._fe_noisy:
                     log.info("keyframe %d: depth roughness %.4f > tracking.frontend_noisy_roughness %g: a noisy "
                              "camera; references are averaged over %d x %d pixels", index, m.roughness,
                              self._fe_cfg.noisy_roughness, m.smoothing, m.smoothing)
                 self._fe_noisy.add(index)
+            if m.speckle > self._fe_cfg.speckle_fill and not self._fe_speckled:
+                log.info("keyframe %d: %.1f %% of its pixels are isolated holes (> tracking.frontend_speckle_fill %g): "
+                         "they are filled from their neighbours in the references", index, 100 * m.speckle,
+                         self._fe_cfg.speckle_fill)
+                self._fe_speckled = True
         self._fe_models.move_to_end(index)
         while len(self._fe_models) > 6:
             self._fe_models.popitem(last=False)
@@ -272,7 +281,7 @@ class KeyframeTracking:
         with self._poses_lock:
             prev = self.poses[-1].copy()
             prev2 = self.poses[-2].copy() if len(self.poses) >= 2 else prev
-        live = prepare_live(depth, self._fe_k, fe, rgb)
+        live = prepare_live(depth, self._fe_k, fe, rgb, fill_holes=self._fe_fill_live)
         res: TrackResult | None = None
         first_guess = None  # the first lost frame's tracking guess (where a lost segment starts)
         if self._fe_state != "lost":
