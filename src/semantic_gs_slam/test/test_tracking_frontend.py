@@ -236,6 +236,23 @@ def test_a_noisy_camera_is_trusted_at_its_own_noise_with_the_same_pose(scene, ba
         build_reference(d0, poses[0], k, replace(CFG, trust_z2_per_roughness=-1.0))
 
 
+@needs_numba
+def test_compiled_speckle_and_hole_filling_give_the_numpy_ones_exactly(scene):
+    from semantic_gs_slam.tracking import frontend_numba as fk
+
+    depth = scene[2][0][1].astype(np.float64)
+    rng = np.random.default_rng(4)
+    holed = np.where(rng.random(depth.shape) < 0.4, 0.0, depth)
+    holed[5, 7], holed[9, 3] = 9.0, 0.05  # out of the front end's range: missing
+    for d in (depth, holed, np.zeros((6, 8)), holed[:3, :4]):
+        d = np.ascontiguousarray(d)
+        assert fk.depth_speckle(d) == depth_speckle(d)
+        out = np.empty_like(d)
+        fk.fill_isolated_holes(d, CFG.depth_min, CFG.depth_max, CFG.depth_jump, out)
+        ref = fill_isolated_holes(np.where((d >= CFG.depth_min) & (d <= CFG.depth_max), d, 0.0), CFG.depth_jump)
+        np.testing.assert_array_equal(out, ref)
+
+
 @pytest.mark.parametrize("backend", ["numpy", pytest.param("numba", marks=needs_numba)])
 def test_a_speckled_camera_has_its_isolated_holes_filled_and_tracks(scene, backend):
     """30 % of both frames' depth pixels dropped at random: the reference reads as speckled, its isolated holes are

@@ -331,6 +331,18 @@ def fill_isolated_holes(depth: np.ndarray, jump: float = 0.05) -> np.ndarray:
     return np.where(fill, mean, depth)
 
 
+def _fill_holes(depth: np.ndarray, cfg: FrontendConfig, fast: bool) -> np.ndarray:
+    """:func:`fill_isolated_holes` of ``depth`` [H, W] float64 with depth outside ``cfg``'s range taken as missing,
+    compiled when ``fast`` (one call, the GIL let go once)."""
+    if fast:
+        out = np.empty_like(depth)
+        _fast().fill_isolated_holes(np.ascontiguousarray(depth), float(cfg.depth_min), float(cfg.depth_max),
+                                    float(cfg.depth_jump), out)
+        return out
+    return fill_isolated_holes(np.where((depth >= cfg.depth_min) & (depth <= cfg.depth_max), depth, 0.0),
+                               cfg.depth_jump)
+
+
 def _smooth_depth(depth: np.ndarray, size: int, jump: float) -> np.ndarray:
     """``depth`` [H, W] averaged over a ``size`` x ``size`` window, over the neighbours with depth within ``jump``
     times the centre's (edges stay sharp); pixels without depth stay 0."""
@@ -428,9 +440,11 @@ def build_reference(depth: np.ndarray, c2w: np.ndarray, k: Intrinsics, cfg: Fron
                  else depth_roughness(d, cfg.depth_jump, ROUGHNESS_MIN_PIXELS))
     if smooth_noisy and rough > cfg.noisy_roughness:
         window = cfg.noisy_smoothing
-    speckle = depth_speckle(d) if cfg.speckle_fill > 0 else 0.0
+    speckle = 0.0
+    if cfg.speckle_fill > 0:
+        speckle = _fast().depth_speckle(np.ascontiguousarray(d)) if fast else depth_speckle(d)
     if speckle > cfg.speckle_fill:  # after the roughness: a filled hole is its neighbours' mean, not a measurement
-        d = fill_isolated_holes(d, cfg.depth_jump)
+        d = _fill_holes(d, cfg, fast)
     d = _smooth_depth(d, window, cfg.depth_jump)
     r, t = c2w[:3, :3], c2w[:3, 3]
     levels = []
@@ -490,8 +504,7 @@ def prepare_live(depth: np.ndarray, k: Intrinsics, cfg: FrontendConfig, rgb: np.
     cfg.check()
     fast = _use_numba(cfg)
     if fill_holes:
-        d = _check_image("depth", depth, k, None)
-        depth = fill_isolated_holes(np.where((d >= cfg.depth_min) & (d <= cfg.depth_max), d, 0.0), cfg.depth_jump)
+        depth = _fill_holes(_check_image("depth", depth, k, None), cfg, fast)
     if fast:
         return _prepare_live_fast(depth, k, cfg, rgb)
     d = _check_image("depth", depth, k, None)

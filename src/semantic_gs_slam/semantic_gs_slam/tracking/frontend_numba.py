@@ -13,7 +13,8 @@ it against:
   :func:`semantic_gs_slam.tracking.numba_kernels.icp_accumulate` (called from here, compiled together), the prior toward
   the guess, a Cholesky solve of the 6x6 system and the pose update, so a level is one call from Python instead of
   one per step (the per-step Python and NumPy glue cost as much as the sums at 320x240);
-* :func:`icp_track` - every level of ``track`` and its score in one call.
+* :func:`icp_track` - every level of ``track`` and its score in one call;
+* :func:`depth_speckle`, :func:`fill_isolated_holes` - their namesakes (a speckled camera's frames, every frame).
 
 Plain numpy-in, numpy-out functions at module level (numba's on-disk cache finds them again); numba has no BLAS
 here (no SciPy), so the small products are written out.
@@ -28,7 +29,8 @@ import numpy as np
 
 from semantic_gs_slam.tracking.numba_kernels import icp_accumulate
 
-__all__ = ["half_depth", "icp_level", "icp_track", "live_frame", "live_points", "model_level", "shrink_frame"]
+__all__ = ["depth_speckle", "fill_isolated_holes", "half_depth", "icp_level", "icp_track", "live_frame", "live_points",
+           "model_level", "shrink_frame"]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -347,3 +349,64 @@ def icp_track(est, guess_inv, prior_diag, w2c, lps, lvalids, il, vms, nms, nvali
         if lvalids[last][i]:
             n_live += 1
     return steps, n_live
+
+
+@numba.njit(cache=True, nogil=True)
+def depth_speckle(depth):
+    """:func:`semantic_gs_slam.tracking.frontend.depth_speckle` of depth [H, W] in one call: the fraction of pixels
+    without depth whose 4 neighbours (outside the image: none) have depth for 3 or 4 of them."""
+    h, w = depth.shape
+    n = 0
+    for y in range(h):
+        for x in range(w):
+            if depth[y, x] > 0:
+                continue
+            k = 0
+            if y > 0 and depth[y - 1, x] > 0:
+                k += 1
+            if y < h - 1 and depth[y + 1, x] > 0:
+                k += 1
+            if x > 0 and depth[y, x - 1] > 0:
+                k += 1
+            if x < w - 1 and depth[y, x + 1] > 0:
+                k += 1
+            if k >= 3:
+                n += 1
+    return n / max(h * w, 1)
+
+
+@numba.njit(cache=True, nogil=True)
+def fill_isolated_holes(depth, lo, hi, jump, out):
+    """:func:`semantic_gs_slam.tracking.frontend.fill_isolated_holes` of depth [H, W] with depth outside [lo, hi]
+    taken as missing first (as ``prepare_live`` does), into out [H, W]: a hole with 4 or more of its 8 neighbours
+    in range, all within ``jump`` times their mean of each other, takes that mean."""
+    h, w = depth.shape
+    for y in range(h):
+        for x in range(w):
+            c = depth[y, x]
+            if c >= lo and c <= hi:
+                out[y, x] = c
+                continue
+            out[y, x] = 0.0
+            n = 0
+            s = 0.0
+            mx = -np.inf
+            mn = np.inf
+            for dy in range(-1, 2):
+                for dx in range(-1, 2):
+                    if dy == 0 and dx == 0:
+                        continue
+                    yy, xx = y + dy, x + dx
+                    if yy < 0 or yy >= h or xx < 0 or xx >= w:
+                        continue
+                    v = depth[yy, xx]
+                    if not (v >= lo and v <= hi and v > 0):
+                        continue
+                    n += 1
+                    s += v
+                    mx = max(mx, v)
+                    mn = min(mn, v)
+            if n >= 4:
+                mean = s / n
+                if mx - mn <= jump * mean:
+                    out[y, x] = mean
