@@ -36,15 +36,27 @@ class ObjectQueryTimeout(ObjectQueryError):
     """The service did not answer (or was not available) within the deadline."""
 
 
+#: s; a request not answered this long is sent again (then after twice as long, ...) until the deadline. A service
+#: answers before DDS has matched its reply writer to a new client's reader now and then (rclpy logs "failed to send
+#: response (timeout)"), and that reply is lost; a query only reads, so a repeat is harmless
+RESEND_S = 1.0
+
+
 class ObjectQueryClient:
     """Asks ``/object_query``. ``query()`` blocks the *calling* thread only, never an executor.
 
     Use ``query()`` from a worker thread while the node is spun elsewhere, or pass
     ``spin=True`` in a single-threaded script (it then spins the node itself until the deadline).
+    A request not answered within ``resend_s`` is sent again, then after twice as long, and so on, until the
+    deadline (:data:`RESEND_S`; ``resends`` counts them).
     """
 
     def __init__(self, node: Node, service: str = "object_query", callback_group: CallbackGroup | None = None,
-                 instances_service: str = "object_instances"):
+                 instances_service: str = "object_instances", resend_s: float = RESEND_S):
+        if not resend_s > 0:
+            raise ValueError(f"resend_s must be > 0, got {resend_s}")
+        self.resend_s = float(resend_s)
+        self.resends = 0
         self._node = node
         self._client = node.create_client(ObjectQuery, service, callback_group=callback_group)
         self._instances_client = node.create_client(ObjectInstances, instances_service, callback_group=callback_group)
@@ -92,28 +104,46 @@ class ObjectQueryClient:
             self._client.remove_pending_request(future)
 
     def _call(self, client, request, timeout_sec: float, spin: bool):
-        """Send ``request`` and wait for the response (see the class docstring for ``spin``).
+        """Send ``request`` and wait for the response (see the class docstring for ``spin``), sending it again
+        when a copy is not answered within ``resend_s`` (doubling); the first answer to any copy is returned.
 
         ``timeout_sec`` bounds the whole call: waiting for the service and for the answer.
         """
         deadline = time.monotonic() + timeout_sec
         if not client.service_is_ready() and not client.wait_for_service(timeout_sec=timeout_sec):
             raise ObjectQueryTimeout(f"service {client.srv_name} not available after {timeout_sec:.1f} s")
-        future = client.call_async(request)
+        done = threading.Event()
+        futures = []
+        executor = None
         if spin:
             executor = SingleThreadedExecutor(context=self._node.context)
             executor.add_node(self._node)
-            while not future.done() and time.monotonic() < deadline:
-                executor.spin_once(timeout_sec=0.05)
-            executor.remove_node(self._node)
-        else:
-            done = threading.Event()
-            future.add_done_callback(lambda _f: done.set())
-            done.wait(max(0.0, deadline - time.monotonic()))
-        if not future.done():
-            client.remove_pending_request(future)
+        try:
+            wait = self.resend_s
+            while True:
+                future = client.call_async(request)
+                future.add_done_callback(lambda _f: done.set())
+                futures.append(future)
+                until = min(deadline, time.monotonic() + wait)
+                if executor is not None:
+                    while not done.is_set() and time.monotonic() < until:
+                        executor.spin_once(timeout_sec=0.05)
+                else:
+                    done.wait(max(0.0, until - time.monotonic()))
+                if done.is_set() or time.monotonic() >= deadline:
+                    break
+                self.resends += 1
+                wait *= 2
+        finally:
+            if executor is not None:
+                executor.remove_node(self._node)
+        answered = next((f for f in futures if f.done()), None)
+        for f in futures:
+            if not f.done():
+                client.remove_pending_request(f)
+        if answered is None:
             raise ObjectQueryTimeout(f"no answer from {client.srv_name} within {timeout_sec:.1f} s")
-        return future.result()
+        return answered.result()
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -124,3 +124,65 @@ def test_staged_start_reports_provisional_then_ready(launch_nodes, ros_node):
         full = ObjectDatabase.from_map(load_semantic_map(*bundled_map_paths()))
         # equal up to the few floaters the instance split drops as noise (39 of 41 k points here: ~1 mm for chair)
         assert all(abs(a - b) < 0.01 for a, b in zip(first.position, full.class_centroids["chair"], strict=True))
+
+
+SILENT_FIRST = '''
+import os, sys, threading
+import rclpy
+from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.executors import MultiThreadedExecutor
+from object_query_interfaces.srv import ObjectQuery
+
+release = sys.argv[1]
+rclpy.init()
+node = rclpy.create_node("silent_first_query")
+calls = []
+lock = threading.Lock()
+
+def answer(req, resp):
+    with lock:
+        calls.append(req.name)
+        n = len(calls)
+    if n == 1:  # the first copy is answered only once the test has its answer (a reply DDS lost, in effect)
+        for _ in range(600):
+            if os.path.exists(release):
+                break
+            threading.Event().wait(0.05)
+    resp.found = True
+    resp.message = f"call {n}"
+    return resp
+
+node.create_service(ObjectQuery, "object_query", answer, callback_group=ReentrantCallbackGroup())
+print("ready", flush=True)
+ex = MultiThreadedExecutor(num_threads=3)
+ex.add_node(node)
+try:
+    ex.spin()
+except BaseException:
+    pass
+'''
+
+
+def test_a_query_whose_answer_does_not_come_is_sent_again(ros_node, ros_domain, tmp_path):
+    """A service (its own process) that leaves the first copy of a query unanswered: the client sends it again after
+    ``resend_s`` and returns the second copy's answer within its deadline, the first copy's request dropped."""
+    import sys
+
+    script = tmp_path / "silent_first.py"
+    script.write_text(SILENT_FIRST)
+    release = tmp_path / "release"
+    proc = subprocess.Popen([sys.executable, str(script), str(release)], env=node_environment(ros_domain),
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        client = ObjectQueryClient(ros_node, resend_s=0.5)
+        assert client.wait_for_service(timeout_sec=20.0)
+        answer = client.query("bottle", timeout_sec=60.0)
+        assert answer.found and answer.message.startswith("call ") and answer.message != "call 1", answer
+        assert client.resends >= 1
+    finally:
+        release.write_text("")
+        proc.terminate()
+        proc.wait(timeout=10)
+    with pytest.raises(ValueError, match="resend_s"):
+        ObjectQueryClient(ros_node, resend_s=0.0)
