@@ -218,7 +218,7 @@ class KeyframeTracking:
         with self._poses_lock:
             prev = self.poses[-1].copy()
             prev2 = self.poses[-2].copy() if len(self.poses) >= 2 else prev
-        if seg is None or seg.frames[-1] != idx - 1:
+        if seg is None:  # the first lost frame (a segment is dropped whenever the camera is lost anew)
             start = first_guess if first_guess is not None else (odom_guess if odom_guess is not None else prev)
             self._fe_segment = LostSegment([idx], build_reference(depth, start, self._fe_k, fe, rgb=rgb,
                                                                    keyframe_id=idx,
