@@ -15,6 +15,8 @@ Usage (from the repository root; the data stays outside the repository, mind its
     python bench/slam_real.py <seq> --gain 0.3                  # exposure swinging by 30 % (both trackers)
     python bench/slam_real.py <seq> --holes 0.3                 # 30 % of the depth pixels dropped (both trackers)
     python bench/slam_real.py <seq> --frames 500 --stride 1 --gap 250:90   # 3 s of a 30-Hz camera missing
+    python bench/slam_real.py <seq> --frames 250 --stride 1 --drop 0.5     # half the frames dropped unevenly
+    python bench/slam_real.py <seq> --colour-lag 1              # colour 33 ms after its depth (both trackers)
 
 Runs our engine over the frames and prints the camera used (``--intrinsics``, ``--depth-scale``, ``--camera`` as for
 ``python -m semantic_gs_slam.run``), ATE RMSE (aligned), RPE, PSNR (all pixels, and SplaTAM's depth-masked
@@ -57,6 +59,13 @@ def aligned_errors(est: list[np.ndarray], gt: list[np.ndarray]) -> np.ndarray:
         return np.linalg.norm(e - g, axis=1)
     t = umeyama_rigid(e, g)
     return np.linalg.norm(e @ t[:3, :3].T + t[:3, 3] - g, axis=1)
+
+
+def drop_frames(idx: list[int], p: float, seed: int = 20261128) -> list[int]:
+    """``idx`` with each frame but the first left out with probability ``p`` (seeded: the same frames every run)."""
+    keep = np.random.default_rng(seed).random(len(idx)) >= p
+    keep[0] = True
+    return [i for i, k in zip(idx, keep, strict=True) if k]
 
 
 def lost_summary(stats: dict, idx: list[int]) -> tuple[str, str]:
@@ -243,6 +252,9 @@ def main() -> int:
     ap.add_argument("--depth-noise", type=float, default=0.0,
                     help="add this many times a Kinect v1's depth noise (0.0012 + 0.0019 (z - 0.4)^2 m) to every "
                          "frame's depth, ours and Open3D's alike (a noisier camera; 0: as recorded)")
+    ap.add_argument("--colour-lag", type=int, default=0, metavar="N",
+                    help="give each frame the colour of the recorded frame N later (a colour shutter that does not "
+                         "fire with the depth's: a moving camera's colour off its depth)")
     ap.add_argument("--blur", type=int, default=0,
                     help="average each frame's colour with the N recorded frames on either side (motion blur)")
     ap.add_argument("--gain", type=float, default=0.0,
@@ -254,6 +266,9 @@ def main() -> int:
     ap.add_argument("--gap", action="append", default=[], metavar="FIRST:COUNT",
                     help="leave out COUNT recorded frames from dataset frame FIRST on (a stream that stalled; both "
                          "trackers; may be repeated)")
+    ap.add_argument("--drop", type=float, default=0.0, metavar="P",
+                    help="leave out each selected frame but the first with probability P, at random (seeded: "
+                         "repeatable): a stream that drops frames unevenly (both trackers; 0: none)")
     ap.add_argument("--quiet", action="store_true", help="no per-frame lines")
     ap.add_argument("--colour-calib", default="auto",
                     help="auto (the dataset's own or the layout's default), none (colour as recorded), or a file")
@@ -271,10 +286,10 @@ def main() -> int:
         ap.error("--labels-every must be >= 1")
     ds = load_dataset(args.dataset, size=parse_size(args.size) if args.size else None,
                       colour_calib=args.colour_calib, **camera_kwargs(args))
-    if args.depth_noise or args.blur or args.gain or args.holes:
+    if args.depth_noise or args.blur or args.gain or args.holes or args.colour_lag:
         if not args.depth_noise >= 0 or args.blur < 0 or not 0 <= args.gain < 1 or not 0 <= args.holes < 1:
             ap.error("--depth-noise and --blur must be >= 0, --gain and --holes in [0, 1)")
-        ds = DegradedDataset(ds, args.depth_noise, args.blur, args.gain, holes=args.holes)
+        ds = DegradedDataset(ds, args.depth_noise, args.blur, args.gain, holes=args.holes, colour_lag=args.colour_lag)
         print(f"frames degraded: {ds.describe()}")
     idx = frame_indices(len(ds), args.start, args.stride, args.frames)
     for gap in args.gap:
@@ -289,6 +304,12 @@ def main() -> int:
             ap.error(f"--gap {gap!r} leaves fewer than 2 frames")
         print(f"gap: dataset frames {first}..{first + count - 1} left out ({len(idx) - len(left)} of the selected)")
         idx = left
+    if args.drop:
+        if not 0 <= args.drop < 1:
+            ap.error(f"--drop {args.drop}: need 0 <= P < 1")
+        kept = drop_frames(idx, args.drop)
+        print(f"dropped at random: {len(idx) - len(kept)} of the {len(idx)} selected frames")
+        idx = kept
     if ds.poses is None:
         print("the sequence has no reference poses: ATE cannot be computed", file=sys.stderr)
         return 2

@@ -162,6 +162,10 @@ class TrackingConfig:
     relocalise_candidates: int = 3  # keyframes tried per relocalisation: the best ranked by a 20x15 thumbnail of
     # depth and intensity (cheap), plus the one nearest the last trusted pose
     relocalise_confirm: int = 2  # trusted frames in a row (the relocalised one first) before mapping resumes
+    velocity_max_scale: float = 3.0  # the constant-velocity guess takes the last step times the time since the last
+    # frame over the time between the last two (frames dropped unevenly by a stream or a camera), up to this many
+    # steps (a stalled stream's first frame after seconds: a longer extrapolation is a guess the ICP cannot start
+    # from). 0: one step per frame, whatever the times
     lost_segment: bool = True  # "keyframe": lost frames are tracked among themselves from the first one's guessed
     # pose (their pose follows the camera instead of staying at the last trusted one, and is one more relocalisation
     # guess); once the map takes the camera back, the whole lost stretch is moved into the map's frame. Lost frames
@@ -193,6 +197,9 @@ class TrackingConfig:
             raise ConfigError(f"tracking.frontend must be 'render' or 'keyframe', got {self.frontend!r}")
         if min(self.relocalise_every, self.relocalise_candidates, self.relocalise_confirm) < 1:
             raise ConfigError("tracking.relocalise_every, relocalise_candidates and relocalise_confirm must be >= 1")
+        if not (math.isfinite(self.velocity_max_scale) and self.velocity_max_scale >= 0):
+            raise ConfigError(f"tracking.velocity_max_scale must be a finite number >= 0, got "
+                              f"{self.velocity_max_scale}")
         if self.frontend_downsample not in (0, 1, 2, 4):
             raise ConfigError(f"tracking.frontend_downsample must be 0 (auto), 1, 2 or 4, got "
                               f"{self.frontend_downsample!r}")

@@ -28,7 +28,7 @@ from torch import Tensor
 from semantic_gs_slam.config import Intrinsics, SlamConfig
 from semantic_gs_slam.devices import require_cpu_kernel, resolve_device
 from semantic_gs_slam.errors import FrameError, MapFormatError, MappingError, TrackingError
-from semantic_gs_slam.geometry import pose_error
+from semantic_gs_slam.geometry import pose_error, velocity_guess
 from semantic_gs_slam.io.exposure import identity as exposure_identity
 from semantic_gs_slam.io.host_frame import check_counts, host_frame
 from semantic_gs_slam.loop.closing import LoopClosing
@@ -134,6 +134,7 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
         self.gt_poses: list[np.ndarray | None] = []
         self.odom_poses: list[np.ndarray | None] = []  # the odometry c2w given with each frame, if any
         self.timestamps: list[float] = []
+        self._frame_time = math.nan  # the time of the frame add_frame is tracking (seconds)
         self.keyframes: list[Keyframe] = []
         self.logs: list[FrameLog] = []
         self.edges: list[Edge] = []  # keyframe pose graph (nodes: positions in self.keyframes)
@@ -294,6 +295,7 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
             rgb_t, depth_t, sem_t = self._tensors(rgb, depth, semantics)
         has_sem = semantics is not None
         idx = len(self.poses)
+        self._frame_time = float(idx if timestamp is None else timestamp)  # the velocity guess scales by the times
         gt = None if gt_c2w is None else np.asarray(gt_c2w, np.float64)
         odom = None if odom_c2w is None else check_pose(odom_c2w, "odom_c2w")
         residual, inliers, failed, source = float("nan"), 0, False, "tracking"
@@ -337,7 +339,7 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
             self._join_lost_views(idx)
         self.gt_poses.append(gt)
         self.odom_poses.append(odom)
-        self.timestamps.append(float(idx if timestamp is None else timestamp))
+        self.timestamps.append(self._frame_time)
         t1 = time.perf_counter()
         # a pose that tracking did not confirm (the odometry's guess, kept because ICP failed or was refused by the
         # odometry gate) is not mapped unless tracking.odometry_map_unverified: measured on four exploration runs,
@@ -484,6 +486,13 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
                      views)
         self._lost_views.clear()
 
+    def _velocity_guess(self, prev2: np.ndarray, prev: np.ndarray) -> np.ndarray:
+        """The constant-velocity guess [4, 4] for the frame being added: the last frame's pose ``prev`` moved on by the
+        step from the one before (``prev2``), scaled by the frames' times (``tracking.velocity_max_scale``)."""
+        ts = self.timestamps
+        dt_prev, dt = (ts[-1] - ts[-2], self._frame_time - ts[-1]) if len(ts) >= 2 else (math.nan, math.nan)
+        return velocity_guess(prev2, prev, dt_prev, dt, self.cfg.tracking.velocity_max_scale)
+
     def _defers(self) -> bool:
         """Whether keyframes are deferred while the mapping thread is busy (mapping.defer_keyframes, threaded)."""
         return bool(self.cfg.threaded and self.cfg.mapping.defer_keyframes and self._worker is not None)
@@ -610,7 +619,7 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
         if odom_guess is not None:
             guess = odom_guess
         elif guess is None:
-            guess = prev @ (np.linalg.inv(self.poses[-2]) @ prev) if len(self.poses) >= 2 else prev
+            guess = self._velocity_guess(self.poses[-2], prev) if len(self.poses) >= 2 else prev
         g = torch.as_tensor(guess, device=self.device)
         tc = self.cfg.tracking
         shrink = tc.render_scale_shrink if odom_guess is None else tc.render_scale_shrink_odometry

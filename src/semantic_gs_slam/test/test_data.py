@@ -212,3 +212,12 @@ def test_degraded_frames_noisier_depth_and_blurred_colour(tiny_home):
     for bad in (1.0, -0.1):
         with pytest.raises(ValueError, match="holes"):
             DegradedDataset(ds, holes=bad)
+    lag = DegradedDataset(ds, colour_lag=2)  # frame i shows recorded frame i + 2's colour, its own depth
+    np.testing.assert_array_equal(lag[1].rgb, ds[3].rgb)
+    np.testing.assert_array_equal(lag[1].depth, ds[1].depth)
+    np.testing.assert_array_equal(lag[len(ds) - 1].rgb, ds[len(ds) - 1].rgb)  # clamped at the end
+    lag_blur = DegradedDataset(ds, colour_lag=-1, blur=1)  # the lag applies to the blurred frames as well
+    np.testing.assert_allclose(lag_blur[4].rgb, np.mean([ds[2].rgb, ds[3].rgb, ds[4].rgb], axis=0), atol=1e-6)
+    assert "colour from +2 recorded frames" in lag.describe()
+    with pytest.raises(ValueError, match="colour_lag"):
+        DegradedDataset(ds, colour_lag=0.5)

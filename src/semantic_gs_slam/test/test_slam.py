@@ -210,6 +210,9 @@ def test_config_overrides_parse_each_fields_type():
                      ("mapping.iters", "no setting")]:
         with pytest.raises(ConfigError, match=why):
             SlamConfig(intrinsics=k).with_overrides([bad])
+    for bad in ("tracking.velocity_max_scale=-1", "tracking.velocity_max_scale=inf"):  # parsed, then refused
+        with pytest.raises(ConfigError, match="velocity_max_scale must be a finite number >= 0"):
+            SlamConfig(intrinsics=k).with_overrides([bad]).check()
 
 
 def test_config_json_overrides_from_a_file_or_inline(tmp_path):

@@ -10,6 +10,9 @@
 * Depth dropouts: :class:`DegradedDataset` drops ``holes`` of the depth pixels at random, independently per pixel and
   frame (seeded by the frame's index): a speckled time-of-flight or stereo camera, where a structured-light one
   leaves holes in regions.
+* Unsynchronised colour: :class:`DegradedDataset` gives frame i the colour of recorded frame ``i + colour_lag``
+  (the last frame's near the end): a camera whose colour shutter does not fire with its depth, so that a moving
+  camera's colour sits off its depth by the motion in between (TUM RGB-D's Kinect: up to ~20 ms).
 
 Usage::
 
@@ -47,10 +50,12 @@ class DegradedDataset:
         gain: the exposure swing: frame i's colour times ``1 + gain sin(2 pi i / gain_period)`` (in [0, 1); 0:
             none). gain_period: frames of the recording per swing (> 0; 60: 2 s of a 30-Hz camera).
         holes: the fraction of depth pixels dropped (set to 0) at random (in [0, 1); 0: none).
+        colour_lag: frame i's colour is taken from recorded frame ``i + colour_lag`` (clamped to the recording;
+            may be negative; 0: none), before blur and exposure.
     """
 
     def __init__(self, base: Dataset, depth_noise: float = 0.0, blur: int = 0, gain: float = 0.0,
-                 gain_period: float = 60.0, holes: float = 0.0) -> None:
+                 gain_period: float = 60.0, holes: float = 0.0, colour_lag: int = 0) -> None:
         if not (math.isfinite(depth_noise) and depth_noise >= 0):
             raise ValueError(f"depth_noise must be a finite number >= 0, got {depth_noise!r}")
         if blur < 0:
@@ -63,6 +68,9 @@ class DegradedDataset:
         if not 0 <= holes < 1:
             raise ValueError(f"holes must be in [0, 1), got {holes!r}")
         self.gain, self.gain_period, self.holes = float(gain), float(gain_period), float(holes)
+        if int(colour_lag) != colour_lag:
+            raise ValueError(f"colour_lag must be a whole number of frames, got {colour_lag!r}")
+        self.colour_lag = int(colour_lag)
 
     def __getattr__(self, name: str):  # intrinsics, poses, sem_paths, camera_line(), ... are the recording's
         return getattr(self.base, name)
@@ -73,9 +81,11 @@ class DegradedDataset:
     def __getitem__(self, i: int) -> Frame:
         f = self.base[i]
         i = f.index
+        if self.colour_lag:
+            f.rgb = self._colour(i + self.colour_lag)
         if self.blur:
-            near = [self.base[j].rgb for j in range(max(0, i - self.blur), min(len(self.base), i + self.blur + 1))
-                    if j != i]
+            near = [self._colour(j + self.colour_lag)
+                    for j in range(max(0, i - self.blur), min(len(self.base), i + self.blur + 1)) if j != i]
             f.rgb = np.mean([f.rgb, *near], axis=0).astype(f.rgb.dtype)
         if self.depth_noise:
             f.depth = noisy_depth(f.depth, self.depth_noise, seed=i)
@@ -87,11 +97,16 @@ class DegradedDataset:
             f.depth = np.where(drop, 0.0, f.depth).astype(f.depth.dtype)
         return f
 
+    def _colour(self, j: int) -> np.ndarray:
+        """[H, W, 3] the colour of recorded frame ``j``, clamped to the recording."""
+        return self.base[min(max(j, 0), len(self.base) - 1)].rgb
+
     def describe(self) -> str:
         """One line for logs: what was done to the frames."""
         swing = f"exposure swinging by ±{100 * self.gain:g} % every {self.gain_period:g} frames"
         parts = ([f"depth noise {self.depth_noise:g} x a Kinect v1's"] if self.depth_noise else []) + \
             ([f"colour averaged over {2 * self.blur + 1} frames"] if self.blur else []) + \
             ([swing] if self.gain else []) + \
-            ([f"{100 * self.holes:g} % of the depth pixels dropped at random"] if self.holes else [])
+            ([f"{100 * self.holes:g} % of the depth pixels dropped at random"] if self.holes else []) + \
+            ([f"colour from {self.colour_lag:+d} recorded frames"] if self.colour_lag else [])
         return ", ".join(parts) or "none"

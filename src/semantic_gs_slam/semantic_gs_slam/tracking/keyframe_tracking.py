@@ -225,7 +225,7 @@ class KeyframeTracking:
                                                                    roughness=self._fe_roughness or None), [idx])
             return start
         guess = odom_guess if odom_guess is not None else \
-            prev @ (np.linalg.inv(prev2) @ prev) if len(seg.frames) >= 2 else prev
+            self._velocity_guess(prev2, prev) if len(seg.frames) >= 2 else prev
         res = track(live, seg.ref, guess, fe)
         if not res.quality.trusted and guess is not prev:
             res = track(live, seg.ref, prev, fe)
@@ -286,7 +286,7 @@ class KeyframeTracking:
         first_guess = None  # the first lost frame's tracking guess (where a lost segment starts)
         if self._fe_state != "lost":
             guess = odom_guess if odom_guess is not None else \
-                prev if self._fe_after_reloc else prev @ (np.linalg.inv(prev2) @ prev)
+                prev if self._fe_after_reloc else self._velocity_guess(prev2, prev)
             model = self._fe_model(self._fe_ref_idx)
             self._fe_used = (model.keyframe_id, model.c2w)
             res = track(live, model, guess, fe)

@@ -130,7 +130,7 @@ class MapStart:
                 prev = self.poses[-1].copy()
                 prev2 = self.poses[-2].copy() if self._ms_confirmed >= 2 else prev  # velocity once two are trusted
             c2w, residual, inliers, failed, _ = self._track(rgb_t, depth_t, None,
-                                                            guess=prev @ (np.linalg.inv(prev2) @ prev))
+                                                            guess=self._velocity_guess(prev2, prev))
             if not failed:
                 self._ms_confirmed += 1
                 if self._ms_confirmed >= tc.relocalise_confirm:
