@@ -13,7 +13,9 @@ Topics:
         A spoken/typed "stop" / "cancel" / "stop it" / "abort" there or on /manual_command cancels at
         once, like /cancel_command.
     /object_list (std_msgs/String JSON, in, transient local): known objects, for slot filling.
-    /task_status (std_msgs/String JSON, out): one update per state change (see execution.TaskStatus).
+    /task_status (std_msgs/String JSON, out, transient local): one update per state change (see
+        execution.TaskStatus); the last 2000 are kept for a reader that asks (topics.STATUS_HISTORY_QOS),
+        so an operator that joins late or is matched again after a stall misses none.
     /object_memory (object_query_interfaces/ObjectMemory, in, latched): where objects are now; plans
         and answers to questions come from it. Grasps and places are reported to the
         ``object_memory/report`` service (see memory/link.py).
@@ -68,7 +70,7 @@ from decision_maker.topics import (
     HARDWARE_STOP,
     OBJECT_LIST_QOS,
     SERVICE_QOS,
-    STATUS_QOS,
+    STATUS_PUBLISHER_QOS,
     SUBMIT_COMMAND,
 )
 
@@ -152,7 +154,7 @@ class DecisionMakerNode(Node):
         self._input_group = MutuallyExclusiveCallbackGroup()
         self._client_group = ReentrantCallbackGroup()
 
-        self._status_pub = self.create_publisher(String, "task_status", STATUS_QOS)
+        self._status_pub = self.create_publisher(String, "task_status", STATUS_PUBLISHER_QOS)
         cancel_pub = self.create_publisher(String, HARDWARE_STOP, CANCEL_QOS)
         self.robot = RosRobot(
             self, self._client_group, cancel_pub, frames,

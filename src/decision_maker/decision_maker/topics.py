@@ -20,6 +20,17 @@ COMMAND_QOS = QoSProfile(depth=200, reliability=ReliabilityPolicy.RELIABLE)
 #: is twice the largest burst tested (1000 requests, test_reliability_ros): at depth 200 a loaded
 #: reader once missed the running command's "running" among a thousand "rejected".
 STATUS_QOS = QoSProfile(depth=2000, reliability=ReliabilityPolicy.RELIABLE)
+#: The brain's /task_status publisher: STATUS_QOS, and transient local, so it keeps its last 2000 updates for
+#: readers that ask for them (compatible with STATUS_QOS's volatile readers, which get live updates only). A reader
+#: that must not miss an update uses STATUS_HISTORY_QOS: one that joins late, and one that is matched again after a
+#: participant lease ran out (a process stalled longer than the lease, 2 s in scripts/env.sh's Fast DDS profile):
+#: DDS delivers nothing a writer publishes while the match is gone, so a volatile reader misses those updates for
+#: good (test_reliability_ros: the brain thawed after a freeze, its "#1 running" never reached the operator).
+STATUS_PUBLISHER_QOS = QoSProfile(depth=2000, durability=DurabilityPolicy.TRANSIENT_LOCAL,
+                                  reliability=ReliabilityPolicy.RELIABLE)
+#: A /task_status reader that gets the kept updates when matched (again). It may receive an update twice (when
+#: its side lost and found the brain again): identical messages are the same update.
+STATUS_HISTORY_QOS = STATUS_PUBLISHER_QOS
 #: The submit_command service (requests and replies): deep, so a burst is queued, not overwritten
 #: (the services default, depth 10, drops a burst silently). A sender that still gets no answer
 #: is told so by its own deadline (CommandClient), never left guessing. Twice the largest burst tested

@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 import os
 import signal
+import subprocess
 import threading
 import time
 
@@ -22,7 +23,7 @@ from std_msgs.msg import String
 
 from decision_maker.client.command_client import Ack, CommandClient
 from decision_maker.execution.engine import TaskState, TaskStatus
-from decision_maker.topics import COMMAND_QOS, STATUS_QOS
+from decision_maker.topics import COMMAND_QOS, STATUS_HISTORY_QOS
 from home_robot_bringup.testing import wait_for
 from home_robot_ros.actions import ActionClient
 
@@ -30,23 +31,42 @@ pytestmark = pytest.mark.ros
 
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 
+#: Fast DDS profile with a participant lease far above any freeze below (the project's is 2 s). A brain frozen longer
+#: than the lease is dropped by its peers, and Fast DDS then sometimes never sends its endpoints again (the operator
+#: never hears from it, nor it from the operator): a lost participant, not the late answer a test means to make.
+LONG_LEASE_PROFILE = """<?xml version="1.0" encoding="UTF-8" ?>
+<dds xmlns="http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles">
+  <profiles>
+    <participant profile_name="long_lease_participant" is_default_profile="true">
+      <rtps><builtin><discovery_config>
+        <leaseDuration><sec>300</sec></leaseDuration>
+        <leaseAnnouncement><nanosec>250000000</nanosec></leaseAnnouncement>
+      </discovery_config></builtin></rtps>
+    </participant>
+  </profiles>
+</dds>
+"""
+
 
 class Operator:
-    """Sends commands (service and topic) and cancels; records every /task_status."""
+    """Sends commands (service and topic) and cancels; records every /task_status (the brain's kept ones too)."""
 
     def __init__(self, node) -> None:
         self._lock = threading.Lock()  # guards statuses, world
         self.statuses: list[TaskStatus] = []
+        self._seen: set[str] = set()  # messages received: one matched again gets the kept updates a second time
         self.world: str | None = None
         self.client = CommandClient(node, answer_timeout_s=30.0)
         self._cmd = node.create_publisher(String, "manual_command", COMMAND_QOS)
         self._cancel = node.create_publisher(String, "cancel_command", QoSProfile(depth=10))
-        self._status = node.create_subscription(String, "task_status", self._on_status, STATUS_QOS)
+        self._status = node.create_subscription(String, "task_status", self._on_status, STATUS_HISTORY_QOS)
         node.create_subscription(String, "sim/world_state", self._on_world, LATCHED)
 
     def _on_status(self, msg: String) -> None:
         with self._lock:
-            self.statuses.append(TaskStatus.from_json(msg.data))
+            if msg.data not in self._seen:  # each update is stamped: an identical message is the same update
+                self._seen.add(msg.data)
+                self.statuses.append(TaskStatus.from_json(msg.data))
 
     def _on_world(self, msg: String) -> None:
         with self._lock:
@@ -260,27 +280,55 @@ def test_killed_nav_server_fails_the_goal_fast_and_keeps_the_queue(launch_nodes,
     assert final.state is TaskState.FAILED and "object query" in final.message, final
 
 
-def test_a_call_whose_answer_is_late_is_sent_again_and_run_once(launch_nodes, ros_node):
+def _stopped(pid: int) -> bool:
+    """Whether process ``pid`` is stopped (SIGSTOP): state ``T`` in /proc/PID/stat."""
+    with open(f"/proc/{pid}/stat") as f:
+        return f.read().rsplit(")", 1)[1].split()[0] == "T"
+
+
+#: How long the brain is frozen: under the participant lease (2 s, scripts/env.sh's Fast DDS profile) with margin.
+FREEZE_S = 1.2
+
+
+def test_a_call_whose_answer_is_late_is_sent_again_and_run_once(launch_nodes, ros_node, tmp_path):
     """The brain frozen (SIGSTOP) while a command is in flight: the client sends the same call again
-    (same key); thawed, the brain runs the command once and answers every copy with its id."""
-    sup = launch_nodes(nodeset="sim_robot", set=["mock_nav_server.speed=0.1"])
+    (same key); thawed, the brain runs the command once and answers every copy with its id.
+
+    A late answer, not a lost participant: a freeze past the participant lease makes the peers drop each other,
+    and Fast DDS then sometimes never sends the endpoints again (see LONG_LEASE_PROFILE; the brain drops the
+    operator's process too, whose lease is 2 s). So a helper process thaws the brain after FREEZE_S, however
+    starved this process is (pytest -n 3 on 2 cores), and the nodes get a long lease besides. An operator that
+    joins after the command started still gets its updates (/task_status keeps them)."""
+    profile = tmp_path / "long_lease.xml"
+    profile.write_text(LONG_LEASE_PROFILE)
+    sup = launch_nodes(nodeset="sim_robot", set=["mock_nav_server.speed=0.1"],
+                       env={name: str(profile) for name in ("FASTRTPS_DEFAULT_PROFILES_FILE",
+                                                            "FASTDDS_DEFAULT_PROFILES_FILE")})
     op = Operator(ros_node)
     op.wait_connected()
     client = CommandClient(ros_node, answer_timeout_s=60.0, retry_s=0.2)
     assert client.wait_for_service(30.0)
     acks: list[Ack] = []
     brain = sup.get("decision_maker").popen.pid
-    os.kill(brain, signal.SIGSTOP)
+    freezer = subprocess.Popen(["sh", "-c", f"kill -STOP {brain} && sleep {FREEZE_S} && kill -CONT {brain}"])
     try:
+        assert wait_for(lambda: _stopped(brain), 10.0), "the brain was not stopped"
         client.submit_async("go to the kitchen", acks.append)
-        assert wait_for(lambda: client.resends >= 2, 30.0), client.resends  # no answer: sent again, twice
-        assert acks == []
+        wait_for(lambda: client.resends >= 2 or not _stopped(brain), 30.0)
+        repeats = client.resends  # sent while the brain was frozen (the first at 0.2 s, the next at 0.6 s)
+        assert freezer.wait(30.0) == 0
     finally:
         os.kill(brain, signal.SIGCONT)
+        if freezer.poll() is None:
+            freezer.kill()
+    assert repeats >= 1, "no answer, yet the call was not sent again"
     assert wait_for(lambda: len(acks) == 1, 60.0), acks
     ack = acks[0]
     assert ack.via == "service" and ack.accepted and ack.state == "queued" and ack.id > 0, ack
     op.running(ack.id)
+    late = Operator(ros_node)  # joins now: gets the updates kept by the brain
+    late.running(ack.id)
+    assert [s.state for s in late.by_id(ack.id)][:2] == [TaskState.QUEUED, TaskState.RUNNING], late.by_id(ack.id)
     op.cancel("end of the test")
     assert op.final(ack.id).state is TaskState.CANCELLED
     with op._lock:
@@ -293,8 +341,6 @@ def test_a_call_whose_answer_is_late_is_sent_again_and_run_once(launch_nodes, ro
 
 def test_nl_command_node_falls_back_to_the_topic_with_a_warning(ros_node, ros_domain):
     """No brain (no submit_command service): the command still goes out on /manual_command, and says so."""
-    import subprocess
-
     from home_robot_bringup.nodeset import find_executable
     from home_robot_bringup.process import node_environment
 
