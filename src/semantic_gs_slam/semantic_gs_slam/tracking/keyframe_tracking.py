@@ -111,7 +111,10 @@ class KeyframeTracking:
         self._fe_state = "tracking"  # tracking | lost | confirming
         self._fe_confirmed = 0  # trusted frames since the relocalisation (confirming)
         self._fe_last_trusted = 0  # frame index of the last trusted, mapped pose
-        self._fe_after_reloc = False  # the previous frame was relocalised: no constant velocity yet
+        self._fe_after_reloc = False  # the previous frame was relocalised after lost frames: the poses before it are
+        # not in the map's frame, so the next guess takes _fe_reloc_step (or no motion) instead of their velocity
+        self._fe_reloc_step: np.ndarray | None = None  # [4, 4] the camera's last step into the relocalised frame, as
+        # its lost segment tracked it (None: unknown)
         self._fe_prev: tuple[int, np.ndarray, np.ndarray] | None = None  # the last frame tracked (index, depth, rgb)
         self._fe_noisy: set[int] = set()  # keyframes whose reference depth was smoothed as noisy
         self._fe_roughness = 0.0  # depth_roughness of the last reference built (1/m; 0: not measured)
@@ -285,8 +288,13 @@ class KeyframeTracking:
         res: TrackResult | None = None
         first_guess = None  # the first lost frame's tracking guess (where a lost segment starts)
         if self._fe_state != "lost":
-            guess = odom_guess if odom_guess is not None else \
-                prev if self._fe_after_reloc else self._velocity_guess(prev2, prev)
+            if odom_guess is not None:
+                guess = odom_guess
+            elif self._fe_after_reloc:  # the lost segment's last step, moved into the map with the frame
+                step = self._fe_reloc_step
+                guess = prev if step is None else self._velocity_guess(prev @ np.linalg.inv(step), prev)
+            else:
+                guess = self._velocity_guess(prev2, prev)
             model = self._fe_model(self._fe_ref_idx)
             self._fe_used = (model.keyframe_id, model.c2w)
             res = track(live, model, guess, fe)
@@ -339,7 +347,11 @@ class KeyframeTracking:
             if r is not None:
                 self._fe_ref_idx = r.keyframe_id
                 self._fe_used = (r.keyframe_id, self._fe_model(r.keyframe_id).c2w)
-                self._fe_after_reloc = True
+                # the first lost frame, relocalised at once, follows a trusted pose in the map: constant velocity
+                # holds. After lost frames, the segment's step into this frame (both its poses in its frame) does
+                self._fe_after_reloc = idx != self._fe_lost_at
+                self._fe_reloc_step = np.linalg.inv(prev) @ seg_pose \
+                    if seg_pose is not None and len(self._fe_segment.frames) > 1 else None
                 self._fe_confirmed = 1
                 q = r.quality
                 if seg_pose is not None and len(self._fe_segment.frames) > 1:  # joined to the map once recovered
