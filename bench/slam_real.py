@@ -43,7 +43,7 @@ from semantic_gs_slam.eval.evaluate import evaluate
 from semantic_gs_slam.eval.metrics import ate_rmse, rpe_rmse
 from semantic_gs_slam.geometry import pose_error, umeyama_rigid
 from semantic_gs_slam.io.datasets import frame_indices, load_dataset, parse_size
-from semantic_gs_slam.io.degrade import DegradedDataset
+from semantic_gs_slam.io.degrade import DegradedDataset, drop_frames
 from semantic_gs_slam.labels import LABEL_MODES, LabelConfig, LabelStage
 from semantic_gs_slam.run import add_camera_args, camera_kwargs, label_frame
 from semantic_gs_slam.slam import SLAM
@@ -59,13 +59,6 @@ def aligned_errors(est: list[np.ndarray], gt: list[np.ndarray]) -> np.ndarray:
         return np.linalg.norm(e - g, axis=1)
     t = umeyama_rigid(e, g)
     return np.linalg.norm(e @ t[:3, :3].T + t[:3, 3] - g, axis=1)
-
-
-def drop_frames(idx: list[int], p: float, seed: int = 20261128) -> list[int]:
-    """``idx`` with each frame but the first left out with probability ``p`` (seeded: the same frames every run)."""
-    keep = np.random.default_rng(seed).random(len(idx)) >= p
-    keep[0] = True
-    return [i for i, k in zip(idx, keep, strict=True) if k]
 
 
 def lost_summary(stats: dict, idx: list[int]) -> tuple[str, str]:

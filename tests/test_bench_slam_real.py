@@ -56,15 +56,3 @@ def test_frames_that_cannot_be_read_or_that_the_engine_refuses_are_left_out_for_
     assert [i for i, _ in refused] == [1, 2]
     assert "valid" in refused[0][1] and "2.png" in refused[1][1], refused
     assert np.allclose(frames[3].depth, 1.5)
-
-
-def test_drop_leaves_out_frames_unevenly_and_repeatably_keeping_the_first():
-    import numpy as np
-
-    drop_frames = _bench().drop_frames
-    idx = list(range(250, 500))
-    kept = drop_frames(idx, 0.5)
-    assert kept[0] == 250 and kept == drop_frames(idx, 0.5) and set(kept) <= set(idx)
-    assert 100 <= len(kept) <= 150  # about half
-    assert len(set(np.diff(kept).tolist())) >= 4  # uneven steps: what a time-scaled guess is for
-    assert drop_frames(idx, 0.0) == idx

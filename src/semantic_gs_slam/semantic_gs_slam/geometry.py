@@ -13,6 +13,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from semantic_gs_slam.loop.posegraph import so3_exp as so3_exp_np
+from semantic_gs_slam.loop.posegraph import so3_log
+
 
 def quat_to_rotmat(q: Tensor) -> Tensor:
     """Rotation matrices from (unnormalised) quaternions.
@@ -88,32 +91,6 @@ def pose_error(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     return float(np.linalg.norm(a[:3, 3] - b[:3, 3])), float(ang)
 
 
-def rotvec_to_rotmat(w: np.ndarray) -> np.ndarray:
-    """Rodrigues in NumPy: axis-angle [3] (radians) -> rotation [3, 3]."""
-    w = np.asarray(w, np.float64)
-    theta = float(np.linalg.norm(w))
-    if theta < 1e-12:
-        return np.eye(3)
-    k = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]]) / theta
-    return np.eye(3) + math.sin(theta) * k + (1.0 - math.cos(theta)) * (k @ k)
-
-
-def rotmat_to_rotvec(r: np.ndarray) -> np.ndarray:
-    """A rotation [3, 3] -> axis-angle [3] (radians, angle in [0, pi])."""
-    r = np.asarray(r, np.float64)
-    cos = min(1.0, max(-1.0, (float(np.trace(r)) - 1.0) / 2.0))
-    theta = math.acos(cos)
-    axis = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
-    if theta < 1e-6:
-        return axis / 2.0  # sin(theta) ~ theta
-    if math.pi - theta < 1e-4:  # near a half turn the antisymmetric part vanishes: the axis from r + I
-        m = (r + np.eye(3)) / 2.0
-        i = int(np.argmax(np.diag(m)))
-        a = m[:, i] / math.sqrt(max(m[i, i], 1e-30))
-        return a / np.linalg.norm(a) * theta
-    return axis * (theta / (2.0 * math.sin(theta)))
-
-
 def velocity_guess(prev2: np.ndarray, prev: np.ndarray, dt_prev: float, dt: float, max_scale: float) -> np.ndarray:
     """The constant-velocity guess [4, 4]: ``prev`` moved on by the motion from ``prev2`` to ``prev`` (camera-to-world,
     [4, 4]), scaled by ``dt / dt_prev`` (the time since ``prev`` over the time between the two) up to ``max_scale``.
@@ -128,7 +105,7 @@ def velocity_guess(prev2: np.ndarray, prev: np.ndarray, dt_prev: float, dt: floa
     if abs(scale - 1.0) < 1e-9:
         return prev @ step
     moved = np.eye(4)
-    moved[:3, :3] = rotvec_to_rotmat(scale * rotmat_to_rotvec(step[:3, :3]))
+    moved[:3, :3] = so3_exp_np(scale * so3_log(step[:3, :3]))
     moved[:3, 3] = scale * step[:3, 3]
     return prev @ moved
 

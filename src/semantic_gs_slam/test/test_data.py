@@ -221,3 +221,16 @@ def test_degraded_frames_noisier_depth_and_blurred_colour(tiny_home):
     assert "colour from +2 recorded frames" in lag.describe()
     with pytest.raises(ValueError, match="colour_lag"):
         DegradedDataset(ds, colour_lag=0.5)
+
+
+def test_drop_frames_leaves_out_frames_unevenly_and_repeatably_keeping_the_first():
+    from semantic_gs_slam.io.degrade import drop_frames
+
+    kept = drop_frames(range(250, 500), 0.5)
+    assert kept[0] == 250 and kept == drop_frames(list(range(250, 500)), 0.5) and set(kept) <= set(range(250, 500))
+    assert 100 <= len(kept) <= 150  # about half
+    assert len(set(np.diff(kept).tolist())) >= 4  # uneven steps: what a time-scaled guess is for
+    assert drop_frames(range(10), 0.0) == list(range(10))
+    for bad in (1.0, -0.1):
+        with pytest.raises(ValueError, match="dropped"):
+            drop_frames(range(10), bad)

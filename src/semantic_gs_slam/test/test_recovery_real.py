@@ -14,7 +14,7 @@ import pytest
 from semantic_gs_slam.config import LoopConfig, MappingConfig, SlamConfig, TrackingConfig
 from semantic_gs_slam.geometry import pose_error
 from semantic_gs_slam.io.datasets import load_dataset
-from semantic_gs_slam.io.degrade import DegradedDataset
+from semantic_gs_slam.io.degrade import DegradedDataset, drop_frames
 from semantic_gs_slam.slam import SLAM
 
 
@@ -173,13 +173,6 @@ def test_frames_lost_on_ground_no_keyframe_saw_are_re_posed_in_the_map_when_it_t
     assert frozen_err[lost].max() > 0.3, frozen_err[lost].round(3)
 
 
-def _dropped(frames: range, p: float) -> list[int]:
-    """``frames`` with each but the first left out with probability ``p`` (seeded as bench/slam_real.py --drop)."""
-    keep = np.random.default_rng(20261128).random(len(frames)) >= p
-    keep[0] = True
-    return [i for i, k in zip(frames, keep, strict=True) if k]
-
-
 def test_a_guess_scaled_by_the_frame_times_is_nearer_the_camera_when_frames_are_dropped():
     """The recording's own poses, frames 0-249 with three in four dropped at random (steps of 1-15 frames): the
     constant-velocity guess from the two frames before, scaled by their times (tracking.velocity_max_scale 3), lands
@@ -187,7 +180,7 @@ def test_a_guess_scaled_by_the_frame_times_is_nearer_the_camera_when_frames_are_
     from semantic_gs_slam.geometry import velocity_guess
 
     ds = load_dataset(SHARED_7SCENES)
-    order = _dropped(range(0, 250), 0.75)
+    order = drop_frames(range(0, 250), 0.75)
     scaled, one_step = [], []
     for a, b, c in zip(order, order[1:], order[2:], strict=False):
         dt_prev, dt = ds.timestamps[b] - ds.timestamps[a], ds.timestamps[c] - ds.timestamps[b]
@@ -201,7 +194,7 @@ def test_frames_dropped_unevenly_are_tracked_and_a_loss_is_recovered_on_the_next
     """Frames 250-499, three in four dropped at random (65 left, steps of up to 15 frames on the kitchen's fastest
     turn), stamped with their recorded times: at most one frame is lost, it is relocalised at once and confirmed on
     the next frame, and no pose is more than 15 cm off (measured: frame 466 lost and relocalised, 10.2 cm at most)."""
-    order = _dropped(range(250, 500), 0.75)
+    order = drop_frames(range(250, 500), 0.75)
     eng, err, _ = _run({"dropped": order}, recorded_times=True)
     assert len(eng.lost_frames) <= 1, [order[i] for i in eng.lost_frames]
     assert all(back - lost <= 2 for lost, back in eng.stats()["recoveries"]), eng.stats()["recoveries"]

@@ -10,6 +10,7 @@
 * Depth dropouts: :class:`DegradedDataset` drops ``holes`` of the depth pixels at random, independently per pixel and
   frame (seeded by the frame's index): a speckled time-of-flight or stereo camera, where a structured-light one
   leaves holes in regions.
+* Dropped frames: :func:`drop_frames` leaves out frames of a sequence at random (a stream that drops them unevenly).
 * Unsynchronised colour: :class:`DegradedDataset` gives frame i the colour of recorded frame ``i + colour_lag``
   (the last frame's near the end): a camera whose colour shutter does not fire with its depth, so that a moving
   camera's colour sits off its depth by the motion in between (TUM RGB-D's Kinect: up to ~20 ms).
@@ -38,6 +39,16 @@ def noisy_depth(depth: np.ndarray, scale: float, seed: int) -> np.ndarray:
     rng = np.random.default_rng(seed)
     noise = rng.standard_normal(depth.shape) * (scale * kinect_axial_noise(depth))
     return np.where(depth > 0, np.maximum(depth + noise, 0.0), 0.0).astype(depth.dtype)
+
+
+def drop_frames(frames: list[int] | range, p: float, seed: int = 20261128) -> list[int]:
+    """``frames`` with each but the first left out with probability ``p`` in [0, 1) (seeded: the same frames every
+    run): a stream that drops frames unevenly."""
+    if not 0 <= p < 1:
+        raise ValueError(f"the fraction of frames dropped must be in [0, 1), got {p!r}")
+    keep = np.random.default_rng(seed).random(len(frames)) >= p
+    keep[0] = True
+    return [i for i, k in zip(frames, keep, strict=True) if k]
 
 
 class DegradedDataset:
