@@ -26,8 +26,10 @@ class Intrinsics:
         """Raise :class:`ConfigError` when the values are not a usable camera."""
         if self.width <= 0 or self.height <= 0:
             raise ConfigError(f"image size must be positive, got {self.width}x{self.height}")
-        if self.fx <= 0 or self.fy <= 0:
-            raise ConfigError(f"focal lengths must be positive, got fx={self.fx} fy={self.fy}")
+        if not (math.isfinite(self.fx) and math.isfinite(self.fy) and self.fx > 0 and self.fy > 0):
+            raise ConfigError(f"focal lengths must be finite and positive, got fx={self.fx} fy={self.fy}")
+        if not (math.isfinite(self.cx) and math.isfinite(self.cy)):
+            raise ConfigError(f"the principal point must be finite, got cx={self.cx} cy={self.cy}")
 
     def scaled(self, factor: float) -> Intrinsics:
         """The same camera for an image resized by ``factor`` (pixel-centre convention)."""
@@ -86,9 +88,11 @@ class TrackingConfig:
     # round(width / this)); the coarser levels halve it
     icp_max_dist: float = 0.10  # metres; associations farther apart are rejected
     icp_sigma_geo: float = 0.005  # metres; scale (and Huber threshold) of point-to-plane residuals
-    icp_sigma_col: float = 0.05  # intensity units; scale (and Huber threshold) of photometric residuals
+    icp_sigma_col: float = 0.05  # intensity units; scale (and Huber threshold) of photometric residuals (both
+    # front ends)
     geometric_weight: float = 1.0  # weight of the point-to-plane term
-    photometric_weight: float = 1.0  # weight of the photometric term inside the Gauss-Newton (0: geometry only)
+    photometric_weight: float = 1.0  # weight of the photometric term inside the Gauss-Newton (0: geometry only; both
+    # front ends)
     prior_sigma_trans: float = 0.05  # metres; weak Gaussian prior of the pose toward the constant-velocity guess
     prior_sigma_rot: float = 0.05  # radians
     render_scale_shrink: float = 0.7  # the model is rendered for tracking with Gaussian radii x this, on frames

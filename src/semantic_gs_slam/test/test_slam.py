@@ -160,6 +160,10 @@ def test_config_errors():
         SLAM(SlamConfig(intrinsics=k, checkpoint_every=5))
     with pytest.raises(ConfigError, match="focal"):
         SLAM(SlamConfig(intrinsics=Intrinsics(16, 12, 0.0, 8.0, 7.5, 5.5)))
+    with pytest.raises(ConfigError, match="focal lengths must be finite and positive, got fx=8.0 fy=inf"):
+        SLAM(SlamConfig(intrinsics=Intrinsics(16, 12, 8.0, float("inf"), 7.5, 5.5)))
+    with pytest.raises(ConfigError, match="principal point must be finite, got cx=7.5 cy=nan"):
+        SLAM(SlamConfig(intrinsics=Intrinsics(16, 12, 8.0, 8.0, 7.5, float("nan"))))
     with pytest.raises(ConfigError, match="unknown"):
         SlamConfig.from_dict({"intrinsics": {"width": 1, "height": 1, "fx": 1, "fy": 1, "cx": 0, "cy": 0}, "x": 1})
 

@@ -155,6 +155,47 @@ def load_slam_config(path: str, intrinsics: tuple[float, float, float, float, in
     return cfg, Intrinsics
 
 
+def camera_info_intrinsics(k: Any, d: Any, width: int, height: int, distortion_model: str = ""
+                           ) -> tuple[tuple[float, float, float, float, int, int], str]:
+    """The camera a ``sensor_msgs/CameraInfo`` describes: ((fx, fy, cx, cy, width, height), note).
+
+    Args:
+        k: the message's ``k`` (row-major 3x3 camera matrix). d: its ``d`` (distortion coefficients).
+        width, height: its image size. distortion_model: its ``distortion_model`` (for the note only).
+
+    Returns:
+        The intrinsics, and a note for the log ("" when none): the images are taken as pinhole, so a message that
+        publishes lens distortion is told to send rectified images instead.
+
+    Raises:
+        StreamingError: not a usable pinhole camera (a size of 0, a focal length that is not finite and positive,
+            a principal point that is not finite); the message says which value.
+    """
+    from semantic_gs_slam.config import Intrinsics
+    from semantic_gs_slam.errors import ConfigError
+
+    try:
+        vals = [float(v) for v in k]
+    except (TypeError, ValueError) as exc:
+        raise StreamingError(f"camera_info k is not 9 numbers: {exc}") from exc
+    if len(vals) != 9:
+        raise StreamingError(f"camera_info k must hold 9 numbers (3x3), got {len(vals)}")
+    if width <= 0 or height <= 0:
+        raise StreamingError(f"camera_info width and height must be the calibrated image size, got {width}x{height}")
+    fx, fy, cx, cy = vals[0], vals[4], vals[2], vals[5]
+    try:
+        Intrinsics(int(width), int(height), fx, fy, cx, cy).check()
+    except ConfigError as exc:
+        raise StreamingError(f"camera_info k is not a usable camera: {exc}") from exc
+    coeffs = [float(v) for v in d]
+    note = ""
+    if any(not np.isfinite(c) or abs(c) > 1e-6 for c in coeffs):
+        note = (f"camera_info publishes lens distortion ({distortion_model or 'model not named'}: "
+                f"{' '.join(f'{c:g}' for c in coeffs)}), which is not corrected: the images are taken as a pinhole "
+                "camera's. Feed rectified images (image_proc's rectify) for the best tracking")
+    return (fx, fy, cx, cy, int(width), int(height)), note
+
+
 def scaled_intrinsics(k: tuple[float, float, float, float, int, int], width: int, height: int
                       ) -> tuple[float, float, float, float, int, int]:
     """Camera of the streamed images (``k``) after the server resized them to width × height."""

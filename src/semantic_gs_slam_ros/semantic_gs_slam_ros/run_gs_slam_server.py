@@ -40,7 +40,7 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from semantic_gs_slam_ros.cancels import CancelRouter
-from semantic_gs_slam_ros.engine import make_engine, prepare_renderer, switch_interval_for
+from semantic_gs_slam_ros.engine import camera_info_intrinsics, make_engine, prepare_renderer, switch_interval_for
 from semantic_gs_slam_ros.errors import ImageFormatError, StreamingError
 from semantic_gs_slam_ros.images import image_to_array
 from semantic_gs_slam_ros.lag import LagAction
@@ -117,6 +117,8 @@ class SlamServer(Node):
         self._session: StreamingSession | None = None
         self._subs: list = []
         self._intrinsics: tuple[float, float, float, float, int, int] | None = None  # fx fy cx cy w h
+        self._info_refused = ""  # why the latest camera_info was refused ("" when it was taken)
+        self._info_note = ""  # the latest camera_info's note (lens distortion), logged when it changes
         self._images_group = ReentrantCallbackGroup()
         self._action_group = ReentrantCallbackGroup()
         self._timer_group = MutuallyExclusiveCallbackGroup()
@@ -187,10 +189,21 @@ class SlamServer(Node):
         return cb
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
-        k = msg.k
-        if k[0] > 0 and k[4] > 0:
+        """Keep the latest usable camera; a malformed one is refused with a (throttled) warning and keeps the
+        previous; lens distortion is noted once per set of coefficients."""
+        try:
+            k, note = camera_info_intrinsics(msg.k, msg.d, msg.width, msg.height, msg.distortion_model)
+        except StreamingError as exc:
             with self._session_lock:
-                self._intrinsics = (k[0], k[4], k[2], k[5], msg.width, msg.height)
+                self._info_refused = str(exc)
+            self.get_logger().warning(f"camera_info refused: {exc}", throttle_duration_sec=5.0)
+            return
+        with self._session_lock:
+            self._intrinsics = k
+            self._info_refused = ""
+            noted, self._info_note = self._info_note, note
+        if note and note != noted:
+            self.get_logger().warning(note)
 
     def _on_done(self, msg: String) -> None:
         try:
@@ -340,12 +353,21 @@ class SlamServer(Node):
         return result
 
     def _wait_intrinsics(self, timeout: float = 5.0) -> tuple[float, float, float, float, int, int] | None:
+        """The latest usable camera, waiting up to ``timeout`` s for one; None when none came.
+
+        Raises:
+            StreamingError: none usable came, but a refused one did (the message says why it was refused).
+        """
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             with self._session_lock:
                 if self._intrinsics is not None:
                     return self._intrinsics
             time.sleep(0.05)
+        with self._session_lock:
+            refused = self._info_refused
+        if refused:
+            raise StreamingError(f"no usable camera_info received; the last one was refused: {refused}")
         return None
 
     def _request_reload(self, map_path: str, semantic_path: str) -> None:

@@ -857,3 +857,32 @@ def test_session_continues_a_saved_map_given_as_start_map_in_its_frame(tmp_path)
     assert [lg.pose_source for lg in engine.slam.logs][:5] == ["lost"] * 3 + ["relocalised", "recovered"]
     assert pose_error(engine.slam.poses[3], poses[3])[0] < 0.02  # in the saved map's frame
     assert len(load_params(result.map_path)["means3D"]) > n_saved  # the saved map, grown
+
+
+GOOD_K = [585.0, 0.0, 320.0, 0.0, 585.0, 240.0, 0.0, 0.0, 1.0]
+
+
+@pytest.mark.parametrize("k, size, message", [
+    ([float("inf")] + GOOD_K[1:], (640, 480), "focal lengths must be finite and positive, got fx=inf"),
+    ([0.0] * 9, (640, 480), "focal lengths must be finite and positive, got fx=0.0 fy=0.0"),
+    (GOOD_K[:2] + [float("nan")] + GOOD_K[3:], (640, 480), "principal point must be finite, got cx=nan"),
+    (GOOD_K, (0, 0), "width and height must be the calibrated image size, got 0x0"),
+    (GOOD_K[:8], (640, 480), "must hold 9 numbers (3x3), got 8"),
+])
+def test_a_camera_info_that_is_no_usable_camera_is_refused_with_the_reason(k, size, message):
+    from semantic_gs_slam_ros.engine import camera_info_intrinsics
+    from semantic_gs_slam_ros.errors import StreamingError
+
+    with pytest.raises(StreamingError) as err:
+        camera_info_intrinsics(k, [0.0] * 5, *size)
+    assert message in str(err.value)
+
+
+def test_a_camera_info_gives_its_pinhole_and_notes_lens_distortion():
+    from semantic_gs_slam_ros.engine import camera_info_intrinsics
+
+    assert camera_info_intrinsics(GOOD_K, [0.0] * 5, 640, 480) == ((585.0, 585.0, 320.0, 240.0, 640, 480), "")
+    assert camera_info_intrinsics(GOOD_K, [], 640, 480)[1] == ""  # no coefficients at all: none to correct
+    k, note = camera_info_intrinsics(GOOD_K, [0.2624, -0.9531, -0.0054, 0.0026, 1.1633], 640, 480, "plumb_bob")
+    assert k == (585.0, 585.0, 320.0, 240.0, 640, 480)
+    assert "lens distortion (plumb_bob: 0.2624 -0.9531 -0.0054 0.0026 1.1633)" in note and "rectified" in note

@@ -418,6 +418,53 @@ def test_cancel_while_the_engine_is_made_ends_the_goal(launch_nodes, ros_node, s
     assert wait_for(lambda: "run finished: cancelled" in sup.get("run_gs_slam_server").output(), 20), sup.output()
 
 
+def test_a_malformed_camera_info_is_refused_with_its_reason_and_the_server_goes_on(launch_nodes, ros_node, sequence,
+                                                                                  tmp_path):
+    """A driver that publishes an infinite focal length: the camera is refused with a warning that names the value,
+    the goal ends with that reason (not a run on a broken camera), the server lives; the next goal, with a usable
+    camera that publishes lens distortion, starts its run and says the images are taken as a pinhole camera's."""
+    from action_msgs.msg import GoalStatus
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from semantic_gs_slam_interfaces.action import RunSlam
+    from sensor_msgs.msg import CameraInfo
+
+    from home_robot_ros.actions import ActionClient
+
+    sup = launch_nodes(nodes=[server_spec(tmp_path / "run", sequence)])
+    server = sup.get("run_gs_slam_server")
+    info_pub = ros_node.create_publisher(CameraInfo, "camera_info", QoSProfile(depth=5,
+                                         reliability=ReliabilityPolicy.RELIABLE))
+    action = ActionClient(ros_node, RunSlam, "run_gs_slam")
+    assert action.wait_for_server(timeout_sec=20)
+
+    def start(info):
+        sent = action.send_goal_async(RunSlam.Goal())
+        assert wait_for(lambda: info_pub.publish(info) or sent.done(), 20, interval=0.1)
+        handle = sent.result()
+        assert handle.accepted
+        return handle, handle.get_result_async()
+
+    bad = CameraInfo(width=96, height=54, k=[float("inf"), 0, 47.5, 0, 60.0, 26.5, 0, 0, 1])
+    _, result = start(bad)
+    assert wait_for(lambda: info_pub.publish(bad) or result.done(), 60, interval=0.1), server.output()
+    res = result.result()
+    assert res.status == GoalStatus.STATUS_ABORTED, (res.status, res.result.message)
+    assert "the last one was refused: camera_info k is not a usable camera: focal lengths must be finite and " \
+           "positive, got fx=inf" in res.result.message, res.result.message
+    assert "camera_info refused: camera_info k is not a usable camera" in server.output()
+
+    good = CameraInfo(width=96, height=54, k=[60.0, 0, 47.5, 0, 60.0, 26.5, 0, 0, 1], distortion_model="plumb_bob",
+                      d=[0.1, -0.2, 0.0, 0.0, 0.0])
+    handle, result = start(good)
+    assert wait_for(lambda: info_pub.publish(good) or "run started" in server.output(), 60, interval=0.1), \
+        server.output()
+    assert "camera_info publishes lens distortion (plumb_bob: 0.1 -0.2 0 0 0), which is not corrected" \
+        in server.output()
+    handle.cancel_goal_async()
+    assert wait_for(lambda: result.done(), 60), server.output()
+    assert result.result().status == GoalStatus.STATUS_CANCELED
+
+
 def test_the_server_hands_pythons_lock_over_as_set_and_refuses_a_bad_interval(ros_domain, shared_server):
     """``gil_switch_interval``: auto, with the engine on the CPU, it is 0.5 ms (Python's own on CUDA), applied and
     logged; more than 1 s is a clear error at start (exit code 2), not a server that runs with it."""
