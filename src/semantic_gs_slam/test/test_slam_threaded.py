@@ -5,6 +5,7 @@ frames by its documented policy and says so."""
 from __future__ import annotations
 
 import threading
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -53,6 +54,24 @@ def test_threaded_run_waiting_for_each_frame_gives_the_synchronous_poses_and_map
     for est, gt in zip(sync.poses, poses, strict=True):  # and the front end tracks the orbit
         assert pose_error(est, gt)[0] < 0.02
     assert sync.stats()["lost_frames"] == [] and sync.stats()["recoveries"] == []
+
+
+def test_the_photometric_settings_reach_the_keyframe_front_end(views):
+    """``tracking.photometric_weight`` and ``icp_sigma_col`` weigh the keyframe front end's intensity term as the
+    render front end's: geometry only (weight 0) tracks the orbit on other poses than the default."""
+    k, poses, frames = views
+
+    def run(**tracking):
+        cfg = replace(_cfg(k, False), tracking=TrackingConfig(frontend="keyframe", **tracking))
+        eng = SLAM(cfg, initial_c2w=poses[0])
+        _feed(eng, frames[:4])
+        return np.stack(eng.poses)
+
+    default, geometric, wide = run(), run(photometric_weight=0.0), run(icp_sigma_col=0.5)
+    assert not np.array_equal(default, geometric) and not np.array_equal(default, wide)
+    for est in (geometric, wide):
+        for c2w, gt in zip(est, poses, strict=False):
+            assert pose_error(c2w, gt)[0] < 0.02
 
 
 def test_finish_drains_every_queued_frame(views):

@@ -93,6 +93,8 @@ class KeyframeTracking:
     def _fe_init(self) -> None:
         self._fe_cfg = FrontendConfig(depth_min=self.cfg.depth_min, depth_max=self.cfg.depth_max,
                                       sigma_geo_z2=self.cfg.tracking.frontend_sigma_geo_z2,
+                                      photometric_weight=self.cfg.tracking.photometric_weight,
+                                      sigma_col=self.cfg.tracking.icp_sigma_col,
                                       model_smoothing=self.cfg.tracking.frontend_model_smoothing,
                                       noisy_smoothing=self.cfg.tracking.frontend_noisy_smoothing,
                                       noisy_roughness=self.cfg.tracking.frontend_noisy_roughness,
