@@ -88,7 +88,10 @@ def _position(value: object) -> tuple[float, float, float]:
     """An /object_list position: exactly three finite numbers (ValueError otherwise)."""
     if not isinstance(value, list) or len(value) != 3 or any(isinstance(v, bool) for v in value):
         raise ValueError(f"bad position {value!r}")
-    out = tuple(float(v) for v in value)
+    try:
+        out = tuple(float(v) for v in value)
+    except (TypeError, ValueError, OverflowError) as exc:  # OverflowError: an integer too large for a float
+        raise ValueError(f"bad position {value!r:.80}") from exc
     if not all(math.isfinite(v) for v in out):
         raise ValueError(f"bad position {value!r}")
     return out  # type: ignore[return-value]

@@ -281,6 +281,28 @@ def test_engine_rejections_queue_limit_and_cancel():
         TaskStatus.from_json("{}")
 
 
+@pytest.mark.parametrize("doc, words", [
+    ('{"id": [1], "text": "hello", "state": "failed"}', "id must be int, got list"),
+    ('{"id": 1, "text": "hello", "state": "failed", "step": true}', "step must be int, got bool"),
+    ('{"id": 1, "text": {"a": 1}, "state": "failed"}', "text must be str, got dict"),
+    ('{"id": 1, "text": "hello", "state": "failed", "stamp": "now"}', "stamp must be a finite number"),
+    ('{"id": 1, "text": "hello", "state": "gone"}', "'gone' is not a valid TaskState"),
+    ("[" * 1000, "maximum recursion depth"),
+    ("[1, 2]", "list indices must be integers"),
+])
+def test_a_task_status_of_the_wrong_shape_is_a_value_error(doc, words):
+    """/task_status readers (nl_command_node, the demo, tests) hold ids as keys: a list there once raised
+    TypeError in their callback and ended the reader; every wrong shape is a ValueError that says what."""
+    with pytest.raises(ValueError, match="not a task status") as err:
+        TaskStatus.from_json(doc)
+    assert words in str(err.value)
+
+
+def test_a_task_status_takes_a_whole_number_as_its_stamp():
+    st = TaskStatus.from_json('{"id": 3, "text": "go home", "state": "queued", "stamp": 1700000000}')
+    assert st.stamp == 1700000000.0 and isinstance(st.stamp, float) and st.state is TaskState.QUEUED
+
+
 def test_engine_worker_cancel_while_navigating():
     robot = FakeRobot()
     robot.gate = threading.Event()

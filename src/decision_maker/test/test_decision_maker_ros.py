@@ -288,3 +288,35 @@ def test_bad_inputs_and_flood(launch_nodes, ros_node, ros_domain):
     assert set(states) <= {TaskState.SUCCEEDED, TaskState.REJECTED}, states
     assert len(rejected) >= 40 - 4 - 10 and all("queue full" in f.message for f in rejected)
     assert states.count(TaskState.SUCCEEDED) >= 4
+
+
+def test_payloads_that_break_number_conversion_or_nesting_leave_the_brain_and_the_arm_running(launch_nodes,
+                                                                                                ros_node):
+    """JSON that parses but is no usable payload: an integer too large for a float (OverflowError in Python), or
+    lists nested deeper than the parser recurses (RecursionError), on /object_list and exploration/progress. The
+    brain and the simulated arm each say why and keep running, and take the next good list."""
+    from decision_maker.topics import OBJECT_LIST_QOS
+
+    sup = launch_nodes(nodes=robot_specs(with_query=False),
+                       set=[*FAST, "mock_grasp_server.objects_source=object_list",
+                            "decision_maker.exploration_mode=queue"])
+    brain, arm = sup.get("decision_maker"), sup.get("mock_grasp_server")
+    objects = ros_node.create_publisher(String, "/object_list", OBJECT_LIST_QOS)
+    progress = ros_node.create_publisher(String, "exploration/progress", OBJECT_LIST_QOS)
+    assert wait_for(lambda: objects.get_subscription_count() >= 2 and progress.get_subscription_count() >= 1, 20.0)
+    huge = "1" + "0" * 400
+    for pub, data, said in [
+            (objects, '{"cup": [1.0, 2.0, ' + huge + "]}", lambda: brain.output().count("malformed /object_list") >= 1
+             and arm.output().count("malformed /object_list") >= 1),
+            (objects, "[" * 1000, lambda: brain.output().count("malformed /object_list") >= 2
+             and arm.output().count("malformed /object_list") >= 2),
+            (progress, '{"state": "exploring", "seen_percent": ' + huge + "}",
+             lambda: brain.output().count("ignoring exploration progress") >= 1),
+            (progress, "[" * 1000, lambda: brain.output().count("ignoring exploration progress") >= 2)]:
+        pub.publish(String(data=data))
+        assert wait_for(said, 20.0), (data[:40], brain.output()[-1500:], arm.output()[-1500:])
+    objects.publish(String(data=json.dumps({"bottle": [5.2, 0.3, 1.02], "cup": [4.8, -0.2, 0.95]})))
+    assert wait_for(lambda: "object list: bottle, cup" in brain.output()
+                    and "world objects from /object_list: bottle, cup" in arm.output(), 20.0), \
+        (brain.output()[-1500:], arm.output()[-1500:])
+    assert brain.returncode() is None and arm.returncode() is None

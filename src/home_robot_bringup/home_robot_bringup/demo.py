@@ -81,8 +81,14 @@ class Operator:
                 self._cond.notify_all()
 
     def _on_world(self, msg) -> None:
+        try:
+            world = json.loads(msg.data)
+        except (ValueError, RecursionError):
+            return  # not the simulated world's state: the last good one stays
+        if not isinstance(world, dict):
+            return
         with self._cond:
-            self.world = json.loads(msg.data)
+            self.world = world
             self._cond.notify_all()
 
     def wait_connected(self, timeout: float) -> bool:

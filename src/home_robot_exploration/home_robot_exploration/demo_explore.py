@@ -72,7 +72,7 @@ class Watch:
         node.create_subscription(PoseStamped, "odom_camera_pose", lambda m: self._on_pose(m, self.odometry), 50)
 
     def _on_pose(self, msg, into: dict) -> None:
-        from semantic_gs_slam_ros.run_gs_slam_server import pose_to_matrix
+        from home_robot_ros.poses import pose_to_matrix
 
         try:
             c2w = np.asarray(pose_to_matrix(msg))
@@ -84,7 +84,9 @@ class Watch:
     def _on_progress(self, msg) -> None:
         try:
             p = json.loads(msg.data)
-        except json.JSONDecodeError:
+        except (ValueError, RecursionError):
+            return
+        if not isinstance(p, dict):
             return
         now = time.monotonic()
         with self._lock:
@@ -115,7 +117,7 @@ class Watch:
     def _on_objects(self, msg) -> None:
         try:
             doc = json.loads(msg.data)
-        except json.JSONDecodeError:
+        except (ValueError, RecursionError):
             return
         if isinstance(doc, dict):
             with self._lock:

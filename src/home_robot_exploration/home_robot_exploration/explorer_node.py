@@ -51,6 +51,7 @@ from home_robot_exploration.mapping import MappingConfig, MappingResult, Mapping
 from home_robot_exploration.nodemain import run_node
 from home_robot_exploration.occupancy import UNKNOWN, GridConfig
 from home_robot_ros.actions import ActionClient
+from home_robot_ros.poses import pose_to_matrix
 
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 IMAGE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -66,15 +67,6 @@ DEFAULTS: dict[str, object] = {
     "slam_action": "", "slam_map_dir": "", "slam_classes": "", "slam_start_timeout_s": 60.0,
     "slam_finish_timeout_s": 600.0,
 }
-
-
-def quat_to_matrix(x: float, y: float, z: float, w: float) -> np.ndarray:
-    """Unit quaternion -> [3, 3] rotation."""
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
 
 
 def seen_percent(states: np.ndarray) -> float:
@@ -182,10 +174,11 @@ class ExplorerNode(Node):
         self._match()
 
     def _on_camera_pose(self, msg: PoseStamped) -> None:
-        p, q = msg.pose.position, msg.pose.orientation
-        c2w = np.eye(4)
-        c2w[:3, :3] = quat_to_matrix(q.x, q.y, q.z, q.w)
-        c2w[:3, 3] = (p.x, p.y, p.z)
+        try:
+            c2w = pose_to_matrix(msg)
+        except ValueError as exc:
+            self.get_logger().warn(f"camera pose skipped: {exc}", throttle_duration_sec=2.0)
+            return
         self._poses[self._ns(msg.header.stamp)] = c2w
         self._match()
 
@@ -237,7 +230,7 @@ class ExplorerNode(Node):
     def _on_slam_start(self, msg: String) -> None:
         try:
             goal = json.loads(msg.data)["goal"]
-        except (ValueError, KeyError, TypeError):
+        except (ValueError, KeyError, TypeError, RecursionError):
             self.get_logger().warn(f"malformed slam_start_signal {msg.data[:80]!r} ignored")
             return
         if self.mapping.start_signal(str(goal)):

@@ -105,7 +105,7 @@ class LiveViewNode(Node):
             doc = json.loads(msg.data)
             objects = {str(k)[:40]: [float(c) for c in v] for k, v in doc.items()
                        if isinstance(v, list) and len(v) == 3}
-        except (json.JSONDecodeError, AttributeError, TypeError, ValueError):
+        except (AttributeError, TypeError, ValueError, OverflowError, RecursionError):
             self.get_logger().warn("object_list skipped: not {name: [x, y, z]}")
             return
         self.view.show_objects({k: v for k, v in objects.items() if all(math.isfinite(c) for c in v)})

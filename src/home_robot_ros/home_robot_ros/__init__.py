@@ -2,4 +2,5 @@
 
 Modules:
     actions -- ``ActionClient``: rclpy's action client without the reply-before-request race.
+    poses -- ``pose_to_matrix``: a geometry_msgs pose as a checked [4, 4] matrix.
 """

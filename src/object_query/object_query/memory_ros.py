@@ -33,7 +33,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from object_query.errors import ObjectMemoryError
 from object_query.memory import Belief, MapObservation, MemoryConfig, ObjectMemory, load_memory
-from object_query.names import normalise_name
+from object_query.names import MAX_NAME_LENGTH, normalise_name, raw_name_error
 from object_query.semantic_map import ObjectDatabase
 
 #: Latched: a node that subscribes later still receives the current memory.
@@ -113,7 +113,12 @@ class MemoryInterface:
               source: str = "user", detail: str = "") -> Belief | None:
         """Apply one report (see MemoryReport.srv). Raises ObjectMemoryError on a malformed one."""
         if event not in EVENTS:
-            raise ObjectMemoryError(f"unknown event {event!r}; known: {', '.join(EVENTS)}")
+            raise ObjectMemoryError(f"unknown event {event[:40]!r}; known: {', '.join(EVENTS)}")
+        for text, what in ((name, "name"), (place, "place")):
+            refused = raw_name_error(text, what)
+            if refused or len(normalise_name(text)) > MAX_NAME_LENGTH:
+                raise ObjectMemoryError(refused or f"{what} too long ({len(normalise_name(text))} characters after "
+                                        f"normalisation, at most {MAX_NAME_LENGTH})")
         key = normalise_name(name)
         if event != "set" and self._db is not None and key:
             resolved, _ = self._db.resolve(key)
@@ -156,6 +161,10 @@ class MemoryInterface:
 
     def _on_query(self, request: MemoryQuery.Request, response: MemoryQuery.Response) -> MemoryQuery.Response:
         response.revision = self.memory.revision
+        refused = raw_name_error(request.name)
+        if refused:
+            response.found, response.message = False, refused
+            return response
         name = normalise_name(request.name)
         if not name:
             beliefs = list(self.memory.snapshot())

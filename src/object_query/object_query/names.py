@@ -24,6 +24,16 @@ from object_query.errors import SynonymsError
 
 #: Longest object name accepted in a query (characters, after normalisation).
 MAX_NAME_LENGTH = 256
+#: Longest name looked at before normalisation (characters): NFKC may turn one character into 18, so a request's
+#: name is measured before it is normalised, and a longer one refused unread (bounded work per request).
+MAX_RAW_NAME_LENGTH = 4 * MAX_NAME_LENGTH
+
+
+def raw_name_error(name: str, what: str = "object name") -> str:
+    """Why a name given in a request is refused before it is normalised ("" when it is not): longer than
+    :data:`MAX_RAW_NAME_LENGTH` characters."""
+    n = len(name)
+    return f"{what} too long ({n} characters, at most {MAX_RAW_NAME_LENGTH})" if n > MAX_RAW_NAME_LENGTH else ""
 
 
 def normalise_name(name: str) -> str:

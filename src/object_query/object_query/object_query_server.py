@@ -59,7 +59,7 @@ from object_query.answers import answer_query, object_list
 from object_query.errors import MapLoadError, SynonymsError
 from object_query.memory import MemoryConfig
 from object_query.memory_ros import MemoryInterface, default_memory_path
-from object_query.names import load_synonyms
+from object_query.names import load_synonyms, raw_name_error
 from object_query.semantic_map import DatabaseConfig, FileSignature, ObjectDatabase, load_semantic_map
 from object_query.staged import StagedBuild
 
@@ -384,6 +384,10 @@ class ObjectQueryServer(Node):
     # -- callbacks -------------------------------------------------------------------------------
 
     def _on_query(self, request: ObjectQuery.Request, response: ObjectQuery.Response) -> ObjectQuery.Response:
+        refused = raw_name_error(request.name)
+        if refused:
+            response.found, response.message = False, refused
+            return response
         result = answer_query(self.memory.memory, self._snapshot(), request.name)
         response.found = result.found
         response.position.x, response.position.y, response.position.z = result.position
@@ -394,6 +398,10 @@ class ObjectQueryServer(Node):
                       ) -> ObjectInstances.Response:
         ref = request.reference
         reference = (ref.x, ref.y, ref.z) if request.use_reference else None
+        refused = raw_name_error(request.name)
+        if refused:
+            response.found, response.message = False, refused
+            return response
         result = self._snapshot().instances(request.name, reference)
         response.found, response.name, response.message = result.found, result.name, result.message
         for inst, dist in zip(result.instances, result.distances, strict=True):

@@ -87,10 +87,19 @@ def test_reports_change_the_answer_and_bad_reports_are_refused(launch_nodes, ros
                        (("placed", "cup", None), "position is missing"),
                        (("set", "cup", (math.nan, 0, 0)), "finite"),
                        (("set", "cup", (1, 2, 3), "", "rumour"), "source must be"),
-                       (("grasped", "", (0, 0, 0)), "name")]:
+                       (("grasped", "", (0, 0, 0)), "name"),
+                       (("set", "x" * 200_000, (1, 2, 3)), "name too long (200000 characters, at most 1024)"),
+                       (("set", "x " * 300, (1, 2, 3)), "name too long (599 characters after normalisation"),
+                       (("placed", "cup", (1, 2, 3), "y" * 5000), "place too long (5000 characters")]:
         r = report(ros_node, *bad)
         assert not r.success and words in r.message, (bad, r.message)
         assert r.memory.revision == rev
+    # a name that NFKC makes 18 times longer (U+FDFA), a million of them: refused unread (it took the server
+    # seconds to normalise, and a query asked meanwhile waited)
+    answer = client.query("\ufdfa" * 1_000_000, timeout_sec=10.0)
+    assert not answer.found and "object name too long (1000000 characters, at most 1024)" in answer.message
+    long_query = call(ros_node, MemoryQuery, "object_memory/query", MemoryQuery.Request(name="\ufdfa" * 1_000_000))
+    assert not long_query.found and "too long" in long_query.message
     assert client.query("table", timeout_sec=5.0).found
 
 

@@ -90,9 +90,10 @@ class SlamClient(Node):
     def _on_start(self, msg: String) -> None:
         try:
             doc = json.loads(msg.data)
-        except ValueError:
+        except (ValueError, RecursionError):
             return
-        if isinstance(doc, dict):
+        done = doc.get("frames_done", 0) if isinstance(doc, dict) else None
+        if isinstance(done, int) and not isinstance(done, bool) and done >= 0:
             with self._fb_lock:
                 self._last_start = doc  # kept: it may arrive before we know our goal id
             self._check_started()

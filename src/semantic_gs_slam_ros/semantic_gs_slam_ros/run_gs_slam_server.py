@@ -20,7 +20,6 @@ the goal id tells runs apart.
 from __future__ import annotations
 
 import json
-import math
 import os
 import sys
 import threading
@@ -39,6 +38,7 @@ from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
+from home_robot_ros.poses import pose_to_matrix
 from semantic_gs_slam_ros.cancels import CancelRouter
 from semantic_gs_slam_ros.engine import camera_info_intrinsics, make_engine, prepare_renderer, switch_interval_for
 from semantic_gs_slam_ros.errors import ImageFormatError, StreamingError
@@ -168,7 +168,7 @@ class SlamServer(Node):
         if session is None:
             return
         try:
-            session.on_odometry(stamp_seconds(msg), pose_to_matrix(msg))
+            session.on_odometry(stamp_seconds(msg), pose_to_matrix(msg).tolist())
         except (StreamingError, ValueError) as exc:
             self.get_logger().warning(f"odometry pose dropped: {exc}", throttle_duration_sec=2.0)
 
@@ -210,8 +210,10 @@ class SlamServer(Node):
             doc = json.loads(msg.data)
             if not isinstance(doc, dict) or doc.get("goal") != self._goal_id or self._goal_id is None:
                 return  # another (earlier) run's signal, or not ours at all
-            expected = int(doc["frames_sent"])
-        except (ValueError, KeyError, TypeError):
+            expected = doc["frames_sent"]
+            if isinstance(expected, bool) or not isinstance(expected, int) or expected < 0:
+                raise ValueError("frames_sent is not a whole number >= 0")
+        except (ValueError, KeyError, TypeError, RecursionError):
             self.get_logger().warning(f"malformed data_transfer_done {msg.data[:80]!r} ignored; expected "
                                       '{"goal": id, "frames_sent": N}')
             return
@@ -396,28 +398,6 @@ class SlamServer(Node):
         res = future.result()
         (self.get_logger().info if res.success else self.get_logger().warning)(
             f"object-query reload: {res.message}")
-
-
-def pose_to_matrix(msg: PoseStamped) -> list[list[float]]:
-    """PoseStamped → [4, 4] pose (nested lists).
-
-    Raises:
-        ValueError: a non-finite value or a quaternion far from unit length.
-    """
-    p, q = msg.pose.position, msg.pose.orientation
-    vals = [p.x, p.y, p.z, q.w, q.x, q.y, q.z]
-    if not all(math.isfinite(v) for v in vals):
-        raise ValueError("pose has NaN or inf")
-    n = math.sqrt(q.w * q.w + q.x * q.x + q.y * q.y + q.z * q.z)
-    if abs(n - 1.0) > 1e-2:
-        raise ValueError(f"orientation is not a unit quaternion (norm {n:.3f})")
-    w, x, y, z = q.w / n, q.x / n, q.y / n, q.z / n
-    m = np.eye(4)
-    m[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                 [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                 [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]]
-    m[:3, 3] = (p.x, p.y, p.z)
-    return m.tolist()
 
 
 def parse_classes(text: str) -> dict[int, str]:

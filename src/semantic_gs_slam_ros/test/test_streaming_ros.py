@@ -422,11 +422,13 @@ def test_a_malformed_camera_info_is_refused_with_its_reason_and_the_server_goes_
                                                                                   tmp_path):
     """A driver that publishes an infinite focal length: the camera is refused with a warning that names the value,
     the goal ends with that reason (not a run on a broken camera), the server lives; the next goal, with a usable
-    camera that publishes lens distortion, starts its run and says the images are taken as a pinhole camera's."""
+    camera that publishes lens distortion, starts its run and says the images are taken as a pinhole camera's. A
+    ``data_transfer_done`` nested too deep to parse, or announcing infinitely many frames, is refused as malformed."""
     from action_msgs.msg import GoalStatus
-    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
     from semantic_gs_slam_interfaces.action import RunSlam
     from sensor_msgs.msg import CameraInfo
+    from std_msgs.msg import String
 
     from home_robot_ros.actions import ActionClient
 
@@ -444,6 +446,10 @@ def test_a_malformed_camera_info_is_refused_with_its_reason_and_the_server_goes_
         assert handle.accepted
         return handle, handle.get_result_async()
 
+    done_pub = ros_node.create_publisher(String, "data_transfer_done", QoSProfile(
+        depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE))
+    done_pub.publish(String(data="[" * 100_000))  # nested deeper than JSON's parser recurses: refused, not a crash
+    assert wait_for(lambda: "malformed data_transfer_done" in server.output(), 20), server.output()
     bad = CameraInfo(width=96, height=54, k=[float("inf"), 0, 47.5, 0, 60.0, 26.5, 0, 0, 1])
     _, result = start(bad)
     assert wait_for(lambda: info_pub.publish(bad) or result.done(), 60, interval=0.1), server.output()
@@ -460,6 +466,9 @@ def test_a_malformed_camera_info_is_refused_with_its_reason_and_the_server_goes_
         server.output()
     assert "camera_info publishes lens distortion (plumb_bob: 0.1 -0.2 0 0 0), which is not corrected" \
         in server.output()
+    goal = bytes(handle.goal_id.uuid).hex()
+    done_pub.publish(String(data=json.dumps({"goal": goal, "frames_sent": 1e999})))  # infinity: no frame count
+    assert wait_for(lambda: server.output().count("malformed data_transfer_done") >= 2, 20), server.output()
     handle.cancel_goal_async()
     assert wait_for(lambda: result.done(), 60), server.output()
     assert result.result().status == GoalStatus.STATUS_CANCELED

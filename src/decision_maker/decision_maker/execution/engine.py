@@ -23,6 +23,7 @@ import dataclasses
 import enum
 import itertools
 import json
+import math
 import threading
 import time
 from collections.abc import Callable
@@ -71,6 +72,11 @@ class TaskState(str, enum.Enum):
         return self not in (TaskState.QUEUED, TaskState.RUNNING)
 
 
+#: the /task_status fields checked on parsing (stamp: any finite number), so a reader never holds, say, a list as an id
+_STATUS_FIELD_TYPES: dict[str, type] = {"id": int, "step": int, "steps": int, "text": str, "primitive": str,
+                                        "message": str, "sentence": str}
+
+
 @dataclass(frozen=True)
 class TaskStatus:
     """One ``/task_status`` update (JSON on the wire, see :meth:`to_json`).
@@ -107,14 +113,24 @@ class TaskStatus:
         """Parse a ``/task_status`` message.
 
         Raises:
-            ValueError: not a task status.
+            ValueError: not a task status (not JSON, not an object, a field missing or of the wrong type).
         """
         try:
             d = json.loads(data)
             d["state"] = TaskState(d["state"])
-            return cls(**{k: d[k] for k in cls.__dataclass_fields__ if k in d})
-        except (TypeError, KeyError, json.JSONDecodeError) as exc:
-            raise ValueError(f"not a task status: {shorten(str(data), 60)!r}") from exc
+            fields = {k: d[k] for k in cls.__dataclass_fields__ if k in d}
+            for name, kind in _STATUS_FIELD_TYPES.items():
+                v = fields.get(name)
+                if v is not None and (not isinstance(v, kind) or (kind is int and isinstance(v, bool))):
+                    raise TypeError(f"{name} must be {kind.__name__}, got {type(v).__name__}")
+            if "stamp" in fields:
+                stamp = fields["stamp"]
+                if isinstance(stamp, bool) or not isinstance(stamp, int | float) or not math.isfinite(stamp):
+                    raise TypeError(f"stamp must be a finite number, got {shorten(repr(stamp), 30)}")
+                fields["stamp"] = float(stamp)
+            return cls(**fields)
+        except (TypeError, KeyError, ValueError, RecursionError, OverflowError) as exc:
+            raise ValueError(f"not a task status ({shorten(str(exc), 60)}): {shorten(str(data), 60)!r}") from exc
 
     def line(self) -> str:
         """One readable terminal line."""

@@ -67,7 +67,7 @@ class ExplorationGate:
             doc = json.loads(data)
             state = str(doc["state"])
             seen = float(doc.get("seen_percent", math.nan))
-        except (json.JSONDecodeError, KeyError, TypeError, ValueError, RecursionError) as exc:
+        except (json.JSONDecodeError, KeyError, TypeError, ValueError, RecursionError, OverflowError) as exc:
             raise ValueError(f"not an exploration progress message: {str(data)[:60]!r}") from exc
         with self._lock:
             if math.isfinite(seen):

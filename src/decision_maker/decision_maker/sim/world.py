@@ -165,7 +165,7 @@ class ObjectWorld:
                 continue
             try:
                 x, y, z = (float(v) for v in pos)  # type: ignore[union-attr]
-            except (TypeError, ValueError) as exc:
+            except (TypeError, ValueError, OverflowError) as exc:  # OverflowError: an integer too large for a float
                 raise ConfigError(f"object {str(oid)[:40]!r}: position must be [x, y, z], got {pos!r}"[:200]) from exc
             if not all(math.isfinite(v) for v in (x, y, z)):
                 raise ConfigError(f"object {str(oid)[:40]!r}: position must be finite, got {pos!r}")
