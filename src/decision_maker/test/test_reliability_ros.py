@@ -352,3 +352,13 @@ def test_nl_command_node_falls_back_to_the_topic_with_a_warning(ros_node, ros_do
     assert proc.returncode == 0, proc.stdout + proc.stderr
     assert "submit_command service is not available" in proc.stderr and "without acknowledgement" in proc.stderr
     assert wait_for(lambda: got == ["go home"], 10.0), got
+
+
+def test_the_client_answers_text_no_ros_string_can_carry_at_once(ros_node):
+    """A lone surrogate (a web page's JSON "\\ud800") cannot be serialised: the client says so in the ack instead of
+    raising in its resend timer, which once ended the web page's node."""
+    client = CommandClient(ros_node, answer_timeout_s=5.0, retry_s=0.2)
+    acks: list[Ack] = []
+    client.submit_async("go home \ud800", acks.append)
+    assert len(acks) == 1 and not acks[0].accepted and acks[0].state == "rejected"
+    assert "not valid Unicode text" in acks[0].message and client.pending() == 0

@@ -84,6 +84,12 @@ def parse_client_message(raw: str | bytes, max_bytes: int = 4096, max_text_chars
     if not isinstance(text, str):
         raise ProtocolError("'text' must be a string", ref)
     text = text.strip()
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:  # a lone surrogate (JSON's "\ud800"): no ROS string can carry it
+        if kind == "command":
+            raise ProtocolError("the command is not valid Unicode text (a lone surrogate)", ref) from None
+        text = text.encode("utf-8", "replace").decode("utf-8")  # a stop always goes out: its reason mended
     if kind == "command":
         if not text:
             raise ProtocolError("empty command: type what the robot should do", ref)

@@ -142,10 +142,19 @@ def test_good_messages_parse():
     ('{"type": "command", "text": "' + "a" * 5000 + '"}', "message too large"),
     (b'{"type": "stop"}', "binary"),
     ("[" * 100000, "message too large"),
+    ('{"type": "command", "text": "go home \\ud800"}', "not valid Unicode text"),
 ])
 def test_bad_messages_get_a_clear_error(raw, match):
     with pytest.raises(ProtocolError, match=match):
         parse_client_message(raw, max_bytes=4096, max_text_chars=500)
+
+
+def test_a_stop_with_a_lone_surrogate_still_stops_with_its_reason_mended():
+    """JSON may carry "\\ud800", which no ROS string can: a command with it is refused, a stop goes out anyway
+    (once, the send failed and the STOP was lost)."""
+    m = parse_client_message('{"type": "stop", "text": "hands \\ud800 off"}')
+    assert m.kind == "stop" and m.text == "hands ? off"
+    m.text.encode("utf-8")
 
 
 def test_error_keeps_the_ref_when_readable():

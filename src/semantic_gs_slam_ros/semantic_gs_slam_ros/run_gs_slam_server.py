@@ -20,6 +20,7 @@ the goal id tells runs apart.
 from __future__ import annotations
 
 import json
+import math
 import os
 import sys
 import threading
@@ -30,6 +31,7 @@ import rclpy
 from geometry_msgs.msg import PoseStamped
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
@@ -103,6 +105,12 @@ class SlamServer(Node):
         p("live_view_host", "127.0.0.1")  # loopback by default
         p("min_motion_m", 0.0)  # with odometry: skip frames that moved less than this and ...
         p("min_motion_deg", 0.0)  # ... turned less than this since the last mapped one (0 = take every frame)
+        self._config(RunSlam.Goal())  # every run's settings, checked now: a bad value stops the node at start
+        if self.get_parameter("image_qos_depth").value < 1:
+            raise ValueError(f"image_qos_depth must be >= 1, got {self.get_parameter('image_qos_depth').value}")
+        done_wait = self.get_parameter("done_wait").value
+        if not (math.isfinite(done_wait) and done_wait >= 0):
+            raise ValueError(f"done_wait must be a finite number of seconds >= 0, got {done_wait}")
         switch = float(self.get_parameter("gil_switch_interval").value)
         if switch > 1.0 or switch != switch:
             raise ValueError(f"gil_switch_interval must be at most 1 s (< 0: auto), got {switch}")
@@ -261,6 +269,16 @@ class SlamServer(Node):
         return CancelResponse.ACCEPT
 
     def _config(self, goal: RunSlam.Goal) -> SessionConfig:
+        """The run's settings: the goal's folders over the parameters.
+
+        Raises:
+            StreamingError: a bad value (the goal aborts with it; at start, the node refuses to run).
+        """
+        for name in ("output_dir", "map_dir"):
+            folder = getattr(goal, name)
+            if folder and not os.path.isabs(folder):
+                raise StreamingError(f"the goal's {name} must be an absolute path (the server's working folder is "
+                                     f"not the client's), got {folder[:200]!r}")
         g = self.get_parameter
         return SessionConfig(
             work_dir=goal.output_dir or g("work_dir").value or DEFAULT_WORK_DIR,
@@ -410,9 +428,14 @@ def parse_classes(text: str) -> dict[int, str]:
         return {}
     try:
         doc = json.loads(text)
-        return {int(k): str(v) for k, v in doc.items()}
-    except (ValueError, AttributeError, TypeError) as exc:
-        raise StreamingError(f"semantic_classes must be JSON {{\"id\": \"name\"}}: {exc}") from exc
+        classes = {int(k): v for k, v in doc.items()}
+    except (ValueError, AttributeError, TypeError, RecursionError) as exc:
+        raise StreamingError(f"semantic_classes must be JSON {{\"id\": \"name\"}}: {str(exc)[:120]}") from exc
+    for k, v in classes.items():
+        if not 0 < k < 2**31 or not isinstance(v, str) or not v or len(v) > 256:
+            raise StreamingError(f"semantic_classes: ids are whole numbers 1 .. 2^31 - 1 and names strings of 1 .. "
+                                 f"256 characters, got {str(k)[:40]}: {str(v)[:40]!r}")
+    return classes
 
 
 def to_feedback(p: Progress) -> RunSlam.Feedback:
@@ -438,7 +461,8 @@ def main(args: list[str] | None = None) -> int:
     rclpy.init(args=args)
     try:
         node = SlamServer()
-    except (OSError, ValueError) as exc:  # e.g. the live view's port is taken, a bad parameter
+    except (OSError, ValueError, StreamingError, ParameterException) as exc:  # the live view's port taken, a bad
+        # parameter (a value, or a type: -p width:=abc)
         rclpy.logging.get_logger("run_gs_slam_server").fatal(f"cannot start: {exc}")
         rclpy.try_shutdown()
         return 2

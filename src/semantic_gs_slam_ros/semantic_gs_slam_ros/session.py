@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import collections
 import json
+import math
 import os
 import shutil
 import threading
@@ -133,6 +134,18 @@ class SessionConfig:
     frames_before: int = 0
 
     def __post_init__(self) -> None:
+        for name in ("sync_tolerance", "sync_max_wait", "min_motion_m", "min_motion_deg"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise StreamingError(f"{name} must be a finite number >= 0, got {value}")
+        if not (math.isfinite(self.depth_scale) and self.depth_scale > 0):
+            raise StreamingError(f"depth_scale must be a finite number > 0 (16UC1 units per metre), got "
+                                 f"{self.depth_scale}")
+        if self.width < 0 or self.height < 0:
+            raise StreamingError(f"width and height must be >= 0 (0: the images' size), got {self.width}x{self.height}")
+        if not 0 <= self.lag_low < self.lag_high:
+            raise StreamingError(f"lag_low and lag_high must satisfy 0 <= lag_low < lag_high, got {self.lag_low} and "
+                                 f"{self.lag_high}")
         if self.max_behind < 0:
             raise StreamingError(f"max_behind must be >= 0 (0 = never skip a frame), got {self.max_behind}")
         if self.refine_iters < 0:

@@ -12,6 +12,7 @@ import errno
 import json
 import os
 import queue
+import re
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -53,14 +54,30 @@ def write_jpeg(path: str, rgb: np.ndarray, quality: int = 95) -> None:
     os.replace(tmp, path)
 
 
+#: the files a run writes in each folder (``.tmp``: one being written when the last run stopped)
+_OWN_FILES = {"frames": re.compile(r"frame\d{6}\.jpg(\.tmp)?"), "depths": re.compile(r"depth\d{6}\.png(\.tmp)?"),
+              "semantics": re.compile(r"semantic\d{6}\.png(\.tmp)?")}
+
+
 def prepare_output_dir(root: str, clean: bool = True) -> None:
     """Create ``root/{frames,depths,semantics}``; with ``clean``, remove frames of an earlier run.
 
+    Only files named as a run names them are ever removed: a folder that holds anything else there (a user's
+    photos in ``frames/``) is refused, and nothing in it is touched.
+
     Raises:
-        OutputError: the folder cannot be created or written.
+        OutputError: the folder cannot be created or written, or holds files a run did not write.
     """
     try:
-        for sub in ("frames", "depths", "semantics"):
+        if clean:
+            foreign = [os.path.join(sub, name) for sub, own in _OWN_FILES.items()
+                       if os.path.isdir(os.path.join(root, sub))
+                       for name in sorted(os.listdir(os.path.join(root, sub))) if not own.fullmatch(name)]
+            if foreign:
+                raise OutputError(f"output directory {root!r} holds files a run did not write "
+                                  f"({', '.join(foreign[:3])}{' ...' if len(foreign) > 3 else ''}); nothing was "
+                                  "removed: choose an empty folder, or one an earlier run wrote")
+        for sub in _OWN_FILES:
             d = os.path.join(root, sub)
             os.makedirs(d, exist_ok=True)
             if clean:

@@ -2,6 +2,7 @@
 
 import json
 import os
+import re
 import threading
 from types import SimpleNamespace
 
@@ -211,13 +212,60 @@ def test_writer_writes_complete_frames_in_order(tmp_path):
 
 def test_clean_start_and_unwritable_directory(tmp_path):
     (tmp_path / "frames").mkdir()
-    (tmp_path / "frames" / "old.jpg").write_text("x")
+    (tmp_path / "depths").mkdir()
+    (tmp_path / "frames" / "frame000000.jpg").write_text("x")  # an earlier run's
+    (tmp_path / "depths" / "depth000003.png.tmp").write_text("x")
+    (tmp_path / "completed.jsonl").write_text("{}\n")
     prepare_output_dir(str(tmp_path))
-    assert os.listdir(tmp_path / "frames") == []
+    assert os.listdir(tmp_path / "frames") == [] and os.listdir(tmp_path / "depths") == []
+    assert not (tmp_path / "completed.jsonl").exists()
     blocker = tmp_path / "file"
     blocker.write_text("not a folder")
     with pytest.raises(OutputError, match="not writable"):
         prepare_output_dir(str(blocker / "sub"))
+
+
+def test_a_folder_with_files_a_run_did_not_write_is_refused_and_left_as_it_is(tmp_path):
+    (tmp_path / "frames").mkdir()
+    (tmp_path / "frames" / "frame000000.jpg").write_text("a run's")
+    (tmp_path / "frames" / "holiday_photo.jpg").write_text("a person's")
+    (tmp_path / "completed.jsonl").write_text("{}\n")
+    with pytest.raises(OutputError, match=r"holds files a run did not write \(frames/holiday_photo.jpg\); nothing "
+                                          "was removed"):
+        prepare_output_dir(str(tmp_path))
+    assert sorted(os.listdir(tmp_path / "frames")) == ["frame000000.jpg", "holiday_photo.jpg"]
+    assert (tmp_path / "completed.jsonl").exists() and not (tmp_path / "depths").exists()
+    prepare_output_dir(str(tmp_path), clean=False)  # a resumed run removes nothing, so it may share the folder
+
+
+@pytest.mark.parametrize("field, value, words", [
+    ("sync_tolerance", float("nan"), "sync_tolerance must be a finite number >= 0, got nan"),
+    ("sync_max_wait", -1.0, "sync_max_wait must be a finite number >= 0"),
+    ("depth_scale", 0.0, "depth_scale must be a finite number > 0"),
+    ("lag_low", 500, "0 <= lag_low < lag_high, got 500 and 300"),
+    ("width", -5, "width and height must be >= 0"),
+])
+def test_session_settings_that_cannot_work_are_refused(tmp_path, field, value, words):
+    from semantic_gs_slam_ros.errors import StreamingError
+    from semantic_gs_slam_ros.session import SessionConfig
+
+    with pytest.raises(StreamingError, match=re.escape(words)):
+        SessionConfig(work_dir=str(tmp_path), **{field: value})
+
+
+@pytest.mark.parametrize("text, words", [
+    ("[" * 100_000, "must be JSON"),
+    ('{"99999999999999999999999": "chair"}', "ids are whole numbers 1 .. 2^31 - 1"),
+    ('{"0": "chair"}', "ids are whole numbers"),
+    ('{"1": {"a": 1}}', "names strings of 1 .. 256 characters"),
+])
+def test_semantic_classes_of_the_wrong_shape_are_refused(text, words):
+    from semantic_gs_slam_ros.errors import StreamingError
+    from semantic_gs_slam_ros.run_gs_slam_server import parse_classes
+
+    with pytest.raises(StreamingError, match=re.escape(words)):
+        parse_classes(text)
+    assert parse_classes('{"1": "chair", "7": "cup"}') == {1: "chair", 7: "cup"}
 
 
 def test_writer_failure_is_reported_not_raised(tmp_path):

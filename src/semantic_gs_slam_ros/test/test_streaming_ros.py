@@ -209,6 +209,9 @@ def test_bad_output_directory_is_a_clear_error(shared_server, shared_domain, seq
                     map_dir=str(blocker / "run" / "map"))
     assert client.wait(120) == 1, client.text()
     assert "run failed before it started" in client.text() and "not writable" in client.text()
+    client = Client(shared_domain, sequence / "home", output_dir="relative/run")
+    assert client.wait(120) == 1, client.text()
+    assert "the goal's output_dir must be an absolute path" in client.text(), client.text()
 
 
 def test_client_reports_missing_dataset_and_server(ros_domain, tmp_path):
@@ -476,13 +479,19 @@ def test_a_malformed_camera_info_is_refused_with_its_reason_and_the_server_goes_
 
 def test_the_server_hands_pythons_lock_over_as_set_and_refuses_a_bad_interval(ros_domain, shared_server):
     """``gil_switch_interval``: auto, with the engine on the CPU, it is 0.5 ms (Python's own on CUDA), applied and
-    logged; more than 1 s is a clear error at start (exit code 2), not a server that runs with it."""
+    logged; more than 1 s is a clear error at start (exit code 2), not a server that runs with it. So are the other
+    settings of every run, and a value of the wrong type."""
     from semantic_gs_slam_ros.engine import switch_interval_for
 
     want = switch_interval_for("auto") or 0.005  # 0: Python's own, 5 ms (a CUDA machine)
     assert f"threads hand Python's lock over every {want * 1000:g} ms at most" in shared_server.output()
     exe = find_executable("semantic_gs_slam_ros", "run_gs_slam_server")
-    bad = CapturedProcess([exe, "--ros-args", "-p", "gil_switch_interval:=2.0", "-p", "slam_enabled:=false"],
-                          node_environment(ros_domain))
-    assert bad.wait(60) == 2, bad.text()
-    assert "cannot start: gil_switch_interval must be at most 1 s (< 0: auto), got 2.0" in bad.text()
+    for param, words in [("gil_switch_interval:=2.0", "gil_switch_interval must be at most 1 s (< 0: auto), got 2.0"),
+                         ("lag_low:=500", "lag_low and lag_high must satisfy 0 <= lag_low < lag_high, got 500 and 300"),  # once: a goal without reason
+                         ("image_qos_depth:=0", "image_qos_depth must be >= 1, got 0"),
+                         ("width:=abc", "width")]:  # of another type than declared
+        bad = CapturedProcess([exe, "--ros-args", "-p", param, "-p", "slam_enabled:=false"],
+                              node_environment(ros_domain))
+        assert bad.wait(60) == 2, (param, bad.text())
+        assert "cannot start: " in bad.text() and words in bad.text() and "Traceback" not in bad.text(), \
+            (param, bad.text())

@@ -131,7 +131,17 @@ class CommandClient:
         return True
 
     def submit_async(self, text: str, on_ack: Callable[[Ack], None] | None = None) -> None:
-        """Send ``text``; ``on_ack`` gets the :class:`Ack` later (at once for the topic). Never blocks."""
+        """Send ``text``; ``on_ack`` gets the :class:`Ack` later (at once for the topic). Never blocks.
+
+        Text that no ROS string can carry (a lone surrogate) is answered at once: not accepted, with the reason.
+        """
+        try:
+            text.encode("utf-8")
+        except UnicodeEncodeError:
+            if on_ack is not None:
+                on_ack(Ack(text, "service", False, state="rejected",
+                           message="the command is not valid Unicode text (a lone surrogate)"))
+            return
         if not self.service_ready():
             self._publish(text, on_ack)
             return
