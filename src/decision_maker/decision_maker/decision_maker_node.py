@@ -73,6 +73,7 @@ from decision_maker.topics import (
     STATUS_PUBLISHER_QOS,
     SUBMIT_COMMAND,
 )
+from home_robot_ros.startup import CONFIG_ERRORS
 
 #: Longest /object_list message parsed (characters); a longer one is ignored with a warning.
 MAX_OBJECT_LIST_CHARS = 1_000_000
@@ -136,8 +137,8 @@ class DecisionMakerNode(Node):
             if not float(v[name]) > 0:
                 raise ConfigError(f"{name} must be > 0, got {v[name]}")
         offset = list(v["frame_offset"])
-        if len(offset) != 3:
-            raise ConfigError(f"frame_offset must be [x, y, yaw], got {offset}")
+        if len(offset) != 3 or not all(math.isfinite(o) for o in offset):
+            raise ConfigError(f"frame_offset must be [x, y, yaw], three finite numbers, got {offset}")
         frames = FrameTransform(str(v["frame_id"]), *(float(o) for o in offset))
         locations_file = v["locations_file"] or default_locations_file()
         self._locations = load_locations(locations_file)
@@ -252,7 +253,7 @@ class DecisionMakerNode(Node):
             return self.engine.submit(request.text)  # never blocks: bounded, then queued or rejected
 
         try:
-            status, repeated = self._answers.answer(request.key, run)
+            status, repeated = self._answers.answer(request.key, run, request.text)
         except BadKeyError as exc:
             response.accepted, response.state, response.message = False, TaskState.REJECTED.value, f"bad key: {exc}"
             return response
@@ -291,7 +292,7 @@ def main(args: list[str] | None = None) -> int:
     rclpy.init(args=args)
     try:
         node = DecisionMakerNode()
-    except ConfigError as exc:
+    except (ConfigError, *CONFIG_ERRORS) as exc:
         rclpy.logging.get_logger("decision_maker").fatal(f"configuration error: {exc}")
         rclpy.try_shutdown()
         return 2

@@ -52,6 +52,7 @@ from decision_maker.mock_nav_server import FAULTS, POSE_QOS, yaw_of
 from decision_maker.sim.actions import SimGoals, run_sim_node
 from decision_maker.sim.world import SAMPLE_OBJECTS, ObjectWorld, check_coordinates, check_name, check_quaternion
 from decision_maker.topics import HARDWARE_STOP
+from home_robot_ros.startup import number_in
 
 WORLD_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 GRASP_STAGES = ((0.4, "approach"), (0.7, "close_gripper"), (1.01, "lift"))
@@ -88,9 +89,12 @@ class MockGraspServer(Node):
             raise ConfigError(f"fault must be one of {FAULTS}, got {v['fault']!r}")
         if v["objects_source"] not in ("params", "object_list"):
             raise ConfigError(f"objects_source must be 'params' or 'object_list', got {v['objects_source']!r}")
-        for k in ("rate_hz", "world_rate_hz", "grasp_duration_s", "place_duration_s"):
-            if not float(v[k]) > 0:
-                raise ConfigError(f"{k} must be > 0, got {v[k]}")
+        for k in ("rate_hz", "world_rate_hz"):
+            number_in(k, v[k], 0.01, 1000.0)
+        for k in ("grasp_duration_s", "place_duration_s"):
+            number_in(k, v[k], 1e-3, 3600.0)
+        number_in("stop_grace_s", v["stop_grace_s"], 0.0, 3600.0)
+        number_in("reach", v["reach"], 1e-3, 100.0)
         try:
             objects = json.loads(v["objects"] or "{}")
         except json.JSONDecodeError as exc:

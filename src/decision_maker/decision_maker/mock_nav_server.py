@@ -37,6 +37,7 @@ from decision_maker.errors import ConfigError, SimError
 from decision_maker.sim.actions import SimGoals, run_sim_node
 from decision_maker.sim.world import BaseSim, check_coordinates, check_quaternion
 from decision_maker.topics import HARDWARE_STOP
+from home_robot_ros.startup import number_in
 
 POSE_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 FAULTS = ("none", "fail", "hang")
@@ -71,8 +72,10 @@ class MockNavServer(Node):
         v = {k: self.get_parameter(k).value for k in defaults}
         if v["fault"] not in FAULTS:
             raise ConfigError(f"fault must be one of {FAULTS}, got {v['fault']!r}")
-        if not float(v["rate_hz"]) > 0:
-            raise ConfigError(f"rate_hz must be > 0, got {v['rate_hz']}")
+        number_in("rate_hz", v["rate_hz"], 0.01, 1000.0)
+        for k in ("speed", "turn_rate"):
+            number_in(k, v[k], 1e-6, 1e3)
+        number_in("stop_grace_s", v["stop_grace_s"], 0.0, 3600.0)
         init = [float(x) for x in v["initial_pose"]]
         if len(init) != 3:
             raise ConfigError(f"initial_pose must be [x, y, theta], got {init}")

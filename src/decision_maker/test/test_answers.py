@@ -57,3 +57,14 @@ def test_concurrent_repeats_wait_for_the_first_run():
     results.append(memory.answer("k", lambda: pytest.fail("ran twice")))
     first.join(10.0)
     assert sorted(results) == [(7, False), (7, True)] and runs == [1]
+
+
+def test_a_key_sent_again_with_another_command_is_refused_not_answered_with_the_first():
+    """A sender that reuses a key for a new command: refused with the reason (it was answered with the first
+    command's id and its own command never ran)."""
+    memory: AnswerMemory[str] = AnswerMemory()
+    assert memory.answer("abc", lambda: "#6", "where is the bottle") == ("#6", False)
+    assert memory.answer("abc", lambda: pytest.fail("must not run"), "where is the bottle") == ("#6", True)
+    with pytest.raises(BadKeyError, match="'abc' was used for another command"):
+        memory.answer("abc", lambda: pytest.fail("must not run"), "go to the kitchen")
+    assert memory.repeats == 1

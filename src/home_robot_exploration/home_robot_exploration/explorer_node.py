@@ -44,7 +44,7 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String
 
-from home_robot_exploration.errors import ConfigError, ExplorationError
+from home_robot_exploration.errors import ExplorationError
 from home_robot_exploration.explorer import Exploration, ExplorerConfig, Finished, NavGoal
 from home_robot_exploration.frontiers import FrontierConfig
 from home_robot_exploration.mapping import MappingConfig, MappingResult, MappingRun
@@ -52,6 +52,7 @@ from home_robot_exploration.nodemain import run_node
 from home_robot_exploration.occupancy import UNKNOWN, GridConfig
 from home_robot_ros.actions import ActionClient
 from home_robot_ros.poses import pose_to_matrix
+from home_robot_ros.startup import number_in
 
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 IMAGE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -94,9 +95,9 @@ class ExplorerNode(Node):
         self.cfg = ExplorerConfig(float(v["time_budget_s"]), int(v["look_steps"]), float(v["frame_timeout_s"]),
                                   int(v["max_goals"]), int(v["max_failures"]), grid, frontier)
         self.core = Exploration(self.cfg)  # checks the config (ConfigError)
-        for name in ("tick_hz", "map_publish_hz", "server_timeout_s"):
-            if not float(v[name]) > 0:
-                raise ConfigError(f"{name} must be > 0, got {v[name]}")
+        for name in ("tick_hz", "map_publish_hz"):
+            number_in(name, v[name], 0.01, 1000.0)
+        number_in("server_timeout_s", v["server_timeout_s"], 1e-3, 86400.0)
         self._map_frame = str(v["map_frame"])
         self._server_timeout = float(v["server_timeout_s"])
         self._map_period = 1.0 / float(v["map_publish_hz"])

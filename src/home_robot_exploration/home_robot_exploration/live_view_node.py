@@ -25,6 +25,7 @@ from std_msgs.msg import String
 from home_robot_exploration.errors import ConfigError
 from home_robot_exploration.live_view import LiveView, splats_from_params
 from home_robot_exploration.nodemain import run_node
+from home_robot_ros.startup import number_in
 
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 
@@ -47,8 +48,9 @@ class LiveViewNode(Node):
         for name, val in DEFAULTS.items():
             self.declare_parameter(name, val)
         v = {name: self.get_parameter(name).value for name in DEFAULTS}
-        if not float(v["map_check_s"]) > 0 or int(v["max_splats"]) < 1:
-            raise ConfigError("map_check_s must be > 0 and max_splats >= 1")
+        number_in("map_check_s", v["map_check_s"], 0.01, 3600.0)
+        if int(v["max_splats"]) < 1:
+            raise ConfigError(f"max_splats must be >= 1, got {v['max_splats']}")
         self._map_path = str(v["map_path"]) or bundled_map()
         self._max_splats = int(v["max_splats"])
         self._map_mtime: float | None = None

@@ -9,6 +9,7 @@ from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 
 from home_robot_exploration.errors import ConfigError
+from home_robot_ros.startup import CONFIG_ERRORS
 
 
 def run_node(node_class: Callable[[], Node], name: str, args: list[str] | None = None) -> int:
@@ -20,7 +21,7 @@ def run_node(node_class: Callable[[], Node], name: str, args: list[str] | None =
     rclpy.init(args=args)
     try:
         node = node_class()
-    except ConfigError as exc:
+    except (ConfigError, *CONFIG_ERRORS) as exc:
         rclpy.logging.get_logger(name).fatal(f"configuration error: {exc}")
         rclpy.try_shutdown()
         return 2

@@ -91,6 +91,8 @@ class SimCameraNode(Node):
         k = self.cam.k()
         self._k = k
         self._intrinsics = Intrinsics(self.cam.width, self.cam.height, k[0, 0], k[1, 1], k[0, 2], k[1, 2])
+        if int(v["seed"]) < 0:
+            raise ConfigError(f"seed must be >= 0, got {v['seed']}")
         self._renderer = HomeRenderer(int(v["seed"]))
         self._odometry = WheelOdometry(OdometryConfig(float(v["odom_trans_scale_error"]),
                                                       float(v["odom_rot_scale_error"]), float(v["odom_noise"]),

@@ -15,6 +15,7 @@ Every HTTP request and websocket handshake goes through :meth:`Gate.check`, in t
 from __future__ import annotations
 
 import hmac
+import math
 import os
 import secrets
 import stat
@@ -86,8 +87,9 @@ class AttemptLimiter:
 
     def __init__(self, max_failures: int = 5, window_s: float = 60.0, lockout_s: float = 60.0,
                  max_tracked: int = 4096, clock: Callable[[], float] = time.monotonic) -> None:
-        if max_failures < 1 or not window_s > 0 or not lockout_s > 0 or max_tracked < 1:
-            raise ConfigError("max_failures >= 1, failure_window_s > 0, lockout_s > 0 are required")
+        if max_failures < 1 or not 0 < window_s < math.inf or not 0 < lockout_s < math.inf or max_tracked < 1:
+            raise ConfigError(f"max_failures >= 1, failure_window_s and lockout_s finite and > 0 are required, got "
+                              f"{max_failures}, {window_s}, {lockout_s}")
         self.max_failures, self.window_s, self.lockout_s = max_failures, window_s, lockout_s
         self._max_tracked = max_tracked
         self._clock = clock

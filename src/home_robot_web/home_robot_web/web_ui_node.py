@@ -41,6 +41,7 @@ from std_msgs.msg import String
 
 from decision_maker.client.command_client import Ack, CommandClient
 from decision_maker.topics import CANCEL_COMMAND, CANCEL_QOS, STATUS_QOS, TASK_STATUS
+from home_robot_ros.startup import CONFIG_ERRORS
 from home_robot_web.auth import AttemptLimiter, Gate, generate_token, read_token_file
 from home_robot_web.errors import ConfigError, ServerError
 from home_robot_web.protocol import goal_event, memory_event, robot_event, status_event
@@ -145,7 +146,9 @@ class WebUiNode(Node):
         self.get_logger().info(f"map: {event['n']} points from {path}")
 
     def _log(self, level: str, text: str) -> None:
-        # one call site per severity: rclpy refuses two severities from one line
+        # one call site per severity: rclpy refuses two severities from one line. A request's bytes that are not
+        # UTF-8 (websockets keeps them as lone surrogates) are written escaped: rclpy's logger refuses such text
+        text = text.encode("utf-8", "backslashreplace").decode("utf-8")
         log = self.get_logger()
         if level == "error":
             log.error(text)
@@ -220,7 +223,7 @@ def main(args: list[str] | None = None) -> int:
     rclpy.init(args=args)
     try:
         node = WebUiNode()
-    except ConfigError as exc:
+    except (ConfigError, *CONFIG_ERRORS) as exc:
         rclpy.logging.get_logger("web_ui").fatal(f"configuration error: {exc}")
         rclpy.try_shutdown()
         return 2

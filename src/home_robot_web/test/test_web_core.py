@@ -4,6 +4,7 @@ map points, and the real HTTP/websocket server on loopback with a recording robo
 from __future__ import annotations
 
 import json
+import math
 import os
 import stat
 import threading
@@ -323,6 +324,32 @@ def test_server_with_a_token_refuses_and_logs_and_locks_out(served):
     assert info.value.code == 429
     refusals = [t for level, t in logs if level == "warn" and t.startswith("refused")]
     assert len(refusals) >= 6 and not any(TOKEN in t for _, t in logs)  # logged, never with the token
+
+
+def test_a_refused_request_whose_path_is_not_utf8_gets_its_status_and_an_escaped_log_line(served):
+    """Raw bytes in the path reach the server as lone surrogates: the refusal is still answered (421 here, a
+    foreign Host) and logged in text every logger can write (rclpy's refused it: the answer was a 500)."""
+    import socket
+
+    start, _, logs = served
+    server = start()
+    with socket.create_connection(("127.0.0.1", server.port), timeout=10) as sock:
+        sock.sendall(b"GET /\xff\xfe HTTP/1.1\r\nHost: evil.example\r\nConnection: close\r\n\r\n")
+        answer = b""
+        while chunk := sock.recv(4096):
+            answer += chunk
+    assert answer.startswith(b"HTTP/1.1 421"), answer[:80]
+    refused = [t for level, t in logs if level == "warn" and t.startswith("refused")]
+    assert refused and "GET /\\udcff\\udcfe" in refused[-1], refused
+    refused[-1].encode("utf-8")
+
+
+def test_a_lockout_that_never_ends_is_refused():
+    for bad in (math.inf, math.nan, 0.0):
+        with pytest.raises(ConfigError, match="lockout_s finite and > 0"):
+            AttemptLimiter(max_failures=3, lockout_s=bad)
+    with pytest.raises(ConfigError, match="failure_window_s and lockout_s finite"):
+        AttemptLimiter(window_s=math.inf)
 
 
 def test_too_many_messages_get_an_error(served):

@@ -340,7 +340,7 @@ class ObjectMemory:
                      place: str = "") -> Belief:
         """Someone says where an object is: ``ref`` is a belief id, or a class (its best belief)."""
         if source not in SOURCES:
-            raise ObjectMemoryError(f"source must be one of {SOURCES}, got {source!r}")
+            raise ObjectMemoryError(f"source must be one of {SOURCES}, got {source[:40]!r}")
         now = self._clock()
         pos = _point(position, "position")
         with self._lock:

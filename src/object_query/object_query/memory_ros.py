@@ -39,6 +39,10 @@ from object_query.semantic_map import ObjectDatabase
 #: Latched: a node that subscribes later still receives the current memory.
 MEMORY_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 EVENTS = ("grasped", "grasp_failed", "placed", "set")
+#: Farthest a reported position may be from the map's origin (m): a home, with room to spare; farther is a bad value
+MAX_COORD_M = 1000.0
+#: Longest ``detail`` of a report (characters): a failure's reason, kept as the belief's note
+MAX_DETAIL_CHARS = 1000
 
 
 def stamp_of(t: float) -> Time:
@@ -123,8 +127,11 @@ class MemoryInterface:
         if event != "set" and self._db is not None and key:
             resolved, _ = self._db.resolve(key)
             key = resolved or key
-        if position is not None and not all(math.isfinite(v) for v in position):
-            raise ObjectMemoryError("position must be finite")
+        if position is not None and not all(math.isfinite(v) and abs(v) <= MAX_COORD_M for v in position):
+            raise ObjectMemoryError(f"position must be finite and within {MAX_COORD_M:g} m of the map's origin, got "
+                                    f"({', '.join(f'{v:g}' for v in position)})")
+        if len(detail) > MAX_DETAIL_CHARS:
+            raise ObjectMemoryError(f"detail too long ({len(detail)} characters, at most {MAX_DETAIL_CHARS})")
         if event == "grasped":
             if not key:
                 raise ObjectMemoryError("grasped: the object's name is missing")

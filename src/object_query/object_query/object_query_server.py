@@ -55,6 +55,7 @@ from std_msgs.msg import ColorRGBA, String
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
+from home_robot_ros.startup import CONFIG_ERRORS, number_in
 from object_query.answers import answer_query, object_list
 from object_query.errors import MapLoadError, SynonymsError
 from object_query.memory import MemoryConfig
@@ -183,7 +184,7 @@ class ObjectQueryServer(Node):
                                                   start_parameter_services=False)
         self._reload_srv = self.maintenance_node.create_service(
             Trigger, f"{self.get_fully_qualified_name()}/reload", self._on_reload)
-        period = float(self.get_parameter("reload_poll_period").value)
+        period = number_in("reload_poll_period", self.get_parameter("reload_poll_period").value, 0.0, 3600.0)
         self._poll_timer = self.maintenance_node.create_timer(max(period, 0.05), self._on_poll)
         self.add_on_set_parameters_callback(self._validate_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
@@ -442,7 +443,7 @@ def main(args: list[str] | None = None) -> int:
     rclpy.init(args=args)
     try:
         node = ObjectQueryServer()
-    except (MapLoadError, SynonymsError, ValueError) as exc:
+    except (MapLoadError, SynonymsError, *CONFIG_ERRORS) as exc:
         rclpy.logging.get_logger("object_query_server").fatal(f"cannot start: {exc}")
         rclpy.try_shutdown()
         return 2

@@ -29,8 +29,9 @@ def call(node, srv_type, name: str, request, timeout: float = 20.0):
     return future.result()
 
 
-def report(node, event: str, name: str, position=None, place: str = "", source: str = "") -> MemoryReport.Response:
-    req = MemoryReport.Request(event=event, name=name, place=place, source=source)
+def report(node, event: str, name: str, position=None, place: str = "", source: str = "", detail: str = ""
+           ) -> MemoryReport.Response:
+    req = MemoryReport.Request(event=event, name=name, place=place, source=source, detail=detail)
     if position is not None:
         req.has_position = True
         req.position = Point(x=float(position[0]), y=float(position[1]), z=float(position[2]))
@@ -90,7 +91,10 @@ def test_reports_change_the_answer_and_bad_reports_are_refused(launch_nodes, ros
                        (("grasped", "", (0, 0, 0)), "name"),
                        (("set", "x" * 200_000, (1, 2, 3)), "name too long (200000 characters, at most 1024)"),
                        (("set", "x " * 300, (1, 2, 3)), "name too long (599 characters after normalisation"),
-                       (("placed", "cup", (1, 2, 3), "y" * 5000), "place too long (5000 characters")]:
+                       (("placed", "cup", (1, 2, 3), "y" * 5000), "place too long (5000 characters"),
+                       (("set", "cup", (1e308, 1e308, 1e308)), "within 1000 m of the map's origin, got (1e+308"),
+                       (("grasp_failed", "cup", (4.9, 1.1, 0.0), "", "", "z" * 20_000),
+                        "detail too long (20000 characters, at most 1000)")]:
         r = report(ros_node, *bad)
         assert not r.success and words in r.message, (bad, r.message)
         assert r.memory.revision == rev

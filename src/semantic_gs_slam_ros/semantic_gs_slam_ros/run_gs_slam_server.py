@@ -31,7 +31,6 @@ import rclpy
 from geometry_msgs.msg import PoseStamped
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
@@ -41,6 +40,7 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from home_robot_ros.poses import pose_to_matrix
+from home_robot_ros.startup import CONFIG_ERRORS
 from semantic_gs_slam_ros.cancels import CancelRouter
 from semantic_gs_slam_ros.engine import camera_info_intrinsics, make_engine, prepare_renderer, switch_interval_for
 from semantic_gs_slam_ros.errors import ImageFormatError, StreamingError
@@ -461,7 +461,7 @@ def main(args: list[str] | None = None) -> int:
     rclpy.init(args=args)
     try:
         node = SlamServer()
-    except (OSError, ValueError, StreamingError, ParameterException) as exc:  # the live view's port taken, a bad
+    except (OSError, StreamingError, *CONFIG_ERRORS) as exc:  # the live view's port taken, a bad
         # parameter (a value, or a type: -p width:=abc)
         rclpy.logging.get_logger("run_gs_slam_server").fatal(f"cannot start: {exc}")
         rclpy.try_shutdown()

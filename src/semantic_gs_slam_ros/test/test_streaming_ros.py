@@ -487,7 +487,8 @@ def test_the_server_hands_pythons_lock_over_as_set_and_refuses_a_bad_interval(ro
     assert f"threads hand Python's lock over every {want * 1000:g} ms at most" in shared_server.output()
     exe = find_executable("semantic_gs_slam_ros", "run_gs_slam_server")
     for param, words in [("gil_switch_interval:=2.0", "gil_switch_interval must be at most 1 s (< 0: auto), got 2.0"),
-                         ("lag_low:=500", "lag_low and lag_high must satisfy 0 <= lag_low < lag_high, got 500 and 300"),  # once: a goal without reason
+                         # (once a goal aborted without a reason)
+                         ("lag_low:=500", "lag_low and lag_high must satisfy 0 <= lag_low < lag_high, got 500 and 300"),
                          ("image_qos_depth:=0", "image_qos_depth must be >= 1, got 0"),
                          ("width:=abc", "width")]:  # of another type than declared
         bad = CapturedProcess([exe, "--ros-args", "-p", param, "-p", "slam_enabled:=false"],

@@ -41,13 +41,19 @@ class AnswerMemory(Generic[T]):
         self._capacity = capacity
         self._lock = threading.Lock()  # guards _answers; held while a keyed call runs, so a repeat waits for it
         self._answers: OrderedDict[str, T] = OrderedDict()
+        self._requests: dict[str, str] = {}  # key -> what it asked
         self.repeats = 0  # calls answered from memory
 
-    def answer(self, key: str, run: Callable[[], T]) -> tuple[T, bool]:
+    def answer(self, key: str, run: Callable[[], T], request: str = "") -> tuple[T, bool]:
         """``run()``'s result for a new or empty ``key``; the remembered one for a repeat.
 
         Returns ``(answer, repeated)``. ``run`` must not block (it runs under the memory's lock when
-        keyed). Raises :class:`BadKeyError` for a key longer than :data:`MAX_KEY_CHARS` (``run`` not called).
+        keyed). ``request`` is what was asked (the command's text): a repeat must ask the same.
+
+        Raises:
+            BadKeyError: a key longer than :data:`MAX_KEY_CHARS`, or a remembered key sent with another request
+                (a sender that reuses keys would otherwise get the first command's answer and its command never
+                run). ``run`` is not called.
         """
         if not key:
             return run(), False
@@ -55,13 +61,17 @@ class AnswerMemory(Generic[T]):
             raise BadKeyError(f"key of {len(key)} characters (at most {MAX_KEY_CHARS})")
         with self._lock:
             if key in self._answers:
+                if self._requests[key] != request:
+                    raise BadKeyError(f"key {key!r} was used for another command; a new command needs a new key")
                 self._answers.move_to_end(key)
                 self.repeats += 1
                 return self._answers[key], True
             result = run()
             self._answers[key] = result
+            self._requests[key] = request
             if len(self._answers) > self._capacity:
-                self._answers.popitem(last=False)
+                old, _ = self._answers.popitem(last=False)
+                del self._requests[old]
             return result, False
 
     def __len__(self) -> int:

@@ -131,11 +131,12 @@ def run_sim_node(node_class: Callable[[], Node], name: str, args: list[str] | No
     from rclpy.executors import ExternalShutdownException
 
     from decision_maker.errors import ConfigError
+    from home_robot_ros.startup import CONFIG_ERRORS
 
     rclpy.init(args=args)
     try:
         node = node_class()
-    except ConfigError as exc:
+    except (ConfigError, *CONFIG_ERRORS) as exc:
         rclpy.logging.get_logger(name).fatal(f"configuration error: {exc}")
         rclpy.try_shutdown()
         return 2

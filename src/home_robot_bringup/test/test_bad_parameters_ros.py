@@ -1,0 +1,37 @@
+"""Every node started with a parameter it cannot work with says which, in one line, and exits 2: not a traceback,
+not a node that runs with the value (a 0-s timer spinning a core, a lockout that never ends, a stop that never
+comes)."""
+
+from __future__ import annotations
+
+import pytest
+
+from home_robot_bringup.background import CapturedProcess
+from home_robot_bringup.nodeset import find_executable
+from home_robot_bringup.process import node_environment
+
+pytestmark = pytest.mark.ros
+
+CASES = [
+    ("decision_maker", "decision_maker_node", "max_queue:=abc", "expecting type 'INTEGER'"),
+    ("decision_maker", "decision_maker_node", "frame_offset:=[.nan,0.0,0.0]", "three finite numbers"),
+    ("decision_maker", "mock_nav_server", "rate_hz:=1e-300", "rate_hz must be a number from 0.01 to 1000"),
+    ("decision_maker", "mock_nav_server", "stop_grace_s:=.nan", "stop_grace_s must be a number from 0 to 3600"),
+    ("decision_maker", "mock_nav_server", "pose_topic:=bad//t", "Invalid topic name: topic name must not contain"),
+    ("decision_maker", "mock_grasp_server", "world_rate_hz:=1e-300", "world_rate_hz must be a number"),
+    ("decision_maker", "mock_grasp_server", "reach:=.inf", "reach must be a number"),
+    ("home_robot_exploration", "explorer_node", "tick_hz:=1e-300", "tick_hz must be a number"),
+    ("home_robot_exploration", "sim_camera_node", "seed:=-1", "seed must be >= 0, got -1"),
+    ("home_robot_exploration", "live_view_node", "map_check_s:=1e300", "map_check_s must be a number"),
+    ("home_robot_web", "web_ui_node", "lockout_s:=.inf", "lockout_s finite and > 0"),
+    ("home_robot_web", "web_ui_node", "port:=abc", "expecting type 'INTEGER'"),
+]
+
+
+@pytest.mark.parametrize("package, executable, param, words", CASES, ids=[f"{c[1]}-{c[2]}" for c in CASES])
+def test_a_node_started_with_a_parameter_it_cannot_use_exits_2_and_says_why(ros_domain, package, executable, param,
+                                                                            words):
+    proc = CapturedProcess([find_executable(package, executable), "--ros-args", "-p", param],
+                           node_environment(ros_domain))
+    assert proc.wait(60) == 2, proc.text()
+    assert words in proc.text() and "Traceback" not in proc.text(), proc.text()
