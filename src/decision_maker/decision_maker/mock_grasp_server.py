@@ -175,6 +175,8 @@ class MockGraspServer(Node):
         """A person moves an object by hand (the robot is not told)."""
         p = request.position
         try:
+            check_name("object id", request.id)
+            check_coordinates("position", (p.x, p.y, p.z), self._bound)
             obj = self._world.move(request.id, Point3(p.x, p.y, p.z))
         except SimError as exc:
             response.success, response.message = False, str(exc)

@@ -188,6 +188,10 @@ def test_a_day_with_the_living_memory(launch_nodes, ros_node, tmp_path):
     # 4. a person moves the table cup to the sofa; the robot is not told. The camera (a rewritten map,
     # as the SLAM engine writes it) shows the world as it is now.
     table_cup = min(person.beliefs("cup"), key=lambda m: math.dist(pos(m), tuple(start["cup_2"])))
+    for bad, words in [(MoveObject.Request(id="x" * 10_000_000, position=_point(SOFA_SPOT)), "(at most 64)"),
+                       (MoveObject.Request(id="cup_2", position=_point((1e308, 0.0, 0.0))), "outside the workspace")]:
+        res = person.call(person.move_client, bad)  # refused with the reason, in a short message; nothing moves
+        assert not res.success and words in res.message and len(res.message) < 300, res.message[:300]
     res = person.call(person.move_client, MoveObject.Request(id="cup_2", position=_point(SOFA_SPOT)))
     assert res.success, res.message
     rev = person.revision()

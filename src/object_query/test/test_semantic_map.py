@@ -227,6 +227,9 @@ def test_two_chairs_are_two_instances_with_boxes_and_counts():
     assert math.isclose(near.distances[0], float(np.linalg.norm(np.asarray(small.centre) - (2.1, 0, 0))))
     q = db.query("chair")
     assert q.found and np.allclose(q.position, big.centre) and "2 instances of chair" in q.message
+    for bad in ((math.nan, 0, 0), (1e308, 0, 0), (0, math.inf, 0)):  # said, not ignored
+        res = db.instances("chair", reference=bad)
+        assert not res.found and "reference must be three finite numbers within 1000 m" in res.message
 
 
 def test_query_position_class_is_the_centre_of_all_instances():
