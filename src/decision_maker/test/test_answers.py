@@ -19,22 +19,22 @@ def test_a_key_runs_once_and_repeats_get_the_first_answer():
         runs.append(1)
         return len(runs)
 
-    assert memory.answer("k1", run) == (1, False)
-    assert memory.answer("k1", run) == (1, True)
-    assert memory.answer("k2", run) == (2, False)
-    assert memory.answer("", run) == (3, False) and memory.answer("", run) == (4, False)  # no key: every time
+    assert memory.answer("k1", run, "") == (1, False)
+    assert memory.answer("k1", run, "") == (1, True)
+    assert memory.answer("k2", run, "") == (2, False)
+    assert memory.answer("", run, "") == (3, False) and memory.answer("", run, "") == (4, False)  # no key: every time
     assert len(runs) == 4 and memory.repeats == 1 and len(memory) == 2
 
 
 def test_oldest_keys_are_forgotten_and_bad_keys_refused():
     memory: AnswerMemory[str] = AnswerMemory(capacity=2)
     for key in ("a", "b", "c"):
-        memory.answer(key, lambda key=key: key)
+        memory.answer(key, lambda key=key: key, "")
     assert len(memory) == 2
-    assert memory.answer("a", lambda: "again") == ("again", False)  # forgotten: runs again
-    assert memory.answer("c", lambda: "x") == ("c", True)
+    assert memory.answer("a", lambda: "again", "") == ("again", False)  # forgotten: runs again
+    assert memory.answer("c", lambda: "x", "") == ("c", True)
     with pytest.raises(BadKeyError, match="at most 64"):
-        memory.answer("k" * (MAX_KEY_CHARS + 1), lambda: pytest.fail("must not run"))
+        memory.answer("k" * (MAX_KEY_CHARS + 1), lambda: pytest.fail("must not run"), "")
     with pytest.raises(ValueError):
         AnswerMemory(capacity=0)
 
@@ -51,10 +51,10 @@ def test_concurrent_repeats_wait_for_the_first_run():
         return 7
 
     results = []
-    first = threading.Thread(target=lambda: results.append(memory.answer("k", slow)))
+    first = threading.Thread(target=lambda: results.append(memory.answer("k", slow, "")))
     first.start()
     assert started.wait(10.0)
-    results.append(memory.answer("k", lambda: pytest.fail("ran twice")))
+    results.append(memory.answer("k", lambda: pytest.fail("ran twice"), ""))
     first.join(10.0)
     assert sorted(results) == [(7, False), (7, True)] and runs == [1]
 

@@ -308,11 +308,11 @@ def test_payloads_that_break_number_conversion_or_nesting_leave_the_brain_and_th
     for pub, data, said in [
             (objects, '{"cup": [1.0, 2.0, ' + huge + "]}", lambda: brain.output().count("malformed /object_list") >= 1
              and arm.output().count("malformed /object_list") >= 1),
-            (objects, "[" * 1000, lambda: brain.output().count("malformed /object_list") >= 2
+            (objects, "[" * 100_000, lambda: brain.output().count("malformed /object_list") >= 2
              and arm.output().count("malformed /object_list") >= 2),
             (progress, '{"state": "exploring", "seen_percent": ' + huge + "}",
              lambda: brain.output().count("ignoring exploration progress") >= 1),
-            (progress, "[" * 1000, lambda: brain.output().count("ignoring exploration progress") >= 2)]:
+            (progress, "[" * 100_000, lambda: brain.output().count("ignoring exploration progress") >= 2)]:
         pub.publish(String(data=data))
         assert wait_for(said, 20.0), (data[:40], brain.output()[-1500:], arm.output()[-1500:])
     objects.publish(String(data=json.dumps({"bottle": [5.2, 0.3, 1.02], "cup": [4.8, -0.2, 0.95]})))

@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import time
 
 import numpy as np
@@ -52,7 +53,7 @@ from home_robot_exploration.nodemain import run_node
 from home_robot_exploration.occupancy import UNKNOWN, GridConfig
 from home_robot_ros.actions import ActionClient
 from home_robot_ros.poses import pose_to_matrix
-from home_robot_ros.startup import number_in
+from home_robot_ros.startup import action_name, number_in
 
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 IMAGE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -111,9 +112,10 @@ class ExplorerNode(Node):
         self._started_wall = time.monotonic()
         self._last_map = -math.inf
         self._map_dirty = True
-        self._nav = ActionClient(self, NavigateToPose, str(v["action_name"]))
+        self._nav = ActionClient(self, NavigateToPose, action_name(self, str(v["action_name"])))
         self._slam_action = str(v["slam_action"])
-        self._slam_goal = (str(v["slam_map_dir"]), str(v["slam_classes"]))
+        map_dir = str(v["slam_map_dir"])  # relative: this node's working folder (the server needs it absolute)
+        self._slam_goal = (os.path.abspath(map_dir) if map_dir else "", str(v["slam_classes"]))
         self.mapping = MappingRun(MappingConfig(bool(self._slam_action), float(v["slam_start_timeout_s"]),
                                                 float(v["slam_finish_timeout_s"])), time.monotonic())
         self._slam = None
@@ -123,7 +125,7 @@ class ExplorerNode(Node):
         if self._slam_action:
             from semantic_gs_slam_interfaces.action import RunSlam
 
-            self._slam = ActionClient(self, RunSlam, self._slam_action)
+            self._slam = ActionClient(self, RunSlam, action_name(self, self._slam_action))
             self._done_pub = self.create_publisher(String, "data_transfer_done", LATCHED)
             self.create_subscription(String, "slam_start_signal", self._on_slam_start, LATCHED)
         self._map_pub = self.create_publisher(GridMsg, "map", LATCHED)
@@ -178,7 +180,7 @@ class ExplorerNode(Node):
         try:
             c2w = pose_to_matrix(msg)
         except ValueError as exc:
-            self.get_logger().warn(f"camera pose skipped: {exc}", throttle_duration_sec=2.0)
+            self.get_logger().warn(f"camera pose skipped: {exc}")
             return
         self._poses[self._ns(msg.header.stamp)] = c2w
         self._match()

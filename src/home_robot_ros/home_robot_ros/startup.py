@@ -5,20 +5,41 @@ from __future__ import annotations
 
 import math
 
-from rclpy.exceptions import NameValidationException, ParameterException
+from rclpy.exceptions import InvalidTopicNameException, NameValidationException, ParameterException
+from rclpy.expand_topic_name import expand_topic_name
+from rclpy.validate_full_topic_name import validate_full_topic_name
+
+
+class ParameterError(ValueError):
+    """A parameter's value the node cannot work with (:func:`number_in`); the message names the parameter."""
+
 
 #: Errors a node's constructor raises for its configuration rather than a bug: a parameter of another type than
-#: declared (``-p port:=abc``), a topic or service name rclpy refuses (``-p pose_topic:=bad//t``), and rclpy's
-#: ValueError for an action name it refuses. A ``main()`` reports them in one line and exits 2, like its own
-#: configuration errors, instead of a traceback.
-CONFIG_ERRORS: tuple[type[Exception], ...] = (ParameterException, NameValidationException, ValueError)
+#: declared (``-p port:=abc``), a topic, service or action name rclpy refuses (``-p pose_topic:=bad//t``;
+#: :func:`action_name`), a value out of range (:class:`ParameterError`). A ``main()`` reports them in one line and
+#: exits 2, like its own configuration errors, instead of a traceback.
+CONFIG_ERRORS: tuple[type[Exception], ...] = (ParameterException, NameValidationException, ParameterError)
+
+
+def action_name(node, name: str) -> str:
+    """``name`` when rclpy can make an action of it on ``node`` (checked as the topic names an action is made of).
+
+    Raises:
+        NameValidationException: the reason, as for a topic (rclpy raises a bare ValueError for an action).
+    """
+    try:
+        full = expand_topic_name(name, node.get_name(), node.get_namespace())
+    except ValueError as exc:  # rclpy's expansion refuses some names before the validation sees them
+        raise InvalidTopicNameException(name, str(exc).split(", at ")[0], 0) from exc
+    validate_full_topic_name(full)
+    return name
 
 
 def number_in(name: str, value: object, low: float, high: float) -> float:
     """A numeric parameter as a float within [low, high].
 
     Raises:
-        ValueError: not a number, not finite, or outside the range (the message names the parameter; it is one of
+        ParameterError: not a number, not finite, or outside the range (the message names the parameter; one of
             :data:`CONFIG_ERRORS`, so a ``main()`` reports it and exits 2).
     """
     try:
@@ -26,5 +47,5 @@ def number_in(name: str, value: object, low: float, high: float) -> float:
     except (TypeError, ValueError, OverflowError):
         x = math.nan
     if isinstance(value, bool) or not (math.isfinite(x) and low <= x <= high):
-        raise ValueError(f"{name} must be a number from {low:g} to {high:g}, got {str(value)[:40]}")
+        raise ParameterError(f"{name} must be a number from {low:g} to {high:g}, got {str(value)[:40]}")
     return x

@@ -35,6 +35,7 @@ from collections.abc import Callable, Iterable
 from dataclasses import asdict, dataclass, replace
 
 from object_query.errors import ObjectMemoryError
+from object_query.names import MAX_COORD_M, MAX_NAME_LENGTH, normalise_name, raw_name_error
 
 #: Where a belief came from.
 SOURCES = ("map", "action", "user")
@@ -43,6 +44,37 @@ STATES = ("seen", "unseen", "held", "placed")
 #: Version of the file format written by :meth:`ObjectMemory.save`.
 FILE_VERSION = 1
 
+
+#: What a report to the memory says happened (``/object_memory/report``'s ``event``)
+EVENTS = ("grasped", "grasp_failed", "placed", "set")
+#: Longest ``detail`` of a report (characters): a failure's reason, kept as the belief's note
+MAX_DETAIL_CHARS = 1000
+
+
+def check_report(event: str, name: str, position: tuple[float, float, float] | None, place: str = "",
+                 detail: str = "") -> None:
+    """Refuse a report the memory cannot take, before anything is looked up or changed.
+
+    Raises:
+        ObjectMemoryError: an unknown event; a name or place over :data:`~object_query.names.MAX_RAW_NAME_LENGTH`
+            characters as sent or :data:`~object_query.names.MAX_NAME_LENGTH` once normalised; a position not
+            finite or farther than :data:`~object_query.names.MAX_COORD_M` from the map's origin; a ``detail`` over
+            :data:`MAX_DETAIL_CHARS` characters.
+    """
+    if event not in EVENTS:
+        raise ObjectMemoryError(f"unknown event {event[:40]!r}; known: {', '.join(EVENTS)}")
+    for text, what in ((name, "name"), (place, "place")):
+        refused = raw_name_error(text, what)
+        if refused:
+            raise ObjectMemoryError(refused)
+        if len(normalise_name(text)) > MAX_NAME_LENGTH:
+            raise ObjectMemoryError(f"{what} too long ({len(normalise_name(text))} characters after normalisation, "
+                                    f"at most {MAX_NAME_LENGTH})")
+    if position is not None and not all(math.isfinite(v) and abs(v) <= MAX_COORD_M for v in position):
+        raise ObjectMemoryError(f"position must be finite and within {MAX_COORD_M:g} m of the map's origin, got "
+                                f"({', '.join(f'{v:g}' for v in position)})")
+    if len(detail) > MAX_DETAIL_CHARS:
+        raise ObjectMemoryError(f"detail too long ({len(detail)} characters, at most {MAX_DETAIL_CHARS})")
 
 @dataclass(frozen=True)
 class Belief:

@@ -32,17 +32,12 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 from object_query.errors import ObjectMemoryError
-from object_query.memory import Belief, MapObservation, MemoryConfig, ObjectMemory, load_memory
-from object_query.names import MAX_NAME_LENGTH, normalise_name, raw_name_error
+from object_query.memory import Belief, MapObservation, MemoryConfig, ObjectMemory, check_report, load_memory
+from object_query.names import normalise_name, raw_name_error
 from object_query.semantic_map import ObjectDatabase
 
 #: Latched: a node that subscribes later still receives the current memory.
 MEMORY_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
-EVENTS = ("grasped", "grasp_failed", "placed", "set")
-#: Farthest a reported position may be from the map's origin (m): a home, with room to spare; farther is a bad value
-MAX_COORD_M = 1000.0
-#: Longest ``detail`` of a report (characters): a failure's reason, kept as the belief's note
-MAX_DETAIL_CHARS = 1000
 
 
 def stamp_of(t: float) -> Time:
@@ -116,22 +111,11 @@ class MemoryInterface:
     def apply(self, event: str, name: str, position: tuple[float, float, float] | None, place: str = "",
               source: str = "user", detail: str = "") -> Belief | None:
         """Apply one report (see MemoryReport.srv). Raises ObjectMemoryError on a malformed one."""
-        if event not in EVENTS:
-            raise ObjectMemoryError(f"unknown event {event[:40]!r}; known: {', '.join(EVENTS)}")
-        for text, what in ((name, "name"), (place, "place")):
-            refused = raw_name_error(text, what)
-            if refused or len(normalise_name(text)) > MAX_NAME_LENGTH:
-                raise ObjectMemoryError(refused or f"{what} too long ({len(normalise_name(text))} characters after "
-                                        f"normalisation, at most {MAX_NAME_LENGTH})")
+        check_report(event, name, position, place, detail)
         key = normalise_name(name)
         if event != "set" and self._db is not None and key:
             resolved, _ = self._db.resolve(key)
             key = resolved or key
-        if position is not None and not all(math.isfinite(v) and abs(v) <= MAX_COORD_M for v in position):
-            raise ObjectMemoryError(f"position must be finite and within {MAX_COORD_M:g} m of the map's origin, got "
-                                    f"({', '.join(f'{v:g}' for v in position)})")
-        if len(detail) > MAX_DETAIL_CHARS:
-            raise ObjectMemoryError(f"detail too long ({len(detail)} characters, at most {MAX_DETAIL_CHARS})")
         if event == "grasped":
             if not key:
                 raise ObjectMemoryError("grasped: the object's name is missing")

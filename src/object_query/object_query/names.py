@@ -29,6 +29,11 @@ MAX_NAME_LENGTH = 256
 MAX_RAW_NAME_LENGTH = 4 * MAX_NAME_LENGTH
 
 
+#: Farthest a position given to the object database or memory may be from the map's origin (m): a home, with room
+#: to spare (a reported position, an /object_instances reference); farther is a bad value, refused with the reason.
+MAX_COORD_M = 1000.0
+
+
 def raw_name_error(name: str, what: str = "object name") -> str:
     """Why a name given in a request is refused before it is normalised ("" when it is not): longer than
     :data:`MAX_RAW_NAME_LENGTH` characters."""

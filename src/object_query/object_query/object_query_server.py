@@ -443,7 +443,7 @@ def main(args: list[str] | None = None) -> int:
     rclpy.init(args=args)
     try:
         node = ObjectQueryServer()
-    except (MapLoadError, SynonymsError, *CONFIG_ERRORS) as exc:
+    except (MapLoadError, SynonymsError, ValueError, *CONFIG_ERRORS) as exc:
         rclpy.logging.get_logger("object_query_server").fatal(f"cannot start: {exc}")
         rclpy.try_shutdown()
         return 2

@@ -26,6 +26,7 @@ from object_query.errors import MapLoadError
 from object_query.instances import _Ticker, split_instances
 from object_query.kernels import bin_sums, bin_sums_chunked
 from object_query.names import (
+    MAX_COORD_M,
     MAX_NAME_LENGTH,
     Synonyms,
     closest_names,
@@ -35,8 +36,6 @@ from object_query.names import (
 )
 
 #: Known-names list shown in "unknown object" messages is cut after this many names.
-#: Farthest an /object_instances reference point may be from the map's origin (m)
-MAX_REFERENCE_M = 1000.0
 _MAX_LISTED_NAMES = 20
 CENTRE_METHODS = ("mean", "median", "trimmed_mean")
 #: ``chair#2`` / ``chair #2``: one instance of a class.
@@ -729,12 +728,12 @@ class ObjectDatabase:
 
     def instances(self, name: str, reference: tuple[float, float, float] | None = None) -> InstancesResult:
         """All instances of ``name``; nearest to ``reference`` first when given, else largest first. A reference
-        that is not three finite numbers within :data:`MAX_REFERENCE_M` of the origin answers ``found: false`` with
-        the reason (it was once ignored without a word)."""
-        if reference is not None and not all(math.isfinite(float(v)) and abs(float(v)) <= MAX_REFERENCE_M
+        that is not three finite numbers within :data:`MAX_COORD_M` of the origin answers ``found: false`` with
+        the reason."""
+        if reference is not None and not all(math.isfinite(float(v)) and abs(float(v)) <= MAX_COORD_M
                                              for v in reference):
             got = ", ".join(f"{float(v):g}" for v in reference)
-            return InstancesResult(False, "", f"reference must be three finite numbers within {MAX_REFERENCE_M:g} m "
+            return InstancesResult(False, "", f"reference must be three finite numbers within {MAX_COORD_M:g} m "
                                               f"of the map's origin, got ({got})")
         key, note = self.resolve(name)
         if key is None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 
 import pytest
 
@@ -226,3 +227,20 @@ def test_object_list_gives_each_name_its_object_query_position() -> None:
     assert math.dist(listed["chair"], chair) < 0.05
     mem.grasped("cup", small)  # the robot picked up the small cup: now the memory answers
     assert object_list(mem, later)["cup"] == [round(v, 4) for v in mem.get("cup#1").position]
+
+
+@pytest.mark.parametrize("args, words", [
+    (("teleported", "cup", None), "unknown event 'teleported'"),
+    (("set", "x" * 2000, (1.0, 2.0, 3.0)), "name too long (2000 characters, at most 1024)"),
+    (("set", "x " * 300, (1.0, 2.0, 3.0)), "name too long (599 characters after normalisation, at most 256)"),
+    (("placed", "cup", (1.0, 2.0, 3.0), "y" * 5000), "place too long (5000 characters"),
+    (("set", "cup", (1001.0, 0.0, 0.0)), "within 1000 m of the map's origin, got (1001, 0, 0)"),
+    (("set", "cup", (math.nan, 0.0, 0.0)), "position must be finite"),
+    (("grasp_failed", "cup", None, "", "z" * 1001), "detail too long (1001 characters, at most 1000)"),
+])
+def test_a_report_the_memory_cannot_take_is_refused_with_the_reason(args, words):
+    from object_query.memory import check_report
+
+    with pytest.raises(ObjectMemoryError, match=re.escape(words)):
+        check_report(*args)
+    check_report("placed", "cup", (1000.0, -1000.0, 0.0), "user", "z" * 1000)  # the limits themselves are fine

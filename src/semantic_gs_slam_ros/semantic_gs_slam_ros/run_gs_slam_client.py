@@ -24,6 +24,7 @@ saves the map). Exit code: 0 success, 1 run failed, 2 bad input / no server, 130
 from __future__ import annotations
 
 import json
+import os
 import signal
 import sys
 import threading
@@ -139,8 +140,9 @@ class SlamClient(Node):
         if not self._action.wait_for_server(timeout_sec=g("server_timeout")):
             log.error(f"no run_gs_slam action server after {g('server_timeout'):.0f} s (is run_gs_slam_server up?)")
             return 2
-        goal = RunSlam.Goal(output_dir=g("output_dir"), map_dir=g("map_dir"), dataset_name=g("dataset"),
-                            max_frames=0, resume=g("resume"),
+        # relative folders mean this process's working folder, not the server's: sent absolute
+        goal = RunSlam.Goal(output_dir=_absolute(g("output_dir")), map_dir=_absolute(g("map_dir")),
+                            dataset_name=g("dataset"), max_frames=0, resume=g("resume"),
                             semantic_classes=json.dumps({str(k): v for k, v in data.classes.items()}))
         k = data.intrinsics
         self._publish_info(k, 0.0)  # the server needs the camera before the first frame
@@ -275,6 +277,11 @@ def _wait(future, timeout: float):
     while not future.done() and time.monotonic() < deadline:
         time.sleep(0.01)
     return future.result() if future.done() else None
+
+
+def _absolute(folder: str) -> str:
+    """``folder`` made absolute against this process's working folder ("" stays "": the server's default)."""
+    return os.path.abspath(folder) if folder else ""
 
 
 def main(args: list[str] | None = None) -> int:

@@ -432,9 +432,9 @@ def parse_classes(text: str) -> dict[int, str]:
     except (ValueError, AttributeError, TypeError, RecursionError) as exc:
         raise StreamingError(f"semantic_classes must be JSON {{\"id\": \"name\"}}: {str(exc)[:120]}") from exc
     for k, v in classes.items():
-        if not 0 < k < 2**31 or not isinstance(v, str) or not v or len(v) > 256:
-            raise StreamingError(f"semantic_classes: ids are whole numbers 1 .. 2^31 - 1 and names strings of 1 .. "
-                                 f"256 characters, got {str(k)[:40]}: {str(v)[:40]!r}")
+        if not 0 <= k < 2**31 or not isinstance(v, str) or len(v) > 256:
+            raise StreamingError(f"semantic_classes: ids are whole numbers 0 .. 2^31 - 1 and names strings of at "
+                                 f"most 256 characters, got {str(k)[:40]}: {str(v)[:40]!r}")
     return classes
 
 
@@ -461,7 +461,7 @@ def main(args: list[str] | None = None) -> int:
     rclpy.init(args=args)
     try:
         node = SlamServer()
-    except (OSError, StreamingError, *CONFIG_ERRORS) as exc:  # the live view's port taken, a bad
+    except (OSError, ValueError, StreamingError, *CONFIG_ERRORS) as exc:  # the live view's port taken, a bad
         # parameter (a value, or a type: -p width:=abc)
         rclpy.logging.get_logger("run_gs_slam_server").fatal(f"cannot start: {exc}")
         rclpy.try_shutdown()

@@ -55,8 +55,8 @@ def write_jpeg(path: str, rgb: np.ndarray, quality: int = 95) -> None:
 
 
 #: the files a run writes in each folder (``.tmp``: one being written when the last run stopped)
-_OWN_FILES = {"frames": re.compile(r"frame\d{6}\.jpg(\.tmp)?"), "depths": re.compile(r"depth\d{6}\.png(\.tmp)?"),
-              "semantics": re.compile(r"semantic\d{6}\.png(\.tmp)?")}
+_OWN_FILES = {"frames": re.compile(r"frame\d{6,}\.jpg(\.tmp)?"), "depths": re.compile(r"depth\d{6,}\.png(\.tmp)?"),
+              "semantics": re.compile(r"semantic\d{6,}\.png(\.tmp)?")}
 
 
 def prepare_output_dir(root: str, clean: bool = True) -> None:

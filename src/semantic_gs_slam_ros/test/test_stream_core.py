@@ -255,9 +255,9 @@ def test_session_settings_that_cannot_work_are_refused(tmp_path, field, value, w
 
 @pytest.mark.parametrize("text, words", [
     ("[" * 100_000, "must be JSON"),
-    ('{"99999999999999999999999": "chair"}', "ids are whole numbers 1 .. 2^31 - 1"),
-    ('{"0": "chair"}', "ids are whole numbers"),
-    ('{"1": {"a": 1}}', "names strings of 1 .. 256 characters"),
+    ('{"99999999999999999999999": "chair"}', "ids are whole numbers 0 .. 2^31 - 1"),
+    ('{"-1": "chair"}', "ids are whole numbers"),
+    ('{"1": {"a": 1}}', "names strings of at most 256 characters"),
 ])
 def test_semantic_classes_of_the_wrong_shape_are_refused(text, words):
     from semantic_gs_slam_ros.errors import StreamingError
@@ -265,7 +265,7 @@ def test_semantic_classes_of_the_wrong_shape_are_refused(text, words):
 
     with pytest.raises(StreamingError, match=re.escape(words)):
         parse_classes(text)
-    assert parse_classes('{"1": "chair", "7": "cup"}') == {1: "chair", 7: "cup"}
+    assert parse_classes('{"0": "void", "1": "chair", "7": "cup"}') == {0: "void", 1: "chair", 7: "cup"}
 
 
 def test_writer_failure_is_reported_not_raised(tmp_path):
@@ -934,3 +934,12 @@ def test_a_camera_info_gives_its_pinhole_and_notes_lens_distortion():
     k, note = camera_info_intrinsics(GOOD_K, [0.2624, -0.9531, -0.0054, 0.0026, 1.1633], 640, 480, "plumb_bob")
     assert k == (585.0, 585.0, 320.0, 240.0, 640, 480)
     assert "lens distortion (plumb_bob: 0.2624 -0.9531 -0.0054 0.0026 1.1633)" in note and "rectified" in note
+
+
+def test_the_client_sends_its_folders_absolute(tmp_path, monkeypatch):
+    """A relative output_dir / map_dir means the client's working folder: the server, elsewhere, refuses relative
+    ones."""
+    from semantic_gs_slam_ros.run_gs_slam_client import _absolute
+
+    monkeypatch.chdir(tmp_path)
+    assert _absolute("run1") == str(tmp_path / "run1") and _absolute("") == "" and _absolute("/abs") == "/abs"

@@ -9,7 +9,7 @@ with the first answer. Calls without a key run every time (the seed's behaviour)
 Usage::
 
     answers = AnswerMemory()
-    status, repeat = answers.answer(request.key, lambda: engine.submit(request.text))
+    status, repeat = answers.answer(request.key, lambda: engine.submit(request.text), request.text)
 """
 
 from __future__ import annotations
@@ -44,7 +44,7 @@ class AnswerMemory(Generic[T]):
         self._requests: dict[str, str] = {}  # key -> what it asked
         self.repeats = 0  # calls answered from memory
 
-    def answer(self, key: str, run: Callable[[], T], request: str = "") -> tuple[T, bool]:
+    def answer(self, key: str, run: Callable[[], T], request: str) -> tuple[T, bool]:
         """``run()``'s result for a new or empty ``key``; the remembered one for a repeat.
 
         Returns ``(answer, repeated)``. ``run`` must not block (it runs under the memory's lock when

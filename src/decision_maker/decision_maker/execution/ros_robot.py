@@ -46,6 +46,7 @@ from decision_maker.errors import (
 )
 from decision_maker.execution.engine import AbortToken
 from home_robot_ros.actions import ActionClient
+from home_robot_ros.startup import action_name
 from object_query.object_query_client import ObjectQueryClient
 
 _STATUS_NAMES = {GoalStatus.STATUS_SUCCEEDED: "succeeded", GoalStatus.STATUS_ABORTED: "aborted",
@@ -136,9 +137,9 @@ class RosRobot:
         self._cancel_wait_s = cancel_wait_s
         self._cancel_pub = cancel_publisher
         self._on_goal_sent = on_goal_sent
-        self._nav = ActionClient(node, NavigateToPose, names["nav"], callback_group=group)
-        self._grasp = ActionClient(node, Grasp, names["grasp"], callback_group=group)
-        self._place = ActionClient(node, Place, names["place"], callback_group=group)
+        self._nav = ActionClient(node, NavigateToPose, action_name(node, names["nav"]), callback_group=group)
+        self._grasp = ActionClient(node, Grasp, action_name(node, names["grasp"]), callback_group=group)
+        self._place = ActionClient(node, Place, action_name(node, names["place"]), callback_group=group)
         self._query = ObjectQueryClient(node, names["query"], callback_group=group)
         self._query_name = names["query"]
         self._names = {id(self._nav): names["nav"], id(self._grasp): names["grasp"], id(self._place): names["place"]}

@@ -24,6 +24,8 @@ from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.action.server import ServerGoalHandle
 from rclpy.node import Node
 
+from home_robot_ros.startup import action_name
+
 
 @dataclass
 class _Outcome:
@@ -57,7 +59,7 @@ class SimGoals:
         self.active: set[bytes] = set()  # ids of goals accepted and not yet finished
         self._wake = node.create_guard_condition(self._on_wake)
         self.server = ActionServer(
-            node, action_type, name,
+            node, action_type, action_name(node, name),
             execute_callback=self._finisher,
             goal_callback=self._goal_cb,
             handle_accepted_callback=self._accepted_cb,
