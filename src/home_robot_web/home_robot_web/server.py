@@ -127,9 +127,15 @@ class _LogHandler(logging.Handler):
         self._log("warn", f"websocket layer: {record.getMessage()}{exc}")
 
 
+def loggable(text: str) -> str:
+    """``text`` with what UTF-8 cannot carry (a request's raw bytes, kept by websockets as lone surrogates) escaped:
+    rclpy's logger, and any UTF-8 writer, refuses it as it is."""
+    return text.encode("utf-8", "backslashreplace").decode("utf-8")
+
+
 def _safe_path(path: str) -> str:
     """The request path for the log, without its query (which may hold a token), bytes that are not UTF-8 escaped."""
-    return urlsplit(path).path[:100].encode("utf-8", "backslashreplace").decode("utf-8")
+    return loggable(urlsplit(path).path[:100])
 
 
 def _response(status: int, reason: str, body: bytes, content_type: str, extra: list[tuple[str, str]] = ()) -> Response:
@@ -303,7 +309,7 @@ class WebServer:
             self._log("warn", f"refused {peer} GET {_safe_path(request.path)}: {decision.status} {decision.reason}")
             extra = [("Retry-After", str(int(self.gate.limiter.lockout_s)))] if decision.status == 429 else []
             return _response(decision.status, _REASONS.get(decision.status, "Refused"),
-                             (decision.reason + "\n").encode("utf-8", "backslashreplace"), "text/plain; charset=utf-8",
+                             loggable(decision.reason + "\n").encode(), "text/plain; charset=utf-8",
                              extra)
         if route == "/ws":
             if len(self._clients) >= self.config.max_clients:

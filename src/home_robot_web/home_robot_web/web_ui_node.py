@@ -46,7 +46,7 @@ from home_robot_web.auth import AttemptLimiter, Gate, generate_token, read_token
 from home_robot_web.errors import ConfigError, ServerError
 from home_robot_web.protocol import goal_event, memory_event, robot_event, status_event
 from home_robot_web.scene import Path2D, map_points, yaw_of
-from home_robot_web.server import ServerConfig, WebServer
+from home_robot_web.server import ServerConfig, WebServer, loggable
 
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 #: Action status topics are latched; a few entries so no change is missed in a burst.
@@ -148,7 +148,7 @@ class WebUiNode(Node):
     def _log(self, level: str, text: str) -> None:
         # one call site per severity: rclpy refuses two severities from one line. A request's bytes that are not
         # UTF-8 (websockets keeps them as lone surrogates) are written escaped: rclpy's logger refuses such text
-        text = text.encode("utf-8", "backslashreplace").decode("utf-8")
+        text = loggable(text)
         log = self.get_logger()
         if level == "error":
             log.error(text)
