@@ -38,7 +38,7 @@ import time
 import numpy as np
 
 from semantic_gs_slam.config import PROFILES, Intrinsics, SlamConfig
-from semantic_gs_slam.errors import ConfigError, DatasetError, FrameError
+from semantic_gs_slam.errors import ConfigError, DatasetError, FrameError, SlamError
 from semantic_gs_slam.eval.evaluate import evaluate
 from semantic_gs_slam.eval.metrics import ate_rmse, rpe_rmse
 from semantic_gs_slam.geometry import pose_error, umeyama_rigid
@@ -207,6 +207,15 @@ def run_open3d(ds, idx: list[int], frames: dict, voxel: float, depth_max: float,
 
 
 def main() -> int:
+    """The benchmark; a dataset, option or file it cannot use is one ``error:`` line and exit code 2."""
+    try:
+        return _run()
+    except SlamError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+
+
+def _run() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("dataset", help="sequence folder (7-Scenes seq, TUM RGB-D, Replica, ...)")
     ap.add_argument("--frames", type=int, default=60, help="frames used (0: all)")

@@ -4,6 +4,8 @@ import importlib.util
 import os
 import sys
 
+import pytest
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
@@ -56,3 +58,20 @@ def test_frames_that_cannot_be_read_or_that_the_engine_refuses_are_left_out_for_
     assert [i for i, _ in refused] == [1, 2]
     assert "valid" in refused[0][1] and "2.png" in refused[1][1], refused
     assert np.allclose(frames[3].depth, 1.5)
+
+
+@pytest.mark.parametrize("args, words", [
+    (["/nonexistent-folder"], "error: dataset folder not found"),
+    (["{data}", "--size", "abc"], "error: size must be WIDTHxHEIGHT"),
+    (["{data}", "--stride", "0"], "error: need stride >= 1"),
+])
+def test_a_dataset_or_option_it_cannot_use_is_one_error_line_and_exit_2(tmp_path, monkeypatch, capsys, args,
+                                                                         words):
+    from semantic_gs_slam.synthetic.scenes import generate
+
+    generate(str(tmp_path / "home"), frames=2, width=32, height=18)
+    argv = [a.format(data=tmp_path / "home") for a in args]
+    monkeypatch.setattr(sys, "argv", ["slam_real.py", *argv, "--no-open3d"])
+    assert _bench().main() == 2
+    err = capsys.readouterr().err
+    assert words in err and "Traceback" not in err, err

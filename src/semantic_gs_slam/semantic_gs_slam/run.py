@@ -236,6 +236,15 @@ def main(argv: list[str] | None = None) -> int:
                  "also optimises")
     if args.labels_every < 1:
         ap.error("--labels-every must be >= 1")
+    try:  # the output folder, made now: a run is not mapped to be lost at the end on a folder it cannot write
+        os.makedirs(args.out, exist_ok=True)
+        probe = os.path.join(args.out, ".write_probe")
+        with open(probe, "w") as fh:
+            fh.write("ok")
+        os.remove(probe)
+    except OSError as exc:
+        print(f"error: --out {args.out}: not a writable folder ({exc.strerror or exc})", file=sys.stderr)
+        return 2
     if args.start_map and args.resume:
         ap.error("--start-map and --resume exclude each other: a checkpoint already holds the map it started on")
     try:

@@ -49,6 +49,16 @@ def test_run_reports_bad_dataset(tmp_path, capsys):
     assert "error: dataset folder not found" in capsys.readouterr().err
 
 
+def test_an_output_that_is_no_writable_folder_is_refused_before_any_frame(tiny_home, tmp_path, capsys):
+    """Checked first: a run mapped in full and then lost at the save on a file in the way is no run."""
+    blocker = tmp_path / "a_file"
+    blocker.write_text("in the way")
+    assert main(["--dataset", str(tiny_home), "--out", str(blocker), "--frames", "4"]) == 2
+    err = capsys.readouterr().err
+    assert f"error: --out {blocker}: not a writable folder" in err and "frame" not in err.split("error:")[0]
+    assert blocker.read_text() == "in the way"
+
+
 def test_run_reports_bad_config_overrides(tiny_home, tmp_path, capsys):
     args = ["--dataset", str(tiny_home), "--out", str(tmp_path / "o"), "--frames", "1", "--quiet"]
     assert main(args + ["--config", '{"mapping": {"iterz": 3}}']) == 2

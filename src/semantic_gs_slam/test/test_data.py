@@ -126,8 +126,59 @@ def test_bad_input_gives_clear_errors(tmp_path, tiny_home):
         ds[0]
     # fewer depth images than colour images
     _png(str(tmp_path / "results" / "frame000001.jpg"), np.zeros((6, 8, 3), np.uint8))
-    with pytest.raises(DatasetError, match="2 colour images but 1 depth"):
+    with pytest.raises(DatasetError, match=r"1 frame\(s\) have no depth image \(first: frame 1, frame000001.jpg"):
         load_replica(str(tmp_path))
+
+
+def test_replica_files_pair_by_their_numbers_never_by_position(tmp_path):
+    """Frame 2's colour and depth missing: frames 0, 1, 3 keep their own depth and trajectory line (by position, 3's
+    colour went with 2's pose); a number with colour and no depth is named."""
+    (tmp_path / "results").mkdir()
+    for i in (0, 1, 3):
+        _png(str(tmp_path / "results" / f"frame{i:06d}.jpg"), np.full((6, 8, 3), 10 * i, np.uint8))
+        _png(str(tmp_path / "results" / f"depth{i:06d}.png"), np.full((6, 8), 1000 + i, np.uint16))
+    (tmp_path / "traj.txt").write_text("\n".join(_pose_line(t) for t in range(4)) + "\n")
+    ds = load_replica(str(tmp_path))
+    assert [os.path.basename(p) for p in ds.depth_paths] == ["depth000000.png", "depth000001.png", "depth000003.png"]
+    assert [p[0, 3] for p in ds.poses] == [0.0, 1.0, 3.0]
+    os.remove(tmp_path / "results" / "depth000003.png")
+    with pytest.raises(DatasetError, match=r"have no depth image \(first: frame 3"):
+        load_replica(str(tmp_path))
+    _png(str(tmp_path / "results" / "depth000003.png"), np.full((6, 8), 1003, np.uint16))
+    (tmp_path / "traj.txt").write_text("\n".join(_pose_line(t) for t in range(3)) + "\n")
+    with pytest.raises(DatasetError, match="3 poses, but frame 3 needs line 4"):
+        load_replica(str(tmp_path))
+
+
+@pytest.mark.parametrize("line, words", [
+    ("2 0 0 0 0 2 0 0 0 0 2 0 0 0 0 1", "not orthonormal"),
+    ("0 0 0 0 0 0 0 0 0 0 0 0 0 0 0 0", "last row is 0 0 0 0"),
+    ("-1 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1", "reflection"),
+    ("nan 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1", "non-finite pose"),
+])
+def test_a_trajectory_line_that_is_no_camera_pose_is_named(tmp_path, line, words):
+    (tmp_path / "results").mkdir()
+    _png(str(tmp_path / "results" / "frame000000.jpg"), np.zeros((6, 8, 3), np.uint8))
+    _png(str(tmp_path / "results" / "depth000000.png"), np.zeros((6, 8), np.uint16))
+    (tmp_path / "traj.txt").write_text(line + "\n")
+    with pytest.raises(DatasetError, match=f"traj.txt:1: .*{words}"):
+        load_replica(str(tmp_path))
+
+
+@pytest.mark.parametrize("file, line, words", [
+    ("rgb.txt", "1.0", "rgb.txt:3: expected 2 fields (timestamp filename), got 1"),
+    ("rgb.txt", "nan rgb/x.png", "rgb.txt:3: bad timestamp 'nan'"),
+    ("groundtruth.txt", "1.0 0 0 0 0 0", "groundtruth.txt:3: expected 8 fields"),
+    ("groundtruth.txt", "1.0 x 0 0 0 0 0 1", "groundtruth.txt:3: a pose is 7 numbers"),
+    ("groundtruth.txt", "1.0 nan 0 0 0 0 0 1", "groundtruth.txt:3: the pose has NaN or inf"),
+    ("groundtruth.txt", "1.0 0 0 0 0 0 0 0", "groundtruth.txt:3: the quaternion has zero length"),
+])
+def test_a_tum_list_line_that_cannot_be_read_is_named(tmp_path, file, line, words):
+    for name in ("rgb.txt", "depth.txt", "groundtruth.txt"):
+        first = "0.0 0 0 0 0 0 0 1" if name == "groundtruth.txt" else f"0.0 {name[:-4]}/0.png"
+        (tmp_path / name).write_text(f"# {name}\n{first}\n" + (line + "\n" if name == file else ""))
+    with pytest.raises(DatasetError, match=words.replace("(", r"\(").replace(")", r"\)")):
+        load_tum(str(tmp_path))
 
 
 def test_supersampled_colour_keeps_centre_ray_depth_and_labels():
@@ -234,3 +285,19 @@ def test_drop_frames_leaves_out_frames_unevenly_and_repeatably_keeping_the_first
     for bad in (1.0, -0.1):
         with pytest.raises(ValueError, match="dropped"):
             drop_frames(range(10), bad)
+
+
+def test_a_colour_calibration_is_written_whole_or_not_at_all(tmp_path):
+    """The loaders read the file on their own: it is renamed into place, and a folder that is not there is an
+    OSError that leaves nothing behind."""
+    from semantic_gs_slam.io.colour_registration import ColourCalib, load, save
+
+    calib = ColourCalib(530.0, 531.0, 320.5, 240.5, 0.025)
+    save(calib, str(tmp_path / "colour-calibration.json"), note="test")
+    assert load(str(tmp_path / "colour-calibration.json")) == calib and os.listdir(tmp_path) == [
+        "colour-calibration.json"]
+    with pytest.raises(OSError):
+        save(calib, str(tmp_path / "missing" / "c.json"))
+    with pytest.raises(OSError):
+        save(calib, str(tmp_path))  # a folder
+    assert sorted(os.listdir(tmp_path)) == ["colour-calibration.json"]

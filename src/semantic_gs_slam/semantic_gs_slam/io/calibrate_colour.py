@@ -57,8 +57,12 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if not args.dry_run:
         out = args.out or os.path.join(args.dataset, CALIB_FILE)
-        save(calib, out, note=f"estimated by semantic_gs_slam.io.colour_registration on {est.frames} frames "
-                              f"(edge alignment {est.score_identity:.4f} -> {est.score:.4f})")
+        try:
+            save(calib, out, note=f"estimated by semantic_gs_slam.io.colour_registration on {est.frames} frames "
+                                  f"(edge alignment {est.score_identity:.4f} -> {est.score:.4f})")
+        except OSError as exc:
+            print(f"error: cannot write {out}: {exc.strerror or exc}", file=sys.stderr)
+            return 2
         print(f"wrote {out}")
     return 0
 

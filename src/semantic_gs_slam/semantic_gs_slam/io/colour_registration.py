@@ -92,12 +92,23 @@ def load(path: str) -> ColourCalib:
 
 
 def save(calib: ColourCalib, path: str, note: str = "") -> None:
+    """Write the calibration to ``path`` whole or not at all (a temporary file, then renamed: the loaders read it).
+
+    Raises:
+        OSError: the folder is missing or not writable, or ``path`` is a folder.
+    """
     d = asdict(calib)
     if note:
         d["note"] = note
-    with open(path, "w", encoding="utf-8") as f:
+    tmp = f"{path}.tmp"
+    with open(tmp, "w", encoding="utf-8") as f:
         json.dump(d, f, indent=1)
         f.write("\n")
+    try:
+        os.replace(tmp, path)
+    except OSError:
+        os.remove(tmp)
+        raise
 
 
 @functools.lru_cache(maxsize=4)

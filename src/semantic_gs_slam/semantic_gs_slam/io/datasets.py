@@ -37,6 +37,7 @@ from __future__ import annotations
 import copy
 import glob
 import json
+import math
 import os
 import re
 from dataclasses import dataclass
@@ -256,6 +257,32 @@ def _read_image(path: str) -> np.ndarray:
         raise DatasetError(f"{path}: unreadable image ({exc})") from exc
 
 
+#: How far a pose file's rotation may be from orthonormal (largest |R^T R - I| entry): files written with 6-7 digits
+#: are within 1e-5 (7-Scenes' KinectFusion poses 2.4e-4); a matrix farther off is not a camera pose
+RIGID_TOLERANCE = 1e-2
+
+
+def _rigid_error(m: np.ndarray) -> str:
+    """Why a finite 4x4 matrix is not a rigid camera-to-world transform ("" when it is)."""
+    if not np.allclose(m[3], (0.0, 0.0, 0.0, 1.0), atol=1e-6):
+        return f"its last row is {' '.join(f'{v:g}' for v in m[3])}, not 0 0 0 1"
+    r = m[:3, :3]
+    off = float(np.abs(r.T @ r - np.eye(3)).max())
+    if off > RIGID_TOLERANCE:
+        return f"its rotation is not orthonormal (|R^T R - I| up to {off:.3g})"
+    if np.linalg.det(r) < 0:
+        return "its rotation is a reflection (det R < 0)"
+    return ""
+
+
+def _finite(v: float) -> bool:
+    """A JSON number as a finite float (an integer of 400 digits is not)."""
+    try:
+        return math.isfinite(float(v))
+    except OverflowError:
+        return False
+
+
 def _read_c2w_lines(path: str) -> list[np.ndarray]:
     if not os.path.isfile(path):
         raise DatasetError(f"missing trajectory file: {path}")
@@ -273,6 +300,9 @@ def _read_c2w_lines(path: str) -> list[np.ndarray]:
             m = vals.reshape(4, 4)
             if not np.all(np.isfinite(m)):
                 raise DatasetError(f"{path}:{ln}: non-finite pose")
+            why = _rigid_error(m)
+            if why:
+                raise DatasetError(f"{path}:{ln}: not a camera pose: {why}")
             poses.append(m)
     return poses
 
@@ -321,8 +351,8 @@ def read_cam_json(path: str) -> tuple[Intrinsics, float | None]:
                            "height (and optionally depth_scale)")
     for key in c:
         v = c[key]
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
-            raise DatasetError(f"{path}: {key!r} must be a finite number, got {v!r}")
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not _finite(v):
+            raise DatasetError(f"{path}: {key!r} must be a finite number, got {str(v)[:40]}")
     for key in ("width", "height"):
         if c[key] != int(c[key]) or c[key] <= 0:
             raise DatasetError(f"{path}: {key!r} must be a positive whole number of pixels, got {c[key]!r}")
@@ -378,11 +408,11 @@ def load_replica(root: str, intrinsics: Intrinsics | None = None, depth_scale: f
     res = os.path.join(root, "results")
     if not os.path.isdir(res):
         raise DatasetError(f"not a Replica (NICE-SLAM) folder: {res} is missing")
-    rgb = _numbered(res, r"frame(\d+)\.(?:jpg|png)")
-    depth = _numbered(res, r"depth(\d+)\.png")
     sem_dir = os.path.join(root, "semantic")
-    sem = _numbered(sem_dir, r"semantic(\d+)\.png") if os.path.isdir(sem_dir) else None
-    poses = _read_c2w_lines(os.path.join(root, "traj.txt"))
+    rgb, depth, sem, poses = _paired_by_number(
+        _numbered_with_ids(res, r"frame(\d+)\.(?:jpg|png)"), _numbered_with_ids(res, r"depth(\d+)\.png"),
+        _numbered_with_ids(sem_dir, r"semantic(\d+)\.png") if os.path.isdir(sem_dir) else None,
+        os.path.join(root, "traj.txt"))
     k, ds = _read_cam(root, REPLICA_INTRINSICS)
     return _with_cam_source(Dataset(intrinsics or k, rgb, depth, sem or None, poses,
                                     [float(i) for i in range(len(rgb))], ds or depth_scale, _read_classes(root)),
@@ -394,15 +424,47 @@ def load_sgs(root: str, intrinsics: Intrinsics | None = None, depth_scale: float
     for sub in ("rgb", "depth"):
         if not os.path.isdir(os.path.join(root, sub)):
             raise DatasetError(f"not an SGS-SLAM Replica folder: {os.path.join(root, sub)} is missing")
-    rgb = _numbered(os.path.join(root, "rgb"), r"rgb_(\d+)\.(?:png|jpg)")
-    depth = _numbered(os.path.join(root, "depth"), r"depth_(\d+)\.png")
     sd = os.path.join(root, "semantic_class")
-    sem = _numbered(sd, r"semantic_class_(\d+)\.png") if os.path.isdir(sd) else None
-    poses = _read_c2w_lines(os.path.join(root, "traj_w_c.txt"))
+    rgb, depth, sem, poses = _paired_by_number(
+        _numbered_with_ids(os.path.join(root, "rgb"), r"rgb_(\d+)\.(?:png|jpg)"),
+        _numbered_with_ids(os.path.join(root, "depth"), r"depth_(\d+)\.png"),
+        _numbered_with_ids(sd, r"semantic_class_(\d+)\.png") if os.path.isdir(sd) else None,
+        os.path.join(root, "traj_w_c.txt"))
     k, ds = _read_cam(root, REPLICA_INTRINSICS)
     return _with_cam_source(Dataset(intrinsics or k, rgb, depth, sem or None, poses,
                                     [float(i) for i in range(len(rgb))], ds or depth_scale, _read_classes(root)),
                             root, intrinsics is None, ds is not None)
+
+
+def _paired_by_number(rgb: list[tuple[int, str]], depth: list[tuple[int, str]],
+                      sem: list[tuple[int, str]] | None, traj: str
+                      ) -> tuple[list[str], list[str], list[str] | None, list[np.ndarray]]:
+    """Colour, depth, labels and poses of the same frame numbers (a Replica-style folder numbers its files from 0,
+    and the trajectory file's line n is frame n), never paired by position in a listing.
+
+    Raises:
+        DatasetError: a frame number that has colour but no depth (or the other way round), labels missing for a
+            frame while the folder has labels, or no trajectory line for a frame (the first such frame is named).
+    """
+    poses_all = _read_c2w_lines(traj)
+    c, d = dict(rgb), dict(depth)
+    for have, lack, what in ((c, d, "depth"), (d, c, "colour")):
+        missing = sorted(set(have) - set(lack))
+        if missing:
+            first = have[missing[0]]
+            raise DatasetError(f"{len(missing)} frame(s) have no {what} image (first: frame {missing[0]}, "
+                               f"{os.path.basename(first)} in {os.path.dirname(first)})")
+    ids = sorted(c)
+    labels = None
+    if sem:
+        s = dict(sem)
+        missing = [i for i in ids if i not in s]
+        if missing:
+            raise DatasetError(f"{len(missing)} frame(s) have no label image (first: frame {missing[0]})")
+        labels = [s[i] for i in ids]
+    if ids and ids[-1] >= len(poses_all):
+        raise DatasetError(f"{traj}: {len(poses_all)} poses, but frame {ids[-1]} needs line {ids[-1] + 1}")
+    return [c[i] for i in ids], [d[i] for i in ids], labels, [poses_all[i] for i in ids]
 
 
 def _with_cam_source(ds: Dataset, root: str, k_from_file: bool, scale_from_file: bool) -> Dataset:
@@ -414,7 +476,14 @@ def _with_cam_source(ds: Dataset, root: str, k_from_file: bool, scale_from_file:
     return ds
 
 
-def _read_tum_list(path: str) -> list[tuple[float, list[str]]]:
+def _read_tum_list(path: str, fields: int = 2, what: str = "timestamp filename"
+                   ) -> list[tuple[float, list[str], int]]:
+    """A TUM list file's lines: (timestamp, the other fields, line number); ``#`` comments and blank lines skipped.
+
+    Raises:
+        DatasetError: a line with fewer than ``fields`` fields, or a timestamp that is not a finite number (the file
+            and the line are named).
+    """
     if not os.path.isfile(path):
         raise DatasetError(f"missing TUM list file: {path}")
     out = []
@@ -425,18 +494,35 @@ def _read_tum_list(path: str) -> list[tuple[float, list[str]]]:
                 continue
             parts = line.split()
             try:
-                out.append((float(parts[0]), parts[1:]))
+                t = float(parts[0])
             except ValueError as exc:
                 raise DatasetError(f"{path}:{ln}: bad timestamp ({exc})") from exc
+            if not math.isfinite(t):
+                raise DatasetError(f"{path}:{ln}: bad timestamp {parts[0]!r} (not a finite number)")
+            if len(parts) < fields:
+                raise DatasetError(f"{path}:{ln}: expected {fields} fields ({what}), got {len(parts)}")
+            out.append((t, parts[1:], ln))
     return out
 
 
-def _quat_pose(v: list[str]) -> np.ndarray:
+def _quat_pose(v: list[str], where: str = "") -> np.ndarray:
+    """``tx ty tz qx qy qz qw`` -> [4, 4] camera-to-world (the quaternion normalised).
+
+    Raises:
+        DatasetError: not numbers, not finite, or a quaternion of (almost) zero length (``where`` names the line).
+    """
     import torch
 
     from semantic_gs_slam.geometry import quat_to_rotmat
 
-    tx, ty, tz, qx, qy, qz, qw = (float(x) for x in v[:7])
+    try:
+        tx, ty, tz, qx, qy, qz, qw = (float(x) for x in v[:7])
+    except ValueError as exc:
+        raise DatasetError(f"{where}: a pose is 7 numbers tx ty tz qx qy qz qw ({exc})") from exc
+    if not all(math.isfinite(x) for x in (tx, ty, tz, qx, qy, qz, qw)):
+        raise DatasetError(f"{where}: the pose has NaN or inf")
+    if math.sqrt(qx * qx + qy * qy + qz * qz + qw * qw) < 1e-6:
+        raise DatasetError(f"{where}: the quaternion has zero length")
     m = np.eye(4)
     m[:3, :3] = quat_to_rotmat(torch.tensor([qw, qx, qy, qz], dtype=torch.float64)).numpy()
     m[:3, 3] = (tx, ty, tz)
@@ -467,7 +553,7 @@ def load_colmap_poses(path: str) -> dict[str, np.ndarray]:
                 if len(parts) < 8:
                     raise ValueError(f"{len(parts)} fields, need NAME QW QX QY QZ TX TY TZ")
                 qw, qx, qy, qz, tx, ty, tz = (float(x) for x in parts[1:8])
-                w2c = _quat_pose(parts[5:8] + parts[2:5] + parts[1:2])  # TUM's order: t, then x y z w
+                w2c = _quat_pose(parts[5:8] + parts[2:5] + parts[1:2], f"{path}:{ln}")  # TUM's order: t, then x y z w
                 if not np.isfinite(w2c).all() or abs(np.linalg.norm([qw, qx, qy, qz]) - 1) > 1e-3:
                     raise ValueError("not a unit quaternion")
             except ValueError as exc:
@@ -543,10 +629,13 @@ def load_tum(root: str, intrinsics: Intrinsics | None = None, depth_scale: float
     rgb = _read_tum_list(os.path.join(root, "rgb.txt"))
     depth = _read_tum_list(os.path.join(root, "depth.txt"))
     gt_path = os.path.join(root, "groundtruth.txt")
-    gt = sorted(_read_tum_list(gt_path), key=lambda e: e[0]) if os.path.isfile(gt_path) else None
-    gt_t = np.array([t for t, _ in gt]) if gt else np.zeros(0)
-    gt_poses = [_quat_pose(v) for _, v in gt] if gt else []
-    pairs = associate([t for t, _ in rgb], [t for t, _ in depth], max_dt)
+    gt = sorted(_read_tum_list(gt_path, 8, "timestamp tx ty tz qx qy qz qw"), key=lambda e: e[0]) \
+        if os.path.isfile(gt_path) else None
+    if gt is not None and not gt:
+        raise DatasetError(f"{gt_path}: no poses (a TUM groundtruth.txt lines up 'timestamp tx ty tz qx qy qz qw')")
+    gt_t = np.array([t for t, _, _ in gt]) if gt else np.zeros(0)
+    gt_poses = [_quat_pose(v, f"{gt_path}:{ln}") for _, v, ln in gt] if gt else []
+    pairs = associate([t for t, _, _ in rgb], [t for t, _, _ in depth], max_dt)
     rgb_p, depth_p, poses, times = [], [], [], []
     for i, j in pairs:
         pose = None
@@ -559,7 +648,9 @@ def load_tum(root: str, intrinsics: Intrinsics | None = None, depth_scale: float
         poses.append(pose)
         times.append(rgb[i][0])
     if not rgb_p:
-        raise DatasetError(f"{root}: no colour/depth{'/pose' if gt else ''} triples within {max_dt} s")
+        span = f" (colour {rgb[0][0]:.3f}..{rgb[-1][0]:.3f} s, poses {gt_t[0]:.3f}..{gt_t[-1]:.3f} s)" \
+            if gt and rgb else ""
+        raise DatasetError(f"{root}: no colour/depth{'/pose' if gt else ''} triples within {max_dt} s{span}")
     return Dataset(intrinsics or TUM_INTRINSICS, rgb_p, depth_p, None, poses if gt is not None else None, times,
                    depth_scale)
 
@@ -570,8 +661,11 @@ def _read_k_txt(path: str, width: int, height: int) -> Intrinsics:
         vals = np.loadtxt(path, dtype=np.float64)
     except ValueError as exc:
         raise DatasetError(f"{path}: not a 3x3 matrix of numbers ({exc})") from exc
-    if vals.shape != (3, 3) or not np.all(np.isfinite(vals)):
+    if vals.shape != (3, 3):
         raise DatasetError(f"{path}: expected a 3x3 K matrix, got shape {vals.shape}")
+    if not np.all(np.isfinite(vals)) or not (vals[0, 0] > 0 and vals[1, 1] > 0):
+        raise DatasetError(f"{path}: K must be finite with positive focal lengths, got fx={vals[0, 0]:g} "
+                           f"fy={vals[1, 1]:g}")
     return Intrinsics(width, height, float(vals[0, 0]), float(vals[1, 1]), float(vals[0, 2]), float(vals[1, 2]))
 
 
@@ -580,8 +674,13 @@ def _read_c2w_file(path: str) -> np.ndarray:
         m = np.loadtxt(path, dtype=np.float64)
     except ValueError as exc:
         raise DatasetError(f"{path}: not a 4x4 matrix of numbers ({exc})") from exc
-    if m.shape != (4, 4) or not np.all(np.isfinite(m)):
-        raise DatasetError(f"{path}: expected a finite 4x4 camera-to-world matrix, got shape {m.shape}")
+    if m.shape != (4, 4):
+        raise DatasetError(f"{path}: expected a 4x4 camera-to-world matrix, got shape {m.shape}")
+    if not np.all(np.isfinite(m)):
+        raise DatasetError(f"{path}: the camera-to-world matrix has NaN or inf")
+    why = _rigid_error(m)
+    if why:
+        raise DatasetError(f"{path}: not a camera pose: {why}")
     return m
 
 
