@@ -626,8 +626,8 @@ def load_tum(root: str, intrinsics: Intrinsics | None = None, depth_scale: float
     """TUM RGB-D (``rgb.txt``, ``depth.txt``, ``groundtruth.txt``): colour and depth paired within ``max_dt``
     seconds, the reference pose interpolated at the colour image's time (:func:`interpolate_pose`); a frame
     without a reference pose there is left out."""
-    rgb = _read_tum_list(os.path.join(root, "rgb.txt"))
-    depth = _read_tum_list(os.path.join(root, "depth.txt"))
+    rgb = sorted(_read_tum_list(os.path.join(root, "rgb.txt")), key=lambda e: e[0])  # in time order, as recorded
+    depth = sorted(_read_tum_list(os.path.join(root, "depth.txt")), key=lambda e: e[0])
     gt_path = os.path.join(root, "groundtruth.txt")
     gt = sorted(_read_tum_list(gt_path, 8, "timestamp tx ty tz qx qy qz qw"), key=lambda e: e[0]) \
         if os.path.isfile(gt_path) else None
