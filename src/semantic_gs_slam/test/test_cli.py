@@ -59,6 +59,13 @@ def test_an_output_that_is_no_writable_folder_is_refused_before_any_frame(tiny_h
     assert blocker.read_text() == "in the way"
 
 
+def test_threads_and_refinement_iterations_out_of_range_are_usage_errors(tmp_path, capsys):
+    for flag, value in (("--threads", "0"), ("--refine-iters", "-5")):
+        with pytest.raises(SystemExit) as info:
+            main(["--dataset", str(tmp_path), "--out", str(tmp_path / "o"), flag, value])
+        assert info.value.code == 2 and "--threads must be >= 1 and --refine-iters >= 0" in capsys.readouterr().err
+
+
 def test_run_reports_bad_config_overrides(tiny_home, tmp_path, capsys):
     args = ["--dataset", str(tiny_home), "--out", str(tmp_path / "o"), "--frames", "1", "--quiet"]
     assert main(args + ["--config", '{"mapping": {"iterz": 3}}']) == 2

@@ -301,3 +301,12 @@ def test_a_colour_calibration_is_written_whole_or_not_at_all(tmp_path):
     with pytest.raises(OSError):
         save(calib, str(tmp_path))  # a folder
     assert sorted(os.listdir(tmp_path)) == ["colour-calibration.json"]
+
+
+def test_a_working_size_is_two_whole_numbers_up_to_8k():
+    from semantic_gs_slam.io.datasets import parse_size
+
+    assert parse_size("320x240") == (320, 240) and parse_size(" 8192 X 8192 ") == (8192, 8192)
+    for bad in ("abc", "0x240", "99999999x99999999", "8193x100", "-5x5", "320x"):
+        with pytest.raises(DatasetError, match="each 1 .. 8192"):
+            parse_size(bad)

@@ -29,6 +29,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", help=f"file to write (default: DATASET/{CALIB_FILE})")
     ap.add_argument("--dry-run", action="store_true", help="print, write nothing")
     args = ap.parse_args(argv)
+    if args.frames < 1:
+        ap.error(f"--frames must be >= 1, got {args.frames}")
     try:
         ds = load_dataset(args.dataset, colour_calib="none")
         w, h = parse_size(args.size)

@@ -233,15 +233,19 @@ def frame_indices(n: int, start: int = 0, stride: int = 1, frames: int = 0, stop
     return idx
 
 
+#: Largest working width or height (pixels): 8K; a larger one is a typo that would exhaust memory resizing
+MAX_SIZE = 8192
+
+
 def parse_size(text: str) -> tuple[int, int]:
     """``"320x240"`` -> (320, 240).
 
     Raises:
         DatasetError: anything else.
     """
-    m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
-    if not m or int(m.group(1)) <= 0 or int(m.group(2)) <= 0:
-        raise DatasetError(f"size must be WIDTHxHEIGHT, e.g. 320x240; got {text!r}")
+    m = re.fullmatch(r"\s*(\d{1,6})\s*[xX]\s*(\d{1,6})\s*", text)
+    if not m or not 0 < int(m.group(1)) <= MAX_SIZE or not 0 < int(m.group(2)) <= MAX_SIZE:
+        raise DatasetError(f"size must be WIDTHxHEIGHT, each 1 .. {MAX_SIZE}, e.g. 320x240; got {text[:40]!r}")
     return int(m.group(1)), int(m.group(2))
 
 
