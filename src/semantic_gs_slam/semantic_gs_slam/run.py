@@ -236,8 +236,9 @@ def main(argv: list[str] | None = None) -> int:
                  "also optimises")
     if args.labels_every < 1:
         ap.error("--labels-every must be >= 1")
-    if args.threads < 1 or args.refine_iters < 0:
-        ap.error(f"--threads must be >= 1 and --refine-iters >= 0, got {args.threads} and {args.refine_iters}")
+    if args.threads < 0 or args.refine_iters < 0:
+        ap.error(f"--threads must be >= 0 (0: torch's own) and --refine-iters >= 0, got {args.threads} and "
+                 f"{args.refine_iters}")
     try:  # the output folder, made now: a run is not mapped to be lost at the end on a folder it cannot write
         os.makedirs(args.out, exist_ok=True)
         probe = os.path.join(args.out, ".write_probe")

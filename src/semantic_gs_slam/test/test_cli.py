@@ -60,10 +60,11 @@ def test_an_output_that_is_no_writable_folder_is_refused_before_any_frame(tiny_h
 
 
 def test_threads_and_refinement_iterations_out_of_range_are_usage_errors(tmp_path, capsys):
-    for flag, value in (("--threads", "0"), ("--refine-iters", "-5")):
+    for flag, value in (("--threads", "-1"), ("--refine-iters", "-5")):
         with pytest.raises(SystemExit) as info:
             main(["--dataset", str(tmp_path), "--out", str(tmp_path / "o"), flag, value])
-        assert info.value.code == 2 and "--threads must be >= 1 and --refine-iters >= 0" in capsys.readouterr().err
+        assert info.value.code == 2 and "--threads must be >= 0 (0: torch's own) and --refine-iters >= 0" in \
+            capsys.readouterr().err
 
 
 def test_run_reports_bad_config_overrides(tiny_home, tmp_path, capsys):

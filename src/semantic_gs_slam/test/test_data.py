@@ -140,7 +140,11 @@ def test_replica_files_pair_by_their_numbers_never_by_position(tmp_path):
     (tmp_path / "traj.txt").write_text("\n".join(_pose_line(t) for t in range(4)) + "\n")
     ds = load_replica(str(tmp_path))
     assert [os.path.basename(p) for p in ds.depth_paths] == ["depth000000.png", "depth000001.png", "depth000003.png"]
-    assert [p[0, 3] for p in ds.poses] == [0.0, 1.0, 3.0]
+    assert [p[0, 3] for p in ds.poses] == [0.0, 1.0, 3.0] and list(ds.timestamps) == [0.0, 1.0, 3.0]
+    _png(str(tmp_path / "results" / "frame3.jpg"), np.zeros((6, 8, 3), np.uint8))  # frame 3 again
+    with pytest.raises(DatasetError, match="frame 3 is given twice"):
+        load_replica(str(tmp_path))
+    os.remove(tmp_path / "results" / "frame3.jpg")
     os.remove(tmp_path / "results" / "depth000003.png")
     with pytest.raises(DatasetError, match=r"have no depth image \(first: frame 3"):
         load_replica(str(tmp_path))

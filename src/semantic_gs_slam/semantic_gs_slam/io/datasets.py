@@ -413,13 +413,13 @@ def load_replica(root: str, intrinsics: Intrinsics | None = None, depth_scale: f
     if not os.path.isdir(res):
         raise DatasetError(f"not a Replica (NICE-SLAM) folder: {res} is missing")
     sem_dir = os.path.join(root, "semantic")
-    rgb, depth, sem, poses = _paired_by_number(
+    rgb, depth, sem, poses, times = _paired_by_number(
         _numbered_with_ids(res, r"frame(\d+)\.(?:jpg|png)"), _numbered_with_ids(res, r"depth(\d+)\.png"),
         _numbered_with_ids(sem_dir, r"semantic(\d+)\.png") if os.path.isdir(sem_dir) else None,
         os.path.join(root, "traj.txt"))
     k, ds = _read_cam(root, REPLICA_INTRINSICS)
     return _with_cam_source(Dataset(intrinsics or k, rgb, depth, sem or None, poses,
-                                    [float(i) for i in range(len(rgb))], ds or depth_scale, _read_classes(root)),
+                                    times, ds or depth_scale, _read_classes(root)),
                             root, intrinsics is None, ds is not None)
 
 
@@ -429,28 +429,35 @@ def load_sgs(root: str, intrinsics: Intrinsics | None = None, depth_scale: float
         if not os.path.isdir(os.path.join(root, sub)):
             raise DatasetError(f"not an SGS-SLAM Replica folder: {os.path.join(root, sub)} is missing")
     sd = os.path.join(root, "semantic_class")
-    rgb, depth, sem, poses = _paired_by_number(
+    rgb, depth, sem, poses, times = _paired_by_number(
         _numbered_with_ids(os.path.join(root, "rgb"), r"rgb_(\d+)\.(?:png|jpg)"),
         _numbered_with_ids(os.path.join(root, "depth"), r"depth_(\d+)\.png"),
         _numbered_with_ids(sd, r"semantic_class_(\d+)\.png") if os.path.isdir(sd) else None,
         os.path.join(root, "traj_w_c.txt"))
     k, ds = _read_cam(root, REPLICA_INTRINSICS)
     return _with_cam_source(Dataset(intrinsics or k, rgb, depth, sem or None, poses,
-                                    [float(i) for i in range(len(rgb))], ds or depth_scale, _read_classes(root)),
+                                    times, ds or depth_scale, _read_classes(root)),
                             root, intrinsics is None, ds is not None)
 
 
 def _paired_by_number(rgb: list[tuple[int, str]], depth: list[tuple[int, str]],
                       sem: list[tuple[int, str]] | None, traj: str
-                      ) -> tuple[list[str], list[str], list[str] | None, list[np.ndarray]]:
-    """Colour, depth, labels and poses of the same frame numbers (a Replica-style folder numbers its files from 0,
-    and the trajectory file's line n is frame n), never paired by position in a listing.
+                      ) -> tuple[list[str], list[str], list[str] | None, list[np.ndarray], list[float]]:
+    """Colour, depth, labels, poses and times (the frame numbers) of the same frame numbers (a Replica-style folder
+    numbers its files from 0, and the trajectory file's line n is frame n), never paired by position in a listing.
 
     Raises:
-        DatasetError: a frame number that has colour but no depth (or the other way round), labels missing for a
-            frame while the folder has labels, or no trajectory line for a frame (the first such frame is named).
+        DatasetError: a frame number given twice in one folder, a frame number that has colour but no depth (or the
+            other way round), labels missing for a frame while the folder has labels, or no trajectory line for a
+            frame (the first such frame is named).
     """
     poses_all = _read_c2w_lines(traj)
+    for listing in (rgb, depth, sem or []):
+        seen: dict[int, str] = {}
+        for i, path in listing:
+            if i in seen:
+                raise DatasetError(f"frame {i} is given twice: {seen[i]} and {path}")
+            seen[i] = path
     c, d = dict(rgb), dict(depth)
     for have, lack, what in ((c, d, "depth"), (d, c, "colour")):
         missing = sorted(set(have) - set(lack))
@@ -467,8 +474,9 @@ def _paired_by_number(rgb: list[tuple[int, str]], depth: list[tuple[int, str]],
             raise DatasetError(f"{len(missing)} frame(s) have no label image (first: frame {missing[0]})")
         labels = [s[i] for i in ids]
     if ids and ids[-1] >= len(poses_all):
-        raise DatasetError(f"{traj}: {len(poses_all)} poses, but frame {ids[-1]} needs line {ids[-1] + 1}")
-    return [c[i] for i in ids], [d[i] for i in ids], labels, [poses_all[i] for i in ids]
+        raise DatasetError(f"{traj}: {len(poses_all)} poses, but frame {ids[-1]} needs line {ids[-1] + 1} (line n is "
+                           f"frame n, numbered from 0)")
+    return [c[i] for i in ids], [d[i] for i in ids], labels, [poses_all[i] for i in ids], [float(i) for i in ids]
 
 
 def _with_cam_source(ds: Dataset, root: str, k_from_file: bool, scale_from_file: bool) -> Dataset:

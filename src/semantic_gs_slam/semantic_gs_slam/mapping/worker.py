@@ -43,7 +43,7 @@ class MappingWorker:
                 if not failed:  # after a failure the remaining jobs are skipped (their frames stay unmapped)
                     job()
             except BaseException as exc:  # noqa: BLE001 - handed to the caller's thread
-                log.error("mapping thread failed: %r", exc)
+                log.error("mapping thread failed: %r", exc, exc_info=exc)  # its traceback: the caller gets a copy
                 with self._lock:
                     self._error = exc
             finally:
