@@ -18,6 +18,7 @@ import json
 import os
 import threading
 import time
+import traceback
 
 os.environ.setdefault("HF_HUB_OFFLINE", "1")  # never download a model (the transcriber enforces it too)
 
@@ -216,6 +217,17 @@ class AudioCommandNode(Node):
         self._status_pub.publish(String(data=result.to_json()))
 
     def _audio_loop(self) -> None:
+        """The audio thread: :meth:`_listen`, and any failure it did not expect reported and the node ended (exit 2)
+        instead of a node that runs on with no audio."""
+        try:
+            self._listen()
+        except Exception as exc:  # noqa: BLE001 - the thread's last word: logged, the node exits
+            self.get_logger().error(f"audio failed: {exc!r}\n{traceback.format_exc()}")
+            self._status({"event": "device_error", "message": f"audio failed: {exc!r}"[:300]})
+            self.exit_code = 2
+            self.done.set()
+
+    def _listen(self) -> None:
         p = self._p
         kind = str(p("source"))
         retry_s = float(p("retry_s"))

@@ -123,3 +123,17 @@ def test_truncated_and_broken_files(reference, tmp_path):
         read_wav_file(str(tmp_path / "text.wav"))
     with pytest.raises(AudioSourceError, match="not found"):
         read_wav_file(str(tmp_path / "missing.wav"))
+
+
+@pytest.mark.parametrize("rate", [1, 999, 768_001, 4_294_967_295])
+def test_a_header_with_a_sample_rate_no_recording_has_is_refused(reference, tmp_path, rate):
+    """A header claiming 1 Hz asked the resampler for 24 GB (the audio thread died and the node ran on, deaf); one
+    claiming 4.3 GHz played nothing, silently."""
+    import struct
+
+    data = bytearray(reference[0].read_bytes())
+    at = data.index(b"fmt ") + 12  # the sample rate: after the chunk id, size, format tag and channel count
+    data[at:at + 4] = struct.pack("<I", rate)
+    (tmp_path / "rate.wav").write_bytes(bytes(data))
+    with pytest.raises(AudioSourceError, match=f"a sample rate of {rate} Hz \\(a recording is 1000-768000 Hz"):
+        read_wav_file(str(tmp_path / "rate.wav"))

@@ -41,6 +41,7 @@ import hashlib
 import json
 import os
 import threading
+import traceback
 
 import rclpy
 from geometry_msgs.msg import Point
@@ -367,7 +368,9 @@ class ObjectQueryServer(Node):
             signature = self._signature_now()
             try:
                 db, signature = self._build(signature)
-            except (MapLoadError, SynonymsError, ValueError, OSError, MemoryError) as exc:
+            except Exception as exc:  # noqa: BLE001 - any failure keeps the old map and is answered with its reason
+                if not isinstance(exc, (MapLoadError, SynonymsError, ValueError, OSError, MemoryError)):
+                    self.get_logger().error(f"reload: unexpected {exc!r}\n{traceback.format_exc()}")
                 with self._lock:
                     self._failed_signature = signature
                     old = self._db
@@ -470,10 +473,18 @@ def main(args: list[str] | None = None) -> int:
 
 
 def _spin_quietly(executor: SingleThreadedExecutor) -> None:
-    try:
-        executor.spin()
-    except ExternalShutdownException:
-        pass
+    """Spin the maintenance executor until shutdown; a callback that raises is logged and the spinning goes on (the
+    reload service and the file poll must outlive one bad map file)."""
+    while True:
+        try:
+            executor.spin()
+            return
+        except ExternalShutdownException:
+            return
+        except Exception:  # noqa: BLE001 - logged; the executor is spun again
+            if not rclpy.ok():
+                return
+            rclpy.logging.get_logger("object_query_server").error(f"maintenance: {traceback.format_exc()}")
 
 
 if __name__ == "__main__":

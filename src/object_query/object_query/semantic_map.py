@@ -18,6 +18,7 @@ import os
 import re
 import time
 import zipfile
+import zlib
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -182,7 +183,7 @@ def load_semantic_map(map_path: str, semantic_path: str) -> SemanticMap:
             vote_ids = np.asarray(npz["semantic_feature_ids"]) if "semantic_feature_ids" in npz.files else None
     except MapLoadError:
         raise
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError, KeyError) as exc:
+    except (OSError, ValueError, zipfile.BadZipFile, EOFError, KeyError, zlib.error) as exc:
         raise MapLoadError(f"{map_path}: not a readable .npz archive ({exc})") from exc
     if means.ndim != 2 or means.shape[1] != 3 or means.dtype.kind not in "fiu":
         raise MapLoadError(f"{map_path}: means3D must be a real [N, 3] array, got shape {means.shape} {means.dtype}")
@@ -192,6 +193,9 @@ def load_semantic_map(map_path: str, semantic_path: str) -> SemanticMap:
         raise MapLoadError(f"{map_path}: semantic_ids must be an integer [N] array, got shape {ids.shape} {ids.dtype}")
     if len(ids) != len(means):
         raise MapLoadError(f"{map_path}: length mismatch: means3D has {len(means)} rows, semantic_ids {len(ids)}")
+    if ids.dtype.kind == "u" and ids.dtype.itemsize == 8 and len(ids) and int(ids.max()) > np.iinfo(np.int64).max:
+        raise MapLoadError(f"{map_path}: semantic_ids up to {int(ids.max())}; ids must fit a signed 64-bit integer "
+                           f"(at most {np.iinfo(np.int64).max})")
     if opac is not None:
         if opac.ndim == 2 and opac.shape[1] == 1:
             opac = opac[:, 0]
@@ -226,8 +230,8 @@ def load_classes(semantic_path: str, warnings: list[str] | None = None) -> dict[
     try:
         with open(semantic_path, encoding="utf-8") as fh:
             doc = json.load(fh)
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise MapLoadError(f"{semantic_path}: not valid JSON ({exc})") from exc
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as exc:
+        raise MapLoadError(f"{semantic_path}: not valid JSON ({str(exc)[:200]})") from exc
     entries = doc.get("segmentation") if isinstance(doc, dict) else None
     if not isinstance(entries, list):
         raise MapLoadError(f'{semantic_path}: expected {{"segmentation": [{{"id": ..., "class": ...}}]}}')

@@ -100,6 +100,7 @@ def test_not_an_npz_and_pickled_arrays_are_errors(tmp_path):
         ('{"segmentation": [{"id": "1", "class": "chair"}]}', r"segmentation\[0\] has a bad id/class"),
         ('{"segmentation": [{"id": 1, "class": "  "}]}', r"segmentation\[0\] has a bad id/class"),
         ('{"segmentation": [{"id": 1, "class": "a"}, {"id": 1, "class": "b"}]}', "duplicate id 1 with two classes"),
+        ("[" * 200_000, "not valid JSON"),  # nested deeper than the parser recurses
     ],
 )
 def test_malformed_semantic_json(tmp_path, text, pattern):
@@ -396,3 +397,19 @@ def test_int8_ids_spanning_the_whole_range():
     db = ObjectDatabase.from_map(SemanticMap(m, ids, {-128: "chair", 127: "cup"}))
     assert db.names() == ["chair", "cup"] and len(db.instances("chair").instances) == 2
     assert np.allclose(db.query("cup").position, m[700:].mean(0))
+
+
+def test_ids_beyond_a_signed_64_bit_integer_and_a_corrupt_archive_are_map_errors(tmp_path):
+    """Once an OverflowError (ids >= 2^63) and a zlib error (a damaged compressed member): the server's reload thread
+    died with them and answered no reload again."""
+    npz, js = write_map(tmp_path, {"means3D": np.zeros((2, 3)), "semantic_ids": np.array([1, 2**63], np.uint64)})
+    with pytest.raises(MapLoadError, match="ids must fit a signed 64-bit integer"):
+        load_semantic_map(npz, js)
+    means = np.random.default_rng(0).normal(size=(2000, 3))
+    np.savez_compressed(npz, means3D=means, semantic_ids=np.ones(2000, np.int32))
+    data = bytearray(open(npz, "rb").read())
+    middle = len(data) // 2
+    data[middle:middle + 64] = bytes(64)  # damage the deflate stream, not the zip directory
+    open(npz, "wb").write(bytes(data))
+    with pytest.raises(MapLoadError, match="not a readable .npz"):
+        load_semantic_map(npz, js)

@@ -44,6 +44,10 @@ class WavInfo:
     frames: int
 
 
+#: Sample rates a WAV file may declare (Hz): telephone 8 kHz down to 1 kHz, studio 768 kHz at most; a header outside
+#: this is broken, and resampling it to 16 kHz would take gigabytes
+MIN_RATE, MAX_RATE = 1000, 768_000
+
 def _decode(raw: bytes, bits: int, encoding: str) -> np.ndarray:
     """Little-endian samples → float32 in [-1, 1] (``[n]``, channels still interleaved)."""
     if encoding == "float":
@@ -123,7 +127,10 @@ def read_wav_file(path: str) -> tuple[np.ndarray, WavInfo]:
             tag, f"format tag 0x{tag:04x}")
         raise AudioSourceError(f"cannot read WAV file {path}: {name} with {bits} bits per sample is not supported "
                                f"(supported: PCM 8/16/24/32-bit, IEEE float 32/64-bit; {_CONVERT_HINT})")
-    if channels < 1 or rate < 1 or block_align != channels * bits // 8:
+    if not MIN_RATE <= rate <= MAX_RATE:
+        raise AudioSourceError(f"cannot read WAV file {path}: a sample rate of {rate} Hz (a recording is "
+                               f"{MIN_RATE}-{MAX_RATE} Hz; {_CONVERT_HINT})")
+    if channels < 1 or block_align != channels * bits // 8:
         raise AudioSourceError(f"cannot read WAV file {path}: inconsistent header ({channels} channel(s), {rate} Hz, "
                                f"block align {block_align} for {bits}-bit samples)")
     frames = len(payload) // block_align
