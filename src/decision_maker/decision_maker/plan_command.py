@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 
 from decision_maker.command_types import MAX_TEXT_CHARS, load_locations, sanitize_text
@@ -24,6 +25,7 @@ from decision_maker.errors import ConfigError, PlanningError, Reply
 from decision_maker.memory.world import aliases_for
 from decision_maker.nl_planner import PlanningContext, RegistryPlanner
 from decision_maker.planning.llm_planner import TIERS, LLMConfig, LLMPlanner, TieredPlanner
+from object_query.errors import ObjectQueryError
 from object_query.memory import Belief, MapObservation, ObjectMemory
 
 
@@ -33,8 +35,9 @@ def known_objects(args: argparse.Namespace) -> tuple[dict[str, tuple[float, floa
         return {n.strip().lower(): (0.0, 0.0, 0.0) for n in args.objects.split(",") if n.strip()}, ()
     from object_query.semantic_map import ObjectDatabase
 
-    if args.map:
-        map_path, sem_path = args.map, args.semantic
+    if args.map:  # its class table: --semantic, else the semantic.json beside it
+        map_path = args.map
+        sem_path = args.semantic or os.path.join(os.path.dirname(os.path.abspath(args.map)), "semantic.json")
     else:
         from object_query.object_query_server import bundled_map_paths
 
@@ -70,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--llm-timeout", type=float, default=LLMConfig.timeout_s)
     ap.add_argument("--locations", default="", help="locations YAML (default: the installed one)")
     ap.add_argument("--map", default="", help="params.npz for the known objects (default: bundled sample map)")
-    ap.add_argument("--semantic", default="", help="semantic.json next to --map")
+    ap.add_argument("--semantic", default="", help="the class table of --map (default: semantic.json beside it)")
     ap.add_argument("--objects", default=None, help="comma-separated object names instead of a map")
     ap.add_argument("--holding", default=None, help="object the robot holds now")
     ap.add_argument("--json", action="store_true", help="print the plan as JSON")
@@ -94,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
             planner = LLMPlanner(cfg)
         else:
             planner = TieredPlanner(LLMPlanner(cfg), tier=args.tier)
-    except (ConfigError, OSError, ValueError) as exc:
+    except (ConfigError, OSError, ValueError, ObjectQueryError) as exc:  # ObjectQueryError: a map it cannot load
         print(f"error: {exc}", file=sys.stderr)
         return 2
     aliases = aliases_for(objects, synonym_groups())

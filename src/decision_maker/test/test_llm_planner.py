@@ -327,6 +327,20 @@ def test_dry_run_command_line(endpoint):
     assert out.returncode == 1 and out.stdout.startswith("refused:")
     out = run_plan_command("go", "--locations", "/nonexistent.yaml")
     assert out.returncode == 2 and "locations file not found" in out.stderr
+    out = run_plan_command("give me the cup", "--map", "/nonexistent.npz")  # a map it cannot load: one line
+    assert out.returncode == 2 and "error: map file not found" in out.stderr and "Traceback" not in out.stderr
+
+
+def test_the_dry_run_reads_the_class_table_beside_the_map(tmp_path):
+    import shutil
+
+    from object_query.object_query_server import bundled_map_paths
+
+    map_path, sem_path = bundled_map_paths()
+    shutil.copy(map_path, tmp_path / "params.npz")
+    shutil.copy(sem_path, tmp_path / "semantic.json")
+    out = run_plan_command("give me the bottle please", "--map", str(tmp_path / "params.npz"))
+    assert out.returncode == 0 and "grasp:bottle" in out.stdout, out.stdout + out.stderr
 
 
 def test_make_planner_finds_a_planner_module_in_planning_by_its_name(monkeypatch):

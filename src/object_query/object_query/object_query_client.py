@@ -16,12 +16,14 @@ Python (inside a node that is spun by an executor in another thread)::
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import threading
 import time
 
 import rclpy
 from object_query_interfaces.srv import ObjectInstances, ObjectQuery
+from rclpy._rclpy_pybind11 import RCLError
 from rclpy.callback_groups import CallbackGroup
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
@@ -148,7 +150,11 @@ class ObjectQueryClient:
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    ros_args = remove_ros_args(["prog", *argv])[1:]
+    try:
+        ros_args = remove_ros_args(["prog", *argv])[1:]
+    except (RCLError, UnicodeError) as exc:  # ROS arguments rcl cannot parse, or bytes that are not UTF-8
+        print(f"error: bad arguments: {str(exc).split(', at ')[0][:200]}", file=sys.stderr)
+        return 2
     parser = argparse.ArgumentParser(prog="object_query_client", description="Ask the robot where an object is.")
     parser.add_argument("name", nargs="+", help="object name, e.g. chair (several words allowed)")
     parser.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for the service (default 5)")
@@ -156,6 +162,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--near", type=float, nargs=3, metavar=("X", "Y", "Z"),
                         help="with --all: sort by distance to this point")
     opts = parser.parse_args(ros_args)
+    if not 0 < opts.timeout < math.inf:
+        parser.error(f"--timeout must be a finite number of seconds > 0, got {opts.timeout}")
     name = " ".join(opts.name)
     rclpy.init(args=["prog", *argv])
     node = rclpy.create_node("object_query_client")
@@ -169,6 +177,10 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {exc} (is object_query_server running on ROS_DOMAIN_ID the same as ours?)", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
+        return 130
+    except RCLError:  # Ctrl-C's shutdown while waiting invalidates the context under the wait
+        if rclpy.ok():
+            raise
         return 130
     finally:
         node.destroy_node()

@@ -60,6 +60,12 @@ def test_command_line_client_exit_codes(bundled_map_server, shared_domain):
     assert "found: table" in found.stdout
     missing = subprocess.run([exe, "unicorn"], env=env, capture_output=True, text=True, timeout=60)
     assert missing.returncode == 1 and "not found" in missing.stdout
+    for args, words in [([b"\xed\xa0\x80"], "error: bad arguments"),  # not UTF-8: no ROS string carries it
+                        (["cup", "--ros-args", "-p", "foo"], "error: bad arguments: Failed to parse ROS arguments"),
+                        (["cup", "--timeout", "nan"], "--timeout must be a finite number of seconds > 0")]:
+        bad = subprocess.run([exe, *args], env=env, capture_output=True, timeout=60)
+        err = bad.stderr.decode("utf-8", "replace")
+        assert bad.returncode == 2 and words in err and "Traceback" not in err, err
 
 
 def test_missing_map_file_is_a_clear_error(launch_nodes, tmp_path):
