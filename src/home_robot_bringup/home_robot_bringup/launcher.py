@@ -15,6 +15,7 @@ Ctrl-C/SIGTERM, else the exit code of the node that died.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import signal
 import sys
@@ -22,8 +23,26 @@ import sys
 import yaml
 
 from home_robot_bringup.errors import BringupError
-from home_robot_bringup.nodeset import NodeSpec, default_config_dir, load_nodeset, read_nodesets
+from home_robot_bringup.nodeset import NodeSpec, default_config_dir, load_nodeset, param_error, read_nodesets
 from home_robot_bringup.process import Supervisor, node_environment
+
+
+def declared_parameters(spec: NodeSpec) -> set[str]:
+    """The parameters a node takes: those its params files list under its name (the files hold every parameter a
+    node declares: ``test_param_defaults.py``), its inline ones, and ``use_sim_time``; empty when it has no file."""
+    names: set[str] = set()
+    for path in spec.params_files:
+        try:
+            with open(path, encoding="utf-8") as fh:
+                doc = yaml.safe_load(fh) or {}
+        except (OSError, yaml.YAMLError):
+            continue
+        for key in (spec.name, f"/{spec.name}", "/**"):
+            section = doc.get(key) if isinstance(doc, dict) else None
+            params = section.get("ros__parameters") if isinstance(section, dict) else None
+            if isinstance(params, dict):
+                names |= set(params)
+    return names | set(spec.parameters) | {"use_sim_time"} if names else set()
 
 
 def apply_overrides(specs: list[NodeSpec], sets: list[str]) -> list[NodeSpec]:
@@ -44,6 +63,15 @@ def apply_overrides(specs: list[NodeSpec], sets: list[str]) -> list[NodeSpec]:
             value = yaml.safe_load(raw) if raw else ""
         except yaml.YAMLError:
             value = raw
+        if value is None:
+            raise BringupError(f"--set {item!r}: a parameter needs a value (null is none)")
+        why = param_error(param, value)
+        if why:
+            raise BringupError(f"--set {item[:80]!r}: {why}")
+        known = declared_parameters(by_name[node])
+        if known and param not in known:  # a typo would start the node without the change
+            raise BringupError(f"--set {item[:80]!r}: {node} has no parameter {param!r}; its parameters: "
+                               f"{', '.join(sorted(known))}")
         by_name[node] = by_name[node].with_parameters(**{param: value})
     return [by_name[s.name] for s in specs]
 
@@ -58,6 +86,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--ready-timeout", type=float, default=60.0, help="seconds to wait for every node to be ready")
     ap.add_argument("--no-color", action="store_true", help="plain prefixes")
     opts = ap.parse_args(argv)
+    if not 0 < opts.ready_timeout < math.inf:
+        ap.error(f"--ready-timeout must be a finite number of seconds > 0, got {opts.ready_timeout}")
+    if opts.domain_id is not None and not 0 <= opts.domain_id <= 232:
+        ap.error(f"--domain-id must be 0..232 (ROS 2's domain ids), got {opts.domain_id}")
 
     try:
         config_dir = opts.config_dir or default_config_dir()

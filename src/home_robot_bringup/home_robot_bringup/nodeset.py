@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -66,6 +67,29 @@ def format_param(value: Any) -> str:
     return json.dumps(value)
 
 
+#: A ROS parameter's name: letters, digits, ``_`` and ``.`` (nested), not starting with a digit
+_PARAM_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_.]*")
+
+
+def param_error(name: Any, value: Any) -> str:
+    """Why ``name: value`` cannot be a ROS parameter ("" when it can): a name rcl accepts, and a value that is a
+    bool, a number, a string (valid Unicode) or a list of one of those kinds."""
+    if not isinstance(name, str) or not _PARAM_NAME.fullmatch(name):
+        return f"{str(name)[:60]!r} is not a parameter name (letters, digits, '_', '.')"
+    items = value if isinstance(value, list) else [value]
+    kinds = {bool if isinstance(v, bool) else float if isinstance(v, int | float) else type(v) for v in items}
+    if not kinds <= {bool, float, str} or len(kinds) > 1 and isinstance(value, list):
+        return (f"{name}: a parameter is a bool, a number, a string or a list of one of those, got "
+                f"{str(value)[:60]!r}")
+    for v in items:
+        if isinstance(v, str):
+            try:
+                v.encode("utf-8")
+            except UnicodeEncodeError:
+                return f"{name}: the value is not valid Unicode text"
+    return ""
+
+
 def default_config_dir() -> str:
     """``share/home_robot_bringup/config`` of the installed package."""
     from ament_index_python.packages import get_package_share_directory
@@ -82,6 +106,9 @@ def read_nodesets(config_dir: str) -> dict[str, Any]:
         raise NodeSetError(f"cannot read {path}: {exc}") from exc
     if not isinstance(doc, dict) or not isinstance(doc.get("nodesets"), dict):
         raise NodeSetError(f"{path}: expected a top-level 'nodesets:' mapping")
+    for name, body in doc["nodesets"].items():
+        if not isinstance(name, str) or not (body is None or isinstance(body, dict)):
+            raise NodeSetError(f"{path}: node set {name!r} must be a name with a mapping under it")
     return doc["nodesets"]
 
 
@@ -110,8 +137,15 @@ def _expand(name: str, sets: dict, config_dir: str, out: list[NodeSpec], stack: 
     body = sets[name] or {}
     if not isinstance(body, dict):
         raise NodeSetError(f"node set {name!r} must be a mapping")
+    for key in ("include", "nodes"):
+        if not isinstance(body.get(key, []) or [], list):
+            raise NodeSetError(f"node set {name!r}: {key!r} must be a list, got {type(body[key]).__name__}")
     for inc in body.get("include", []) or []:
+        if not isinstance(inc, str):
+            raise NodeSetError(f"node set {name!r}: 'include' lists node set names, got {inc!r}")
         _expand(inc, sets, config_dir, out, (*stack, name))
+    if not stack and not body.get("nodes") and not body.get("include"):
+        raise NodeSetError(f"node set {name!r} has no nodes")
     for i, node in enumerate(body.get("nodes", []) or []):
         where = f"node set {name!r}, node #{i}"
         if not isinstance(node, dict):
@@ -122,6 +156,17 @@ def _expand(name: str, sets: dict, config_dir: str, out: list[NodeSpec], stack: 
         for req in ("name", "package", "executable"):
             if not isinstance(node.get(req), str) or not node[req]:
                 raise NodeSetError(f"{where}: '{req}' (a non-empty string) is required")
+        for key in ("params", "arguments"):
+            value = node.get(key, []) or []
+            if not isinstance(value, list) or not all(isinstance(v, str | int | float) and not isinstance(v, bool)
+                                                      for v in value):
+                raise NodeSetError(f"{where} ({node['name']}): {key!r} must be a list of strings, got {value!r}"[:300])
+        ready = node.get("ready")
+        if ready is not None:
+            try:
+                re.compile(ready)
+            except (TypeError, re.error) as exc:
+                raise NodeSetError(f"{where} ({node['name']}): 'ready' must be a regular expression ({exc})") from exc
         files = []
         for f in node.get("params", []) or []:
             path = f if os.path.isabs(f) else os.path.join(config_dir, "params", f)
@@ -131,6 +176,10 @@ def _expand(name: str, sets: dict, config_dir: str, out: list[NodeSpec], stack: 
         params = node.get("parameters", {}) or {}
         if not isinstance(params, dict):
             raise NodeSetError(f"{where}: 'parameters' must be a mapping")
+        for key, value in params.items():
+            why = param_error(key, value)
+            if why:
+                raise NodeSetError(f"{where} ({node['name']}): {why}")
         out.append(
             NodeSpec(
                 name=node["name"],

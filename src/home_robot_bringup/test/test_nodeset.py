@@ -60,6 +60,16 @@ def test_include_order_and_param_paths(tmp_path):
      "used twice"),
     ("nodes: []", "top-level 'nodesets:'"),
     ("nodesets: {x: [", "cannot read"),
+    ("nodesets: {x: {include: 5}}", "'include' must be a list, got int"),
+    ("nodesets: {x: {include: [[b]]}}", "'include' lists node set names"),
+    ("nodesets: {x: {nodes: [{name: a, package: p, executable: e, params: 5}]}}", "'params' must be a list"),
+    ("nodesets: {x: {nodes: [{name: a, package: p, executable: e, arguments: [[1]]}]}}", "'arguments' must be a"),
+    ("nodesets: {x: {nodes: [{name: a, package: p, executable: e, ready: '('}]}}", "'ready' must be a regular"),
+    ("nodesets: {x: {nodes: [{name: a, package: p, executable: e, ready: 5}]}}", "'ready' must be a regular"),
+    ("nodesets: {x: {nodes: [{name: a, package: p, executable: e, parameters: {d: 2024-01-01}}]}}",
+     "a parameter is a bool, a number, a string or a list"),
+    ("nodesets: {x: {}}", "node set 'x' has no nodes"),
+    ("nodesets: {x: [1]}", "node set 'x' must be a name with a mapping"),
 ])
 def test_malformed_node_sets_are_clear_errors(tmp_path, body, message):
     cfg = write_config(tmp_path, body)
@@ -90,6 +100,22 @@ def test_overrides_parse_values_and_reject_bad_input():
     for bad in ["srv", "srv=3", ".x=1", "nosuch.x=1"]:
         with pytest.raises(BringupError):
             apply_overrides(specs, [bad])
+    for bad, words in [("srv.x=2024-01-01", "a parameter is a bool"), ("srv.x={a: 1}", "a parameter is a bool"),
+                       ("srv.x=[1, a]", "a parameter is a bool"), ("srv.9x=1", "not a parameter name"),
+                       ("srv.x=null", "needs a value"), ("srv.x=go \udc80", "not valid Unicode")]:
+        with pytest.raises(BringupError, match=words):
+            apply_overrides(specs, [bad])
+
+
+def test_an_override_of_a_parameter_the_node_does_not_take_is_refused(tmp_path):
+    """The params files list every parameter a node declares: a typo (voxel_sizee) would start it unchanged."""
+    params = tmp_path / "srv.yaml"
+    params.write_text("srv:\n  ros__parameters: {voxel_size: 0.1, map_path: ''}\n")
+    specs = [NodeSpec("srv", "p", "e", params_files=(str(params),))]
+    assert apply_overrides(specs, ["srv.voxel_size=0.2"])[0].parameters == {"voxel_size": 0.2}
+    with pytest.raises(BringupError, match="srv has no parameter 'voxel_sizee'; its parameters: map_path, "
+                                           "use_sim_time, voxel_size"):
+        apply_overrides(specs, ["srv.voxel_sizee=0.2"])
 
 
 def test_find_executable_uses_ros2_run_layout(tmp_path):

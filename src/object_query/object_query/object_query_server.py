@@ -224,6 +224,9 @@ class ObjectQueryServer(Node):
         for name in ("min_instance_points", "min_label_views"):
             if isinstance(values[name], float) and not values[name].is_integer():
                 raise ValueError(f"{name} must be an integer, got {values[name]}")
+        for name in ("voxel_size", "min_instance_points", "min_opacity", "trim_fraction", "min_label_views"):
+            if isinstance(values[name], bool) or not isinstance(values[name], int | float):
+                raise ValueError(f"{name} must be a number, got {str(values[name])[:40]}")
         return DatabaseConfig(voxel_size=float(values["voxel_size"]),
                               min_instance_points=int(values["min_instance_points"]),
                               min_opacity=float(values["min_opacity"]), centre_method=str(values["centre_method"]),
