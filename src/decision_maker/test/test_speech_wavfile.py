@@ -137,3 +137,14 @@ def test_a_header_with_a_sample_rate_no_recording_has_is_refused(reference, tmp_
     (tmp_path / "rate.wav").write_bytes(bytes(data))
     with pytest.raises(AudioSourceError, match=f"a sample rate of {rate} Hz \\(a recording is 1000-768000 Hz"):
         read_wav_file(str(tmp_path / "rate.wav"))
+
+
+def test_a_wav_file_without_samples_is_said_not_played_as_silence(reference, tmp_path):
+    from decision_maker.speech.sources import WavFileSource
+
+    data = bytearray(reference[0].read_bytes())
+    at = data.index(b"data")
+    empty = data[:at] + b"data" + (0).to_bytes(4, "little")
+    (tmp_path / "empty.wav").write_bytes(bytes(empty))
+    with pytest.raises(AudioSourceError, match="holds no audio samples"):
+        WavFileSource(str(tmp_path / "empty.wav"))

@@ -97,11 +97,23 @@ def default_config_dir() -> str:
     return os.path.join(get_package_share_directory("home_robot_bringup"), "config")
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """YAML's safe loader, refusing a key given twice in one mapping (YAML would keep the last silently)."""
+
+    def construct_mapping(self, node, deep=False):  # noqa: ANN001, ANN201 - PyYAML's signature
+        keys = [self.construct_object(k, deep=deep) for k, _ in node.value]
+        twice = sorted({str(k) for k in keys if keys.count(k) > 1})
+        if twice:
+            raise yaml.constructor.ConstructorError(None, None, f"key(s) given twice: {', '.join(twice)}",
+                                                    node.start_mark)
+        return super().construct_mapping(node, deep=deep)
+
+
 def read_nodesets(config_dir: str) -> dict[str, Any]:
     path = os.path.join(config_dir, "nodesets.yaml")
     try:
         with open(path, encoding="utf-8") as fh:
-            doc = yaml.safe_load(fh)
+            doc = yaml.load(fh, Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader
     except (OSError, yaml.YAMLError) as exc:
         raise NodeSetError(f"cannot read {path}: {exc}") from exc
     if not isinstance(doc, dict) or not isinstance(doc.get("nodesets"), dict):

@@ -70,6 +70,7 @@ def test_include_order_and_param_paths(tmp_path):
      "a parameter is a bool, a number, a string or a list"),
     ("nodesets: {x: {}}", "node set 'x' has no nodes"),
     ("nodesets: {x: [1]}", "node set 'x' must be a name with a mapping"),
+    ("nodesets:\n  x: {nodes: [{name: a, package: p, executable: e}]}\n  x: {nodes: []}\n", "given twice: x"),
 ])
 def test_malformed_node_sets_are_clear_errors(tmp_path, body, message):
     cfg = write_config(tmp_path, body)

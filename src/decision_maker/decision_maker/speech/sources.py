@@ -86,7 +86,8 @@ class WavFileSource:
         block_s: block length in seconds.
 
     Raises:
-        AudioSourceError: missing or unreadable file, or a WAV format that is not supported.
+        AudioSourceError: missing or unreadable file, a WAV format that is not supported, or a file without samples
+            (nothing to listen to: said, not played as silence).
     """
 
     def __init__(self, path: str, pacing: float = 1.0, block_s: float = 0.032) -> None:
@@ -94,6 +95,8 @@ class WavFileSource:
             raise AudioSourceError(f"pacing must be >= 0, got {pacing}")
         self.name = f"wav:{path}"
         samples, self.info = read_wav_file(path)  # [n] float32 mono at info.sample_rate
+        if len(samples) == 0:
+            raise AudioSourceError(f"WAV file {path} holds no audio samples (its data chunk is empty)")
         self.audio = resample(samples, self.info.sample_rate)  # [n] float32, 16 kHz
         self.pacing = pacing
         self.block = max(1, int(round(block_s * SAMPLE_RATE)))
