@@ -84,6 +84,24 @@ def se3_exp(xi: Tensor) -> Tensor:
     return t
 
 
+def rigid_error(m: np.ndarray, tol: float, row_atol: float = 1e-6) -> str:
+    """Why a finite [4, 4] matrix is not a rigid transform ("" when it is): its last row farther than ``row_atol``
+    from 0 0 0 1, its rotation farther than ``tol`` from orthonormal (largest |R^T R - I| entry), a reflection, or a
+    determinant farther than ``tol`` from 1."""
+    if np.abs(m[3] - (0.0, 0.0, 0.0, 1.0)).max() > row_atol:
+        return f"its last row is {' '.join(f'{v:g}' for v in m[3])}, not 0 0 0 1"
+    r = m[:3, :3]
+    off = float(np.abs(r.T @ r - np.eye(3)).max())
+    if off > tol:
+        return f"its rotation is not orthonormal (|R^T R - I| up to {off:.3g})"
+    det = float(np.linalg.det(r))
+    if det < 0:
+        return "its rotation is a reflection (det R < 0)"
+    if abs(det - 1.0) > tol:
+        return f"its rotation scales (det R = {det:.4g})"
+    return ""
+
+
 def pose_error(a: np.ndarray, b: np.ndarray) -> tuple[float, float]:
     """Translation (m) and rotation (deg) difference of two 4x4 poses."""
     d = np.linalg.inv(a) @ b

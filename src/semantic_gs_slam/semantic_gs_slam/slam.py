@@ -28,7 +28,7 @@ from torch import Tensor
 from semantic_gs_slam.config import Intrinsics, SlamConfig
 from semantic_gs_slam.devices import require_cpu_kernel, resolve_device
 from semantic_gs_slam.errors import FrameError, MapFormatError, MappingError, TrackingError
-from semantic_gs_slam.geometry import pose_error, velocity_guess
+from semantic_gs_slam.geometry import pose_error, rigid_error, velocity_guess
 from semantic_gs_slam.io.exposure import identity as exposure_identity
 from semantic_gs_slam.io.host_frame import check_counts, host_frame
 from semantic_gs_slam.loop.closing import LoopClosing
@@ -65,9 +65,7 @@ def check_pose(c2w: np.ndarray, name: str) -> np.ndarray:
     m = np.asarray(c2w, np.float64)
     if m.shape != (4, 4) or not np.all(np.isfinite(m)):
         raise FrameError(f"{name} must be a finite [4, 4] matrix, got shape {list(m.shape)}")
-    r = m[:3, :3]
-    if np.abs(r.T @ r - np.eye(3)).max() > 1e-3 or abs(np.linalg.det(r) - 1.0) > 1e-3 or \
-            np.abs(m[3] - [0, 0, 0, 1]).max() > 1e-9:
+    if rigid_error(m, 1e-3, row_atol=1e-9):
         raise FrameError(f"{name} is not a rigid transform (rotation not orthonormal or last row not 0 0 0 1)")
     return m
 

@@ -267,16 +267,10 @@ RIGID_TOLERANCE = 1e-2
 
 
 def _rigid_error(m: np.ndarray) -> str:
-    """Why a finite 4x4 matrix is not a rigid camera-to-world transform ("" when it is)."""
-    if not np.allclose(m[3], (0.0, 0.0, 0.0, 1.0), atol=1e-6):
-        return f"its last row is {' '.join(f'{v:g}' for v in m[3])}, not 0 0 0 1"
-    r = m[:3, :3]
-    off = float(np.abs(r.T @ r - np.eye(3)).max())
-    if off > RIGID_TOLERANCE:
-        return f"its rotation is not orthonormal (|R^T R - I| up to {off:.3g})"
-    if np.linalg.det(r) < 0:
-        return "its rotation is a reflection (det R < 0)"
-    return ""
+    """Why a finite 4x4 matrix from a pose file is not a rigid camera-to-world transform ("" when it is)."""
+    from semantic_gs_slam.geometry import rigid_error
+
+    return rigid_error(m, RIGID_TOLERANCE)
 
 
 def _finite(v: float) -> bool:
