@@ -335,6 +335,8 @@ def _run() -> int:
         (f"{args.refine_seconds:g} s" if args.refine_seconds > 0 else "")
     print(f"profile {args.profile}; map refinement after the last frame: {refine or 'none'}")
     print(ds.camera_line())
+    if ds.left_out:
+        print(ds.left_out)
     o3 = None if args.no_open3d else run_open3d(ds, idx, frames, args.o3d_voxel, args.o3d_depth_max, args.device)
     if args.open3d_only:
         if o3 is None:

@@ -254,6 +254,8 @@ def main(argv: list[str] | None = None) -> int:
         ds = load_dataset(args.dataset, args.layout, size=parse_size(args.size) if args.size else None,
                           colour_calib=args.colour_calib, **camera_kwargs(args))
         print(ds.camera_line(), file=sys.stderr, flush=True)
+        if ds.left_out:
+            print(f"{args.dataset}: {ds.left_out}", file=sys.stderr, flush=True)
         idx = frame_indices(len(ds), args.start, args.stride, args.frames)
         cfg = build_config(args, ds.intrinsics)
         stage = LabelStage(LabelConfig(mode=args.labels, onnx_model=args.onnx_model, every=args.labels_every),

@@ -176,3 +176,9 @@ def test_the_run_prints_the_camera_line_with_its_sources(tmp_path, capsys):
     line = next(ln for ln in err.splitlines() if ln.startswith("camera: "))
     assert f"fx 7.00 fy 7.50 cx 3.50 cy 2.50 at 8x6 (from {os.path.join(root, 'cam.json')})" in line
     assert "depth scale 1000 per metre (from --depth-scale)" in line and "working size 4x3: fx 3.50" in line
+    assert "left out" not in err
+    with open(os.path.join(root, "rgb.txt"), "a") as fh:
+        fh.write("1.5 rgb/1.0.png\n")  # no depth within 0.02 s of 1.5: the run names it
+    assert main(["--dataset", root, "--out", str(tmp_path / "out"), "--first", "99"]) == 2
+    assert f"{root}: frames left out: 1 without a depth image within 0.02 s (first: rgb.txt line 3)" in \
+        capsys.readouterr().err

@@ -75,11 +75,16 @@ def test_tum_layout_and_association(tmp_path):
     from semantic_gs_slam.config import Intrinsics
 
     ds = load_tum(str(tmp_path), Intrinsics(6, 4, 5.0, 5.0, 2.5, 1.5))
-    # 1.50 has no depth within 0.02 s (1.30 is 0.2 s away): 3 frames
+    # 1.50 has no depth within 0.02 s (1.30 is 0.2 s away): 3 frames, and the one left out is named
     assert len(ds) == 3
+    assert ds.left_out == "frames left out: 1 without a depth image within 0.02 s (first: rgb.txt line 5)"
     f = ds[0]
     assert f.depth[0, 0] == pytest.approx(1.0) and f.gt_c2w[0, 3] == pytest.approx(1.0)
     assert ds[1].gt_c2w[0, 3] == pytest.approx(1.033)  # between the samples at 1.0 and 1.05
+    (tmp_path / "groundtruth.txt").write_text("# gt\n" + "".join(f"{t:.3f} {t} 0 0 0 0 0 1\n" for t in (1.0, 1.01)))
+    ds = load_tum(str(tmp_path), Intrinsics(6, 4, 5.0, 5.0, 2.5, 1.5))  # 1.033 and 1.066: past the last pose
+    assert len(ds) == 1 and ds.left_out == ("frames left out: 1 without a depth image within 0.02 s (first: rgb.txt "
+                                            "line 5); 2 without a reference pose at its time (first: rgb.txt line 3)")
     assert associate([0.0, 1.0], [0.05, 2.0], 0.08) == [(0, 0)]
     assert associate([0.0, 1.0], [0.05, 2.0], 0.02) == []
 
@@ -124,10 +129,10 @@ def test_bad_input_gives_clear_errors(tmp_path, tiny_home):
     ds = load_replica(str(tmp_path))
     with pytest.raises(DatasetError, match="sizes differ"):
         ds[0]
-    # fewer depth images than colour images
+    # a colour image without its depth image: left out, and named
     _png(str(tmp_path / "results" / "frame000001.jpg"), np.zeros((6, 8, 3), np.uint8))
-    with pytest.raises(DatasetError, match=r"1 frame\(s\) have no depth image \(first: frame 1, frame000001.jpg"):
-        load_replica(str(tmp_path))
+    ds = load_replica(str(tmp_path))
+    assert len(ds) == 1 and ds.left_out == "frames left out: 1 without a depth image (first: frame 1)"
 
 
 def test_replica_files_pair_by_their_numbers_never_by_position(tmp_path):
@@ -144,13 +149,20 @@ def test_replica_files_pair_by_their_numbers_never_by_position(tmp_path):
     _png(str(tmp_path / "results" / "frame3.jpg"), np.zeros((6, 8, 3), np.uint8))  # frame 3 again
     with pytest.raises(DatasetError, match="frame 3 is given twice"):
         load_replica(str(tmp_path))
+    assert ds.left_out == ""
     os.remove(tmp_path / "results" / "frame3.jpg")
-    os.remove(tmp_path / "results" / "depth000003.png")
-    with pytest.raises(DatasetError, match=r"have no depth image \(first: frame 3"):
-        load_replica(str(tmp_path))
+    os.remove(tmp_path / "results" / "depth000003.png")  # frame 3 has colour only: left out, the others keep theirs
+    ds = load_replica(str(tmp_path))
+    assert list(ds.timestamps) == [0.0, 1.0] and [p[0, 3] for p in ds.poses] == [0.0, 1.0]
+    assert ds.left_out == "frames left out: 1 without a depth image (first: frame 3)"
     _png(str(tmp_path / "results" / "depth000003.png"), np.full((6, 8), 1003, np.uint16))
-    (tmp_path / "traj.txt").write_text("\n".join(_pose_line(t) for t in range(3)) + "\n")
-    with pytest.raises(DatasetError, match="3 poses, but frame 3 needs line 4"):
+    (tmp_path / "traj.txt").write_text("\n".join(_pose_line(t) for t in range(3)) + "\n")  # no line for frame 3
+    ds = load_replica(str(tmp_path))
+    assert list(ds.timestamps) == [0.0, 1.0]
+    assert ds.left_out == ("frames left out: 1 without a line in traj.txt (3 lines; line n is frame n, from 0) "
+                           "(first: frame 3)")
+    (tmp_path / "traj.txt").write_text("")
+    with pytest.raises(DatasetError, match="no frame has colour, depth and a trajectory line: frames left out: 3 "):
         load_replica(str(tmp_path))
 
 

@@ -78,15 +78,36 @@ def test_7scenes_without_pose_files_or_k_file(tmp_path):
         ds[0]
 
 
-@pytest.mark.parametrize("breakage, message", [
-    ("depth", "no depth image"), ("pose", "no pose file"), ("badpose", "4x4"), ("badk", "3x3")])
+@pytest.mark.parametrize("missing, kept, note", [
+    ("frame-000001.depth.png", [0, 2], "1 without a depth image (first: frame 1)"),
+    ("frame-000002.pose.txt", [0, 1], "1 without a pose file (first: frame 2)"),
+    ("frame-000000.color.jpg", [1, 2], "1 without a colour image (first: frame 0)")])
+def test_7scenes_frame_missing_a_file_is_left_out_and_named(tmp_path, missing, kept, note):
+    """An incomplete copy still runs: the frames that have every file keep their own files, pose and time; the
+    frames left out are counted and the first is named."""
+    write_7scenes(tmp_path, n=3)
+    os.remove(tmp_path / missing)
+    ds = load_dataset(str(tmp_path))
+    assert ds.left_out == f"frames left out: {note}"
+    assert [round(t * 30) for t in ds.timestamps] == kept
+    assert [p[0, 3] for p in ds.poses] == [_pose(i)[0, 3] for i in kept]
+    assert [os.path.basename(p) for p in ds.depth_paths] == [f"frame-{i:06d}.depth.png" for i in kept]
+    assert load_dataset(str(tmp_path), size=(32, 24)).left_out == ds.left_out  # the working size keeps the note
+
+
+def test_7scenes_with_no_complete_frame_is_refused(tmp_path):
+    write_7scenes(tmp_path, n=2)
+    for i in range(2):
+        os.remove(tmp_path / f"frame-{i:06d}.depth.png")
+    with pytest.raises(DatasetError, match=r"no colour frame has a depth image and a pose file: frames left out: "
+                                           r"2 without a depth image \(first: frame 0\)"):
+        load_dataset(str(tmp_path))
+
+
+@pytest.mark.parametrize("breakage, message", [("badpose", "4x4"), ("badk", "3x3")])
 def test_7scenes_bad_files_are_reported(tmp_path, breakage, message):
     write_7scenes(tmp_path)
-    if breakage == "depth":
-        os.remove(tmp_path / "frame-000001.depth.png")
-    elif breakage == "pose":
-        os.remove(tmp_path / "frame-000002.pose.txt")
-    elif breakage == "badpose":
+    if breakage == "badpose":
         np.savetxt(tmp_path / "frame-000001.pose.txt", np.eye(3))
     else:
         (tmp_path / "camera-intrinsics.txt").write_text("585 0 320\n0 585 240\n")

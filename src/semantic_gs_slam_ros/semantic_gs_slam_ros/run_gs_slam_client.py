@@ -124,6 +124,8 @@ class SlamClient(Node):
             data = load_dataset(g("dataset"), g("layout"), size=size, colour_calib=g("colour_calib"))
             indices = frame_indices(len(data), g("start"), max(1, g("stride")), g("max_frames"))
             log.info(data.camera_line())  # the CameraInfo published: cam.json, a TUM preset from the name, ...
+            if data.left_out:
+                log.warning(f"{g('dataset')}: {data.left_out}")
         except (SlamError, OSError) as exc:
             log.error(f"cannot read dataset {g('dataset')!r}: {exc}")
             return 2

@@ -37,10 +37,18 @@ def main(argv: list[str] | None = None) -> int:
         small = ds.resized(w, h)
         n = max(1, min(args.frames, len(ds)))
         picks = np.linspace(0, len(ds) - 1, n).round().astype(int)
-        frames = []
+        frames, unreadable = [], []
         for i in picks:
-            f = small[int(i)]
+            try:
+                f = small[int(i)]
+            except DatasetError as exc:  # a damaged frame: use the others
+                print(f"frame {int(i)} left out: {exc}", file=sys.stderr)
+                unreadable.append(int(i))
+                continue
             frames.append((f.rgb.mean(-1).astype(np.float32), f.depth))
+        if not frames:
+            raise DatasetError(f"none of the {len(picks)} frames picked could be read (frames "
+                               f"{', '.join(map(str, unreadable))})")
         k = small.intrinsics
         est = estimate(frames, k.fx, k.fy, k.cx, k.cy)
         nat = ds.native_intrinsics

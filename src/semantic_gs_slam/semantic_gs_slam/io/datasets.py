@@ -116,6 +116,7 @@ class Dataset:
         self.intrinsics_source = "the layout's default"  # where the native intrinsics came from (for the log line)
         self.depth_scale_source = "the layout's default"
         self.distortion: tuple[float, ...] | None = None  # a preset's published lens distortion (not corrected)
+        self.left_out = ""  # which of the folder's frames the loader left out and why ("" when none)
 
     def camera_line(self) -> str:
         """One log line: the effective camera, where each part came from, the working size's scaled intrinsics."""
@@ -407,14 +408,16 @@ def load_replica(root: str, intrinsics: Intrinsics | None = None, depth_scale: f
     if not os.path.isdir(res):
         raise DatasetError(f"not a Replica (NICE-SLAM) folder: {res} is missing")
     sem_dir = os.path.join(root, "semantic")
-    rgb, depth, sem, poses, times = _paired_by_number(
+    rgb, depth, sem, poses, times, left_out = _paired_by_number(
         _numbered_with_ids(res, r"frame(\d+)\.(?:jpg|png)"), _numbered_with_ids(res, r"depth(\d+)\.png"),
         _numbered_with_ids(sem_dir, r"semantic(\d+)\.png") if os.path.isdir(sem_dir) else None,
-        os.path.join(root, "traj.txt"))
+        os.path.join(root, "traj.txt"), root)
     k, ds = _read_cam(root, REPLICA_INTRINSICS)
-    return _with_cam_source(Dataset(intrinsics or k, rgb, depth, sem or None, poses,
-                                    times, ds or depth_scale, _read_classes(root)),
-                            root, intrinsics is None, ds is not None)
+    out = _with_cam_source(Dataset(intrinsics or k, rgb, depth, sem or None, poses,
+                                   times, ds or depth_scale, _read_classes(root)),
+                           root, intrinsics is None, ds is not None)
+    out.left_out = left_out
+    return out
 
 
 def load_sgs(root: str, intrinsics: Intrinsics | None = None, depth_scale: float = 1000.0) -> Dataset:
@@ -423,27 +426,29 @@ def load_sgs(root: str, intrinsics: Intrinsics | None = None, depth_scale: float
         if not os.path.isdir(os.path.join(root, sub)):
             raise DatasetError(f"not an SGS-SLAM Replica folder: {os.path.join(root, sub)} is missing")
     sd = os.path.join(root, "semantic_class")
-    rgb, depth, sem, poses, times = _paired_by_number(
+    rgb, depth, sem, poses, times, left_out = _paired_by_number(
         _numbered_with_ids(os.path.join(root, "rgb"), r"rgb_(\d+)\.(?:png|jpg)"),
         _numbered_with_ids(os.path.join(root, "depth"), r"depth_(\d+)\.png"),
         _numbered_with_ids(sd, r"semantic_class_(\d+)\.png") if os.path.isdir(sd) else None,
-        os.path.join(root, "traj_w_c.txt"))
+        os.path.join(root, "traj_w_c.txt"), root)
     k, ds = _read_cam(root, REPLICA_INTRINSICS)
-    return _with_cam_source(Dataset(intrinsics or k, rgb, depth, sem or None, poses,
-                                    times, ds or depth_scale, _read_classes(root)),
-                            root, intrinsics is None, ds is not None)
+    out = _with_cam_source(Dataset(intrinsics or k, rgb, depth, sem or None, poses,
+                                   times, ds or depth_scale, _read_classes(root)),
+                           root, intrinsics is None, ds is not None)
+    out.left_out = left_out
+    return out
 
 
 def _paired_by_number(rgb: list[tuple[int, str]], depth: list[tuple[int, str]],
-                      sem: list[tuple[int, str]] | None, traj: str
-                      ) -> tuple[list[str], list[str], list[str] | None, list[np.ndarray], list[float]]:
+                      sem: list[tuple[int, str]] | None, traj: str, root: str
+                      ) -> tuple[list[str], list[str], list[str] | None, list[np.ndarray], list[float], str]:
     """Colour, depth, labels, poses and times (the frame numbers) of the same frame numbers (a Replica-style folder
-    numbers its files from 0, and the trajectory file's line n is frame n), never paired by position in a listing.
+    numbers its files from 0, and the trajectory file's line n is frame n), never paired by position in a listing,
+    and a note of the frames left out (:func:`_left_out_note`): a frame number with colour but no depth (or the
+    other way round), without a label image while the folder has labels, or past the trajectory file's end.
 
     Raises:
-        DatasetError: a frame number given twice in one folder, a frame number that has colour but no depth (or the
-            other way round), labels missing for a frame while the folder has labels, or no trajectory line for a
-            frame (the first such frame is named).
+        DatasetError: a frame number given twice in one folder, or no frame left.
     """
     poses_all = _read_c2w_lines(traj)
     for listing in (rgb, depth, sem or []):
@@ -453,24 +458,26 @@ def _paired_by_number(rgb: list[tuple[int, str]], depth: list[tuple[int, str]],
                 raise DatasetError(f"frame {i} is given twice: {seen[i]} and {path}")
             seen[i] = path
     c, d = dict(rgb), dict(depth)
-    for have, lack, what in ((c, d, "depth"), (d, c, "colour")):
-        missing = sorted(set(have) - set(lack))
-        if missing:
-            first = have[missing[0]]
-            raise DatasetError(f"{len(missing)} frame(s) have no {what} image (first: frame {missing[0]}, "
-                               f"{os.path.basename(first)} in {os.path.dirname(first)})")
-    ids = sorted(c)
-    labels = None
-    if sem:
-        s = dict(sem)
-        missing = [i for i in ids if i not in s]
-        if missing:
-            raise DatasetError(f"{len(missing)} frame(s) have no label image (first: frame {missing[0]})")
-        labels = [s[i] for i in ids]
-    if ids and ids[-1] >= len(poses_all):
-        raise DatasetError(f"{traj}: {len(poses_all)} poses, but frame {ids[-1]} needs line {ids[-1] + 1} (line n is "
-                           f"frame n, numbered from 0)")
-    return [c[i] for i in ids], [d[i] for i in ids], labels, [poses_all[i] for i in ids], [float(i) for i in ids]
+    s = dict(sem) if sem else None
+    lacks = {"depth image": sorted(set(c) - set(d)), "colour image": sorted(set(d) - set(c)),
+             "label image": sorted(i for i in c if i in d and s is not None and i not in s),
+             f"line in {os.path.basename(traj)} ({len(poses_all)} lines; line n is frame n, from 0)":
+                 sorted(i for i in c if i in d and i >= len(poses_all))}
+    ids = sorted(i for i in c if i in d and (s is None or i in s) and i < len(poses_all))
+    note = _left_out_note(lacks)
+    if not ids:
+        raise DatasetError(f"{root}: no frame has colour, depth{', labels' if s else ''} and a trajectory line"
+                           f"{': ' + note if note else ''}")
+    labels = [s[i] for i in ids] if s else None
+    return ([c[i] for i in ids], [d[i] for i in ids], labels, [poses_all[i] for i in ids], [float(i) for i in ids],
+            note)
+
+
+def _left_out_note(lacks: dict[str, list[int]], first: str = "frame") -> str:
+    """One line naming the frames a loader left out, by what each lacks (``{"depth image": [frame numbers]}``;
+    ``first`` names what the numbers are); "" when none."""
+    parts = [f"{len(v)} without a {what} (first: {first} {v[0]})" for what, v in lacks.items() if v]
+    return f"frames left out: {'; '.join(parts)}" if parts else ""
 
 
 def _with_cam_source(ds: Dataset, root: str, k_from_file: bool, scale_from_file: bool) -> Dataset:
@@ -643,11 +650,16 @@ def load_tum(root: str, intrinsics: Intrinsics | None = None, depth_scale: float
     gt_poses = [_quat_pose(v, f"{gt_path}:{ln}") for _, v, ln in gt] if gt else []
     pairs = associate([t for t, _, _ in rgb], [t for t, _, _ in depth], max_dt)
     rgb_p, depth_p, poses, times = [], [], [], []
+    paired = {i for i, _ in pairs}
+    lacks: dict[str, list[int]] = {f"depth image within {max_dt} s": [ln for n, (_, _, ln) in enumerate(rgb)
+                                                                    if n not in paired],
+                                   "reference pose at its time": []}
     for i, j in pairs:
         pose = None
         if gt is not None:
             pose = interpolate_pose(gt_t, gt_poses, rgb[i][0], max_dt=max_dt)
             if pose is None:
+                lacks["reference pose at its time"].append(rgb[i][2])
                 continue
         rgb_p.append(os.path.join(root, rgb[i][1][0]))
         depth_p.append(os.path.join(root, depth[j][1][0]))
@@ -657,8 +669,10 @@ def load_tum(root: str, intrinsics: Intrinsics | None = None, depth_scale: float
         span = f" (colour {rgb[0][0]:.3f}..{rgb[-1][0]:.3f} s, poses {gt_t[0]:.3f}..{gt_t[-1]:.3f} s)" \
             if gt and rgb else ""
         raise DatasetError(f"{root}: no colour/depth{'/pose' if gt else ''} triples within {max_dt} s{span}")
-    return Dataset(intrinsics or TUM_INTRINSICS, rgb_p, depth_p, None, poses if gt is not None else None, times,
-                   depth_scale)
+    ds = Dataset(intrinsics or TUM_INTRINSICS, rgb_p, depth_p, None, poses if gt is not None else None, times,
+                 depth_scale)
+    ds.left_out = _left_out_note(lacks, first="rgb.txt line")
+    return ds
 
 
 def _read_k_txt(path: str, width: int, height: int) -> Intrinsics:
@@ -704,16 +718,15 @@ def load_7scenes(root: str, intrinsics: Intrinsics | None = None, depth_scale: f
         seqs = sorted(d for d in os.listdir(root) if d.startswith("seq-")) if os.path.isdir(root) else []
         hint = f" (it has {', '.join(seqs)}: give one of them)" if seqs else ""
         raise DatasetError(f"{root}: no frame-XXXXXX.color.jpg files{hint}")
-    ids = sorted(rgb)
-    missing = [i for i in ids if i not in depth]
-    if missing:
-        raise DatasetError(f"{root}: {len(missing)} colour frames have no depth image (first: frame {missing[0]})")
-    poses = None
-    if pose:
-        missing = [i for i in ids if i not in pose]
-        if missing:
-            raise DatasetError(f"{root}: {len(missing)} frames have no pose file (first: frame {missing[0]})")
-        poses = [_read_c2w_file(pose[i]) for i in ids]
+    lacks = {"depth image": sorted(i for i in rgb if i not in depth),
+             "colour image": sorted(i for i in depth if i not in rgb),
+             "pose file": sorted(i for i in rgb if i in depth and pose and i not in pose)}
+    ids = sorted(i for i in rgb if i in depth and (not pose or i in pose))
+    left_out = _left_out_note(lacks)
+    if not ids:
+        raise DatasetError(f"{root}: no colour frame has a depth image{' and a pose file' if pose else ''}: "
+                           f"{left_out}")
+    poses = [_read_c2w_file(pose[i]) for i in ids] if pose else None
     kp = os.path.join(root, "camera-intrinsics.txt")
     source = "the layout's default"
     if intrinsics is None and os.path.isfile(kp):
@@ -726,6 +739,7 @@ def load_7scenes(root: str, intrinsics: Intrinsics | None = None, depth_scale: f
     ds.intrinsics_source = source
     ds.invalid_depth_raw = 65535
     ds.colour_calib = SEVEN_SCENES_COLOUR  # one Kinect v1 recorded the dataset; load_dataset may replace it
+    ds.left_out = left_out
     return ds
 
 
