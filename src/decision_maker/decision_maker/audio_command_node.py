@@ -38,7 +38,7 @@ from decision_maker.speech.segmentation import VadConfig  # noqa: E402
 from decision_maker.speech.sources import open_source  # noqa: E402
 from decision_maker.speech.transcriber import Transcriber, TranscriberConfig  # noqa: E402
 from decision_maker.speech.vocabulary import DEFAULT_COMMAND_PHRASES, Vocabulary, parse_object_list  # noqa: E402
-from home_robot_ros.startup import CONFIG_ERRORS  # noqa: E402
+from home_robot_ros.startup import build_node  # noqa: E402
 
 #: Matches object_query_server's latched /object_list.
 OBJECT_LIST_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL,
@@ -293,15 +293,8 @@ class AudioCommandNode(Node):
 
 def main(args: list[str] | None = None) -> int:
     rclpy.init(args=args)
-    try:
-        node = AudioCommandNode()
-    except SpeechError as exc:
-        rclpy.logging.get_logger("audio_command_node").fatal(str(exc))
-        rclpy.try_shutdown()
-        return 2
-    except CONFIG_ERRORS as exc:
-        rclpy.logging.get_logger("audio_command_node").fatal(f"configuration error: {exc}")
-        rclpy.try_shutdown()
+    node = build_node(AudioCommandNode, "audio_command_node", (SpeechError,))
+    if node is None:
         return 2
     executor = SingleThreadedExecutor()
     executor.add_node(node)

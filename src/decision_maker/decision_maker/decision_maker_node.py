@@ -73,7 +73,7 @@ from decision_maker.topics import (
     STATUS_PUBLISHER_QOS,
     SUBMIT_COMMAND,
 )
-from home_robot_ros.startup import CONFIG_ERRORS
+from home_robot_ros.startup import build_node
 
 #: Longest /object_list message parsed (characters); a longer one is ignored with a warning.
 MAX_OBJECT_LIST_CHARS = 1_000_000
@@ -290,11 +290,8 @@ class DecisionMakerNode(Node):
 
 def main(args: list[str] | None = None) -> int:
     rclpy.init(args=args)
-    try:
-        node = DecisionMakerNode()
-    except (ConfigError, *CONFIG_ERRORS) as exc:
-        rclpy.logging.get_logger("decision_maker").fatal(f"configuration error: {exc}")
-        rclpy.try_shutdown()
+    node = build_node(DecisionMakerNode, "decision_maker", (ConfigError,))
+    if node is None:
         return 2
     executor = MultiThreadedExecutor(num_threads=4)
     executor.add_node(node)

@@ -27,6 +27,8 @@ CASES = [
     ("home_robot_exploration", "live_view_node", "map_check_s:=1e300", "map_check_s must be a number"),
     ("home_robot_web", "web_ui_node", "lockout_s:=.inf", "lockout_s finite and > 0"),
     ("home_robot_web", "web_ui_node", "port:=abc", "expecting type 'INTEGER'"),
+    ("object_query", "object_query_server", "map_path:=/nonexistent/params.npz", "map file not found"),
+    ("decision_maker", "audio_command_node", "model:=/nonexistent/whisper", "/nonexistent/whisper"),
 ]
 
 
@@ -36,4 +38,4 @@ def test_a_node_started_with_a_parameter_it_cannot_use_exits_2_and_says_why(ros_
     proc = CapturedProcess([find_executable(package, executable), "--ros-args", "-p", param],
                            node_environment(ros_domain))
     assert proc.wait(60) == 2, proc.text()
-    assert words in proc.text() and "Traceback" not in proc.text(), proc.text()
+    assert "cannot start: " in proc.text() and words in proc.text() and "Traceback" not in proc.text(), proc.text()

@@ -45,15 +45,14 @@ from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String
 
-from home_robot_exploration.errors import ExplorationError
+from home_robot_exploration.errors import ConfigError, ExplorationError
 from home_robot_exploration.explorer import Exploration, ExplorerConfig, Finished, NavGoal
 from home_robot_exploration.frontiers import FrontierConfig
 from home_robot_exploration.mapping import MappingConfig, MappingResult, MappingRun
-from home_robot_exploration.nodemain import run_node
 from home_robot_exploration.occupancy import UNKNOWN, GridConfig
 from home_robot_ros.actions import ActionClient
 from home_robot_ros.poses import pose_to_matrix
-from home_robot_ros.startup import action_name, number_in
+from home_robot_ros.startup import action_name, number_in, spin_node
 
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 IMAGE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -366,7 +365,7 @@ class ExplorerNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    return run_node(ExplorerNode, "explorer", args)
+    return spin_node(ExplorerNode, "explorer", args, (ConfigError,))
 
 
 if __name__ == "__main__":

@@ -24,8 +24,7 @@ from std_msgs.msg import String
 
 from home_robot_exploration.errors import ConfigError
 from home_robot_exploration.live_view import LiveView, splats_from_params
-from home_robot_exploration.nodemain import run_node
-from home_robot_ros.startup import number_in
+from home_robot_ros.startup import number_in, spin_node
 
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 
@@ -118,7 +117,7 @@ class LiveViewNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    return run_node(LiveViewNode, "live_view", args)
+    return spin_node(LiveViewNode, "live_view", args, (ConfigError,))
 
 
 if __name__ == "__main__":

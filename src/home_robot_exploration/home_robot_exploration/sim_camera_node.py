@@ -40,8 +40,8 @@ from rclpy.time import Time
 from sensor_msgs.msg import CameraInfo, Image
 
 from home_robot_exploration.errors import ConfigError
-from home_robot_exploration.nodemain import run_node
 from home_robot_exploration.simcam import CameraConfig, OdometryConfig, WheelOdometry
+from home_robot_ros.startup import spin_node
 
 POSE_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 IMAGE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -203,7 +203,7 @@ def image_msg(array: np.ndarray, encoding: str) -> Image:
 
 
 def main(args: list[str] | None = None) -> int:
-    return run_node(SimCameraNode, "sim_camera", args)
+    return spin_node(SimCameraNode, "sim_camera", args, (ConfigError,))
 
 
 if __name__ == "__main__":

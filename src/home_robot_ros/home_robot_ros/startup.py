@@ -1,12 +1,17 @@
-"""What building a node may raise because of how it was configured, for every node's ``main()``, and a checked
-numeric parameter."""
+"""Starting a node: what building it may raise because of how it was configured, the one way every ``main()``
+reports that (:func:`build_node`, :func:`spin_node`), and checked parameters."""
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
+from typing import TypeVar
 
+import rclpy
 from rclpy.exceptions import InvalidTopicNameException, NameValidationException, ParameterException
+from rclpy.executors import ExternalShutdownException
 from rclpy.expand_topic_name import expand_topic_name
+from rclpy.node import Node
 from rclpy.validate_full_topic_name import validate_full_topic_name
 
 
@@ -19,6 +24,42 @@ class ParameterError(ValueError):
 #: :func:`action_name`), a value out of range (:class:`ParameterError`). A ``main()`` reports them in one line and
 #: exits 2, like its own configuration errors, instead of a traceback.
 CONFIG_ERRORS: tuple[type[Exception], ...] = (ParameterException, NameValidationException, ParameterError)
+
+N = TypeVar("N", bound=Node)
+
+
+def build_node(factory: Callable[[], N], name: str, errors: tuple[type[Exception], ...] = ()) -> N | None:
+    """``factory()`` (rclpy initialised), or None when it raised one of :data:`CONFIG_ERRORS` or ``errors`` (the
+    node's own: a bad setting, a missing file, a port taken): then one FATAL line ``cannot start: <reason>`` is
+    logged as ``name`` and rclpy is shut down, and the ``main()`` returns 2."""
+    try:
+        return factory()
+    except (*CONFIG_ERRORS, *errors) as exc:
+        rclpy.logging.get_logger(name).fatal(f"cannot start: {exc}")
+        rclpy.try_shutdown()
+        return None
+
+
+def spin_node(factory: Callable[[], Node], name: str, args: list[str] | None = None,
+              errors: tuple[type[Exception], ...] = ()) -> int:
+    """The whole ``main()`` of a node that needs nothing but spinning: initialise rclpy with ``args``, build the node
+    (:func:`build_node`), spin it in this thread until Ctrl-C or an external shutdown, destroy it.
+
+    Returns:
+        The process exit code: 0, or 2 when the node could not start.
+    """
+    rclpy.init(args=args)
+    node = build_node(factory, name, errors)
+    if node is None:
+        return 2
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
 
 
 def action_name(node, name: str) -> str:

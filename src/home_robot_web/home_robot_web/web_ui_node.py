@@ -28,20 +28,18 @@ import time
 from importlib import resources
 from typing import Any
 
-import rclpy
 from action_msgs.msg import GoalStatus, GoalStatusArray
 from geometry_msgs.msg import PoseStamped
 from object_query_interfaces.msg import ObjectMemory
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import ReentrantCallbackGroup
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 from std_msgs.msg import String
 
 from decision_maker.client.command_client import Ack, CommandClient
 from decision_maker.topics import CANCEL_COMMAND, CANCEL_QOS, STATUS_QOS, TASK_STATUS
-from home_robot_ros.startup import CONFIG_ERRORS
+from home_robot_ros.startup import spin_node
 from home_robot_web.auth import AttemptLimiter, Gate, generate_token, read_token_file
 from home_robot_web.errors import ConfigError, ServerError
 from home_robot_web.protocol import goal_event, memory_event, robot_event, status_event
@@ -220,27 +218,7 @@ class WebUiNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    rclpy.init(args=args)
-    try:
-        node = WebUiNode()
-    except (ConfigError, *CONFIG_ERRORS) as exc:
-        rclpy.logging.get_logger("web_ui").fatal(f"configuration error: {exc}")
-        rclpy.try_shutdown()
-        return 2
-    except ServerError as exc:  # the port is taken, no permission
-        rclpy.logging.get_logger("web_ui").fatal(f"cannot start: {exc}")
-        rclpy.try_shutdown()
-        return 2
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
-    try:
-        executor.spin()
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    return spin_node(WebUiNode, "web_ui", args, (ConfigError, ServerError))  # ServerError: the port taken, ...
 
 
 if __name__ == "__main__":

@@ -56,7 +56,7 @@ from std_msgs.msg import ColorRGBA, String
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
-from home_robot_ros.startup import CONFIG_ERRORS, number_in
+from home_robot_ros.startup import build_node, number_in
 from object_query.answers import answer_query, object_list
 from object_query.errors import MapLoadError, SynonymsError
 from object_query.memory import MemoryConfig
@@ -447,11 +447,8 @@ BUILD_JOIN_S = 10.0
 
 def main(args: list[str] | None = None) -> int:
     rclpy.init(args=args)
-    try:
-        node = ObjectQueryServer()
-    except (MapLoadError, SynonymsError, ValueError, *CONFIG_ERRORS) as exc:
-        rclpy.logging.get_logger("object_query_server").fatal(f"cannot start: {exc}")
-        rclpy.try_shutdown()
+    node = build_node(ObjectQueryServer, "object_query_server", (MapLoadError, SynonymsError, ValueError))
+    if node is None:
         return 2
     executor = SingleThreadedExecutor()
     executor.add_node(node)

@@ -40,7 +40,7 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from home_robot_ros.poses import pose_to_matrix
-from home_robot_ros.startup import CONFIG_ERRORS
+from home_robot_ros.startup import build_node
 from semantic_gs_slam_ros.cancels import CancelRouter
 from semantic_gs_slam_ros.engine import camera_info_intrinsics, make_engine, prepare_renderer, switch_interval_for
 from semantic_gs_slam_ros.errors import ImageFormatError, StreamingError
@@ -459,12 +459,9 @@ def to_feedback(p: Progress) -> RunSlam.Feedback:
 
 def main(args: list[str] | None = None) -> int:
     rclpy.init(args=args)
-    try:
-        node = SlamServer()
-    except (OSError, ValueError, StreamingError, *CONFIG_ERRORS) as exc:  # the live view's port taken, a bad
-        # parameter (a value, or a type: -p width:=abc)
-        rclpy.logging.get_logger("run_gs_slam_server").fatal(f"cannot start: {exc}")
-        rclpy.try_shutdown()
+    # the live view's port taken (OSError), a bad parameter value (ValueError)
+    node = build_node(SlamServer, "run_gs_slam_server", (OSError, ValueError, StreamingError))
+    if node is None:
         return 2
     executor = MultiThreadedExecutor(num_threads=4)
     executor.add_node(node)

@@ -24,7 +24,8 @@ from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.action.server import ServerGoalHandle
 from rclpy.node import Node
 
-from home_robot_ros.startup import action_name
+from decision_maker.errors import ConfigError
+from home_robot_ros.startup import action_name, spin_node
 
 
 @dataclass
@@ -127,26 +128,5 @@ class SimGoals:
 
 
 def run_sim_node(node_class: Callable[[], Node], name: str, args: list[str] | None = None) -> int:
-    """``main()`` of a simulated server: build the node (a ConfigError is reported, exit 2), spin
-    it in this thread until Ctrl-C / shutdown, then clean up. Returns the exit code."""
-    import rclpy
-    from rclpy.executors import ExternalShutdownException
-
-    from decision_maker.errors import ConfigError
-    from home_robot_ros.startup import CONFIG_ERRORS
-
-    rclpy.init(args=args)
-    try:
-        node = node_class()
-    except (ConfigError, *CONFIG_ERRORS) as exc:
-        rclpy.logging.get_logger(name).fatal(f"configuration error: {exc}")
-        rclpy.try_shutdown()
-        return 2
-    try:
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    finally:
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    """``main()`` of a simulated server (:func:`home_robot_ros.startup.spin_node`; a ConfigError: exit 2)."""
+    return spin_node(node_class, name, args, (ConfigError,))
