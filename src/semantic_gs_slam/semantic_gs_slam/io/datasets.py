@@ -399,25 +399,19 @@ def camera_from_name(root: str) -> str | None:
 
 
 def load_replica(root: str, intrinsics: Intrinsics | None = None, depth_scale: float = 6553.5) -> Dataset:
-    """Replica in the NICE-SLAM layout (see module docstring).
+    """Replica in the NICE-SLAM layout (see module docstring; files paired as :func:`_load_numbered` says).
 
     Raises:
-        DatasetError: missing folder/files, counts that do not match.
+        DatasetError: a missing folder or trajectory file, and as :func:`_load_numbered`.
     """
     res = os.path.join(root, "results")
     if not os.path.isdir(res):
         raise DatasetError(f"not a Replica (NICE-SLAM) folder: {res} is missing")
     sem_dir = os.path.join(root, "semantic")
-    rgb, depth, sem, poses, times, left_out = _paired_by_number(
-        _numbered_with_ids(res, r"frame(\d+)\.(?:jpg|png)"), _numbered_with_ids(res, r"depth(\d+)\.png"),
-        _numbered_with_ids(sem_dir, r"semantic(\d+)\.png") if os.path.isdir(sem_dir) else None,
-        os.path.join(root, "traj.txt"), root)
-    k, ds = _read_cam(root, REPLICA_INTRINSICS)
-    out = _with_cam_source(Dataset(intrinsics or k, rgb, depth, sem or None, poses,
-                                   times, ds or depth_scale, _read_classes(root)),
-                           root, intrinsics is None, ds is not None)
-    out.left_out = left_out
-    return out
+    return _load_numbered(root, _numbered_with_ids(res, r"frame(\d+)\.(?:jpg|png)"),
+                          _numbered_with_ids(res, r"depth(\d+)\.png"),
+                          _numbered_with_ids(sem_dir, r"semantic(\d+)\.png") if os.path.isdir(sem_dir) else None,
+                          os.path.join(root, "traj.txt"), intrinsics, depth_scale)
 
 
 def load_sgs(root: str, intrinsics: Intrinsics | None = None, depth_scale: float = 1000.0) -> Dataset:
@@ -426,29 +420,23 @@ def load_sgs(root: str, intrinsics: Intrinsics | None = None, depth_scale: float
         if not os.path.isdir(os.path.join(root, sub)):
             raise DatasetError(f"not an SGS-SLAM Replica folder: {os.path.join(root, sub)} is missing")
     sd = os.path.join(root, "semantic_class")
-    rgb, depth, sem, poses, times, left_out = _paired_by_number(
-        _numbered_with_ids(os.path.join(root, "rgb"), r"rgb_(\d+)\.(?:png|jpg)"),
-        _numbered_with_ids(os.path.join(root, "depth"), r"depth_(\d+)\.png"),
-        _numbered_with_ids(sd, r"semantic_class_(\d+)\.png") if os.path.isdir(sd) else None,
-        os.path.join(root, "traj_w_c.txt"), root)
-    k, ds = _read_cam(root, REPLICA_INTRINSICS)
-    out = _with_cam_source(Dataset(intrinsics or k, rgb, depth, sem or None, poses,
-                                   times, ds or depth_scale, _read_classes(root)),
-                           root, intrinsics is None, ds is not None)
-    out.left_out = left_out
-    return out
+    return _load_numbered(root, _numbered_with_ids(os.path.join(root, "rgb"), r"rgb_(\d+)\.(?:png|jpg)"),
+                          _numbered_with_ids(os.path.join(root, "depth"), r"depth_(\d+)\.png"),
+                          _numbered_with_ids(sd, r"semantic_class_(\d+)\.png") if os.path.isdir(sd) else None,
+                          os.path.join(root, "traj_w_c.txt"), intrinsics, depth_scale)
 
 
-def _paired_by_number(rgb: list[tuple[int, str]], depth: list[tuple[int, str]],
-                      sem: list[tuple[int, str]] | None, traj: str, root: str
-                      ) -> tuple[list[str], list[str], list[str] | None, list[np.ndarray], list[float], str]:
-    """Colour, depth, labels, poses and times (the frame numbers) of the same frame numbers (a Replica-style folder
-    numbers its files from 0, and the trajectory file's line n is frame n), never paired by position in a listing,
-    and a note of the frames left out (:func:`_left_out_note`): a frame number with colour but no depth (or the
-    other way round), without a label image while the folder has labels, or past the trajectory file's end.
+def _load_numbered(root: str, rgb: list[tuple[int, str]], depth: list[tuple[int, str]],
+                   sem: list[tuple[int, str]] | None, traj: str, intrinsics: Intrinsics | None, depth_scale: float
+                   ) -> Dataset:
+    """A Replica-style folder's frames: colour, depth, labels and poses of the same frame numbers (the folder numbers
+    its files from 0, and the trajectory file's line n is frame n), never paired by position in a listing; times are
+    the frame numbers. A frame number with colour but no depth (or the other way round), without a label image while
+    the folder has labels, or past the trajectory file's end is left out (``Dataset.left_out`` says so). The camera:
+    ``intrinsics``, else the folder's ``cam.json``, else Replica's; its depth scale, else ``depth_scale``.
 
     Raises:
-        DatasetError: a frame number given twice in one folder, or no frame left.
+        DatasetError: a frame number given twice in one folder, no frame left, a bad ``cam.json``.
     """
     poses_all = _read_c2w_lines(traj)
     for listing in (rgb, depth, sem or []):
@@ -468,9 +456,16 @@ def _paired_by_number(rgb: list[tuple[int, str]], depth: list[tuple[int, str]],
     if not ids:
         raise DatasetError(f"{root}: no frame has colour, depth{', labels' if s else ''} and a trajectory line"
                            f"{': ' + note if note else ''}")
-    labels = [s[i] for i in ids] if s else None
-    return ([c[i] for i in ids], [d[i] for i in ids], labels, [poses_all[i] for i in ids], [float(i) for i in ids],
-            note)
+    k, scale = _read_cam(root, REPLICA_INTRINSICS)
+    ds = Dataset(intrinsics or k, [c[i] for i in ids], [d[i] for i in ids], [s[i] for i in ids] if s else None,
+                 [poses_all[i] for i in ids], [float(i) for i in ids], scale or depth_scale, _read_classes(root))
+    cam = os.path.join(root, CAM_FILE)
+    if intrinsics is None and os.path.isfile(cam):
+        ds.intrinsics_source = cam
+    if scale is not None:
+        ds.depth_scale_source = cam
+    ds.left_out = note
+    return ds
 
 
 def _left_out_note(lacks: dict[str, list[int]], first: str = "frame") -> str:
@@ -478,15 +473,6 @@ def _left_out_note(lacks: dict[str, list[int]], first: str = "frame") -> str:
     ``first`` names what the numbers are); "" when none."""
     parts = [f"{len(v)} without a {what} (first: {first} {v[0]})" for what, v in lacks.items() if v]
     return f"frames left out: {'; '.join(parts)}" if parts else ""
-
-
-def _with_cam_source(ds: Dataset, root: str, k_from_file: bool, scale_from_file: bool) -> Dataset:
-    p = os.path.join(root, CAM_FILE)
-    if k_from_file and os.path.isfile(p):
-        ds.intrinsics_source = p
-    if scale_from_file:
-        ds.depth_scale_source = p
-    return ds
 
 
 def _read_tum_list(path: str, fields: int = 2, what: str = "timestamp filename"
