@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import math
 import threading
+import zipfile
+import zlib
 from collections.abc import Callable
 
 import numpy as np
@@ -17,10 +19,13 @@ import numpy as np
 from home_robot_exploration.errors import ConfigError
 from home_robot_exploration.frontiers import frontier_mask
 from home_robot_exploration.occupancy import FREE, OCCUPIED, UNKNOWN
+from semantic_gs_slam.errors import ConfigError as MapArraysError
+from semantic_gs_slam.viewer import SPLAT_KEYS, splats_from_arrays
 
 
 def splats_from_params(path: str, max_splats: int = 60000) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Gaussians of a SplaTAM / SGS-SLAM ``params.npz`` for :meth:`viser.SceneApi.add_gaussian_splats`.
+    """Gaussians of a SplaTAM / SGS-SLAM ``params.npz`` for :meth:`viser.SceneApi.add_gaussian_splats`
+    (:func:`semantic_gs_slam.viewer.splats_from_arrays` on the file's arrays).
 
     Args:
         path: the map file (``means3D``, ``rgb_colors``, ``log_scales`` [N, 1] or [N, 3],
@@ -28,33 +33,20 @@ def splats_from_params(path: str, max_splats: int = 60000) -> tuple[np.ndarray, 
         max_splats: at most this many (an even subsample), so the browser stays fluent.
 
     Returns:
-        centers [N, 3], covariances [N, 3, 3], rgbs [N, 3] in [0, 1], opacities [N, 1] in [0, 1].
+        centers [M, 3], covariances [M, 3, 3], rgbs [M, 3] in [0, 1], opacities [M, 1] in [0, 1].
 
     Raises:
-        ConfigError: unreadable file or missing keys.
+        ConfigError: unreadable file, missing keys or arrays that disagree.
     """
     try:
-        with np.load(path) as d:
-            means = np.asarray(d["means3D"], np.float32)  # [N, 3]
-            rgb = np.clip(np.asarray(d["rgb_colors"], np.float32), 0, 1)  # [N, 3]
-            log_s = np.asarray(d["log_scales"], np.float32)  # [N, 1] or [N, 3]
-            q = np.asarray(d["unnorm_rotations"], np.float32)  # [N, 4] wxyz
-            logit = np.asarray(d["logit_opacities"], np.float32).reshape(-1, 1)  # [N, 1]
-    except (OSError, KeyError, ValueError) as exc:
+        with np.load(path, allow_pickle=False) as d:
+            arrays = {k: d[k] for k in SPLAT_KEYS if k in d.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
         raise ConfigError(f"cannot read the Gaussian map {path!r}: {exc}") from exc
-    if len(means) > max_splats:
-        keep = np.linspace(0, len(means) - 1, max_splats).astype(np.int64)
-        means, rgb, log_s, q, logit = means[keep], rgb[keep], log_s[keep], q[keep], logit[keep]
-    s = np.exp(np.broadcast_to(log_s, (len(means), 3)))  # [N, 3]
-    q = q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-12)
-    w, x, y, z = q.T
-    rot = np.stack([
-        np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-        np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-        np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-    ], 1)  # [N, 3, 3]
-    cov = rot @ (s[:, :, None] ** 2 * np.transpose(rot, (0, 2, 1)))  # [N, 3, 3] = R S^2 R^T
-    return means, cov.astype(np.float32), rgb, 1.0 / (1.0 + np.exp(-logit))
+    try:
+        return splats_from_arrays(arrays, max_splats)
+    except MapArraysError as exc:
+        raise ConfigError(f"cannot show the Gaussian map {path!r}: {exc}") from exc
 
 
 def grid_image(states: np.ndarray) -> np.ndarray:

@@ -31,8 +31,12 @@ def test_splats_from_the_bundled_map(tmp_path):
     assert np.allclose(cov, np.transpose(cov, (0, 2, 1)), atol=1e-9)  # symmetric
     assert (np.linalg.eigvalsh(cov.astype(np.float64)) > -1e-12).all()  # positive semi-definite
     (tmp_path / "bad.npz").write_bytes(b"not a map")
-    with pytest.raises(ConfigError):
+    with pytest.raises(ConfigError, match="cannot read the Gaussian map"):
         splats_from_params(str(tmp_path / "bad.npz"))
+    np.savez(tmp_path / "short.npz", means3D=np.zeros((3, 3)), rgb_colors=np.zeros((2, 3)), log_scales=np.zeros((3, 1)),
+             unnorm_rotations=np.zeros((3, 4)), logit_opacities=np.zeros((3, 1)))
+    with pytest.raises(ConfigError, match="cannot show the Gaussian map .*3 means, 2 colours"):
+        splats_from_params(str(tmp_path / "short.npz"))
 
 
 def test_grid_image_colours_and_orientation():

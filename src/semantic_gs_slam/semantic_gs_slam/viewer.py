@@ -14,6 +14,9 @@ import numpy as np
 
 from semantic_gs_slam.errors import ConfigError
 
+#: The arrays of a map that :func:`splats_from_arrays` reads
+SPLAT_KEYS = ("means3D", "rgb_colors", "log_scales", "unnorm_rotations", "logit_opacities")
+
 
 def splats_from_arrays(a: dict[str, np.ndarray], max_splats: int = 60000
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
