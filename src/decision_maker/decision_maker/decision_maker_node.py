@@ -49,7 +49,6 @@ import time
 
 import rclpy
 from decision_maker_interfaces.srv import SubmitCommand
-from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
@@ -73,7 +72,7 @@ from decision_maker.topics import (
     STATUS_PUBLISHER_QOS,
     SUBMIT_COMMAND,
 )
-from home_robot_ros.startup import build_node
+from home_robot_ros.startup import build_node, read_once
 
 #: Longest /object_list message parsed (characters); a longer one is ignored with a warning.
 MAX_OBJECT_LIST_CHARS = 1_000_000
@@ -117,13 +116,7 @@ class DecisionMakerNode(Node):
             "query_service": "object_query",
             "exploration_mode": "off", "exploration_timeout_s": 900.0,  # Stage 0 (decision_maker.execution.stage0)
         }
-        for name, default in p.items():
-            self.declare_parameter(name, default)
-        v = {name: self.get_parameter(name).value for name in p}
-        # Read once: a later change would be silently ignored, so it is refused with the reason.
-        self.add_on_set_parameters_callback(
-            lambda params: SetParametersResult(
-                successful=False, reason="decision_maker parameters are read at start; restart the node"))
+        v = read_once(self, p)
 
         # Raises ConfigError (reported by main) on bad values.
         config = EngineConfig(

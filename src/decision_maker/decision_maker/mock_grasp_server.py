@@ -52,7 +52,7 @@ from decision_maker.mock_nav_server import FAULTS, POSE_QOS, yaw_of
 from decision_maker.sim.actions import SimGoals, run_sim_node
 from decision_maker.sim.world import SAMPLE_OBJECTS, ObjectWorld, check_coordinates, check_name, check_quaternion
 from decision_maker.topics import HARDWARE_STOP
-from home_robot_ros.startup import number_in
+from home_robot_ros.startup import number_in, read_once
 
 WORLD_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 GRASP_STAGES = ((0.4, "approach"), (0.7, "close_gripper"), (1.01, "lift"))
@@ -81,10 +81,7 @@ class _Job:
 class MockGraspServer(Node):
     def __init__(self) -> None:
         super().__init__("mock_grasp_server")
-        defaults = DEFAULTS
-        for k, val in defaults.items():
-            self.declare_parameter(k, val)
-        v = {k: self.get_parameter(k).value for k in defaults}
+        v = read_once(self, DEFAULTS)
         if v["fault"] not in FAULTS:
             raise ConfigError(f"fault must be one of {FAULTS}, got {v['fault']!r}")
         if v["objects_source"] not in ("params", "object_list"):

@@ -37,7 +37,7 @@ from decision_maker.errors import ConfigError, SimError
 from decision_maker.sim.actions import SimGoals, run_sim_node
 from decision_maker.sim.world import BaseSim, check_coordinates, check_quaternion
 from decision_maker.topics import HARDWARE_STOP
-from home_robot_ros.startup import number_in
+from home_robot_ros.startup import number_in, read_once
 
 POSE_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 FAULTS = ("none", "fail", "hang")
@@ -66,10 +66,7 @@ def _duration(seconds: float) -> Duration:
 class MockNavServer(Node):
     def __init__(self) -> None:
         super().__init__("mock_nav_server")
-        defaults = DEFAULTS
-        for k, val in defaults.items():
-            self.declare_parameter(k, val)
-        v = {k: self.get_parameter(k).value for k in defaults}
+        v = read_once(self, DEFAULTS)
         if v["fault"] not in FAULTS:
             raise ConfigError(f"fault must be one of {FAULTS}, got {v['fault']!r}")
         number_in("rate_hz", v["rate_hz"], 0.01, 1000.0)

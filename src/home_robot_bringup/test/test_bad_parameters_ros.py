@@ -39,3 +39,39 @@ def test_a_node_started_with_a_parameter_it_cannot_use_exits_2_and_says_why(ros_
                            node_environment(ros_domain))
     assert proc.wait(60) == 2, proc.text()
     assert "cannot start: " in proc.text() and words in proc.text() and "Traceback" not in proc.text(), proc.text()
+
+
+@pytest.mark.parametrize("package, executable, node, param", [
+    ("decision_maker", "mock_nav_server", "mock_nav_server", "speed"),
+    ("home_robot_exploration", "live_view_node", "live_view", "map_check_s"),
+])
+def test_a_parameter_read_at_start_cannot_be_changed_later_without_a_word(ros_domain, ros_node, package, executable,
+                                                                         node, param):
+    """``ros2 param set`` on a parameter the node reads only at start is refused with the reason (it would be
+    ignored); rclpy's own ``use_sim_time`` is still rclpy's to set."""
+    import threading
+
+    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+    from rcl_interfaces.srv import SetParameters
+
+    proc = CapturedProcess([find_executable(package, executable)], node_environment(ros_domain))
+    try:
+        client = ros_node.create_client(SetParameters, f"/{node}/set_parameters")
+        assert client.wait_for_service(timeout_sec=60.0), proc.text()
+
+        def set_param(name, value):
+            req = SetParameters.Request(parameters=[Parameter(name=name, value=value)])
+            done = threading.Event()
+            future = client.call_async(req)
+            future.add_done_callback(lambda _f: done.set())
+            assert done.wait(20.0), proc.text()
+            return future.result().results[0]
+
+        refused = set_param(param, ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=2.0))
+        assert not refused.successful
+        assert refused.reason == f"{node} reads {param} at start only; restart the node with the new value"
+        assert set_param("use_sim_time", ParameterValue(type=ParameterType.PARAMETER_BOOL, bool_value=False)).successful
+        assert proc.proc.poll() is None, proc.text()
+    finally:
+        proc.proc.terminate()
+        proc.wait(10)

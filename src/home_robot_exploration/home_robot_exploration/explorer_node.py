@@ -52,7 +52,7 @@ from home_robot_exploration.mapping import MappingConfig, MappingResult, Mapping
 from home_robot_exploration.occupancy import UNKNOWN, GridConfig
 from home_robot_ros.actions import ActionClient
 from home_robot_ros.poses import pose_to_matrix
-from home_robot_ros.startup import action_name, number_in, spin_node
+from home_robot_ros.startup import action_name, number_in, read_once, spin_node
 
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 IMAGE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -84,9 +84,7 @@ def seen_percent(states: np.ndarray) -> float:
 class ExplorerNode(Node):
     def __init__(self) -> None:
         super().__init__("explorer")
-        for name, val in DEFAULTS.items():
-            self.declare_parameter(name, val)
-        v = {name: self.get_parameter(name).value for name in DEFAULTS}
+        v = read_once(self, DEFAULTS)
         grid = GridConfig(float(v["resolution"]), float(v["origin_x"]), float(v["origin_y"]), float(v["width_m"]),
                           float(v["height_m"]), float(v["floor_max_z"]), float(v["band_min_z"]),
                           float(v["band_max_z"]), float(v["max_range_m"]), int(v["pixel_stride"]))

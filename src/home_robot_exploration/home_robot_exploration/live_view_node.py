@@ -24,7 +24,7 @@ from std_msgs.msg import String
 
 from home_robot_exploration.errors import ConfigError
 from home_robot_exploration.live_view import LiveView, splats_from_params
-from home_robot_ros.startup import number_in, spin_node
+from home_robot_ros.startup import number_in, read_once, spin_node
 
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 
@@ -44,9 +44,7 @@ def bundled_map() -> str:
 class LiveViewNode(Node):
     def __init__(self) -> None:
         super().__init__("live_view")
-        for name, val in DEFAULTS.items():
-            self.declare_parameter(name, val)
-        v = {name: self.get_parameter(name).value for name in DEFAULTS}
+        v = read_once(self, DEFAULTS)
         number_in("map_check_s", v["map_check_s"], 0.01, 3600.0)
         if int(v["max_splats"]) < 1:
             raise ConfigError(f"max_splats must be >= 1, got {v['max_splats']}")

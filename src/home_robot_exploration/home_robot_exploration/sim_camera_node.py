@@ -41,7 +41,7 @@ from sensor_msgs.msg import CameraInfo, Image
 
 from home_robot_exploration.errors import ConfigError
 from home_robot_exploration.simcam import CameraConfig, OdometryConfig, WheelOdometry
-from home_robot_ros.startup import spin_node
+from home_robot_ros.startup import read_once, spin_node
 
 POSE_QOS = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 IMAGE_QOS = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE)
@@ -72,9 +72,7 @@ def quaternion_of(r: np.ndarray) -> tuple[float, float, float, float]:
 class SimCameraNode(Node):
     def __init__(self) -> None:
         super().__init__("sim_camera")
-        for name, val in DEFAULTS.items():
-            self.declare_parameter(name, val)
-        v = {name: self.get_parameter(name).value for name in DEFAULTS}
+        v = read_once(self, DEFAULTS)
         self.cam = CameraConfig(int(v["width"]), int(v["height"]), float(v["hfov_deg"]), float(v["mount_height"]),
                                 float(v["tilt_deg"]), float(v["forward_offset"]))
         self.cam.check()

@@ -4,10 +4,11 @@ reports that (:func:`build_node`, :func:`spin_node`), and checked parameters."""
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
-from typing import TypeVar
+from collections.abc import Callable, Mapping
+from typing import Any, TypeVar
 
 import rclpy
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.exceptions import InvalidTopicNameException, NameValidationException, ParameterException
 from rclpy.executors import ExternalShutdownException
 from rclpy.expand_topic_name import expand_topic_name
@@ -90,3 +91,23 @@ def number_in(name: str, value: object, low: float, high: float) -> float:
     if isinstance(value, bool) or not (math.isfinite(x) and low <= x <= high):
         raise ParameterError(f"{name} must be a number from {low:g} to {high:g}, got {str(value)[:40]}")
     return x
+
+
+def read_once(node: Node, defaults: Mapping[str, Any]) -> dict[str, Any]:
+    """Declare each of ``defaults`` (name -> default value, which sets its type) on ``node`` and return their values
+    as started (``--ros-args -p name:=value`` overrides). The node reads them only now, so a later change
+    (``ros2 param set``) would be silently ignored: it is refused instead, with the reason; parameters not in
+    ``defaults`` (rclpy's ``use_sim_time``) are left to rclpy."""
+    for name, default in defaults.items():
+        node.declare_parameter(name, default)
+    who = node.get_name()
+
+    def refuse(params: list) -> SetParametersResult:
+        own = [p.name for p in params if p.name in defaults]
+        if not own:
+            return SetParametersResult(successful=True)
+        return SetParametersResult(successful=False, reason=f"{who} reads {', '.join(own)} at start only; restart "
+                                                            "the node with the new value")
+
+    node.add_on_set_parameters_callback(refuse)
+    return {name: node.get_parameter(name).value for name in defaults}

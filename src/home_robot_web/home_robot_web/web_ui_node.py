@@ -31,7 +31,6 @@ from typing import Any
 from action_msgs.msg import GoalStatus, GoalStatusArray
 from geometry_msgs.msg import PoseStamped
 from object_query_interfaces.msg import ObjectMemory
-from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -39,7 +38,7 @@ from std_msgs.msg import String
 
 from decision_maker.client.command_client import Ack, CommandClient
 from decision_maker.topics import CANCEL_COMMAND, CANCEL_QOS, STATUS_QOS, TASK_STATUS
-from home_robot_ros.startup import spin_node
+from home_robot_ros.startup import read_once, spin_node
 from home_robot_web.auth import AttemptLimiter, Gate, generate_token, read_token_file
 from home_robot_web.errors import ConfigError, ServerError
 from home_robot_web.protocol import goal_event, memory_event, robot_event, status_event
@@ -78,13 +77,7 @@ def page_html() -> bytes:
 class WebUiNode(Node):
     def __init__(self) -> None:
         super().__init__("web_ui")
-        for name, val in DEFAULTS.items():
-            self.declare_parameter(name, val)
-        v = {name: self.get_parameter(name).value for name in DEFAULTS}
-        # Read once: a later change would be silently ignored, so it is refused with the reason.
-        self.add_on_set_parameters_callback(
-            lambda params: SetParametersResult(successful=False,
-                                               reason="web_ui parameters are read at start; restart the node"))
+        v = read_once(self, DEFAULTS)
         expose = bool(v["expose"])
         host = str(v["bind_address"]) if expose else "127.0.0.1"
         config = ServerConfig(host=host, port=int(v["port"]), max_message_bytes=int(v["max_message_bytes"]),
