@@ -94,6 +94,25 @@ def test_cam_json_is_read_for_every_layout_and_beats_the_folder_name(tmp_path, l
     assert ds.intrinsics == k and ds.depth_scale == 5000 and "folder name" in ds.depth_scale_source
 
 
+def test_a_tum_layout_folder_with_calibration_txt_takes_its_camera_from_it(tmp_path):
+    """ETH3D's RGB-D sequences: TUM's files plus ``calibration.txt`` (``fx fy cx cy``); the size is the images'.
+    cam.json and the command line still outrank it; a file that is not one line of four numbers is named."""
+    root = _tum(tmp_path / "table_3")
+    (tmp_path / "table_3" / "calibration.txt").write_text("7.25 7.5 3.75 2.5\n")
+    ds = load_dataset(root)
+    assert ds.intrinsics == Intrinsics(8, 6, 7.25, 7.5, 3.75, 2.5) and ds.depth_scale == 5000
+    assert ds.intrinsics_source == os.path.join(root, "calibration.txt")
+    assert f"(from {os.path.join(root, 'calibration.txt')})" in ds.camera_line()
+    assert load_dataset(root, intrinsics=(6.0, 6.5, 4.0, 3.0)).intrinsics.fx == 6.0
+    k = _cam(root)
+    assert load_dataset(root).intrinsics == k
+    os.remove(os.path.join(root, "cam.json"))
+    for text in ("7.25 7.5 3.75\n", "7.25 7.5 3.75 2.5\n1 2 3 4\n", "-7 7.5 3.75 2.5\n", "a b c d\n", ""):
+        (tmp_path / "table_3" / "calibration.txt").write_text(text)
+        with pytest.raises(DatasetError, match="calibration.txt: expected one line 'fx fy cx cy'"):
+            load_dataset(root)
+
+
 def test_command_line_beats_everything_and_takes_the_size_from_the_images(tmp_path):
     root = _tum(tmp_path / "rgbd_dataset_freiburg1_xyz")
     _cam(root, depth_scale=2000)

@@ -11,7 +11,8 @@ Layouts:
   ``traj_w_c.txt`` (4x4 camera-to-world per line).
 * ``tum`` — TUM RGB-D: ``rgb.txt``, ``depth.txt``, ``groundtruth.txt`` (t tx ty tz qx qy qz qw),
   depth scale 5000, colour and depth paired within 0.02 s (TUM's ``associate.py``), the reference pose
-  interpolated between motion-capture samples at the colour image's time.
+  interpolated between motion-capture samples at the colour image's time. ETH3D's RGB-D sequences are in this
+  layout, with their camera in ``calibration.txt`` (``fx fy cx cy``).
 * ``7scenes`` — Microsoft 7-Scenes (one ``seq-XX`` folder): ``frame-XXXXXX.color.jpg``,
   ``frame-XXXXXX.depth.png`` (16-bit millimetres, 0 or 65535 = invalid), ``frame-XXXXXX.pose.txt``
   (4x4 camera-to-world), optional ``camera-intrinsics.txt`` (3x3 K; default fx = fy = 585,
@@ -24,7 +25,8 @@ The camera (intrinsics and depth scale) is resolved by :func:`load_dataset`, fir
 2. a named preset (``--camera tum-fr1|tum-fr2|tum-fr3``, :data:`CAMERA_PRESETS`);
 3. the folder's ``cam.json`` (any layout; schema in :func:`read_cam_json`);
 4. the preset the folder's name implies (``rgbd_dataset_freiburg1_xyz`` -> ``tum-fr1``; :func:`camera_from_name`);
-5. the layout's own file or default (7-Scenes' ``camera-intrinsics.txt``, the defaults above).
+5. the layout's own file or default (7-Scenes' ``camera-intrinsics.txt``, a TUM-layout folder's ``calibration.txt``
+   as ETH3D's RGB-D sequences have it, the defaults above).
 
 TUM's fr1 and fr2 presets publish lens distortion; frames are not undistorted (the log line says so).
 
@@ -54,6 +56,7 @@ TUM_INTRINSICS = Intrinsics(640, 480, 525.0, 525.0, 319.5, 239.5)  # TUM "ROS de
 SEVEN_SCENES_INTRINSICS = Intrinsics(640, 480, 585.0, 585.0, 320.0, 240.0)  # the Kinect v1 depth camera
 LAYOUTS = ("replica", "sgs", "tum", "7scenes")
 CAM_FILE = "cam.json"
+TUM_CALIB_FILE = "calibration.txt"  # a TUM-layout folder's own camera (ETH3D's RGB-D sequences)
 CAM_KEYS = ("fx", "fy", "cx", "cy", "width", "height", "depth_scale")  # depth_scale is optional
 
 
@@ -655,10 +658,34 @@ def load_tum(root: str, intrinsics: Intrinsics | None = None, depth_scale: float
         span = f" (colour {rgb[0][0]:.3f}..{rgb[-1][0]:.3f} s, poses {gt_t[0]:.3f}..{gt_t[-1]:.3f} s)" \
             if gt and rgb else ""
         raise DatasetError(f"{root}: no colour/depth{'/pose' if gt else ''} triples within {max_dt} s{span}")
-    ds = Dataset(intrinsics or TUM_INTRINSICS, rgb_p, depth_p, None, poses if gt is not None else None, times,
+    calib = os.path.join(root, TUM_CALIB_FILE)
+    own = _read_calibration_txt(calib, depth_p[0]) if intrinsics is None and os.path.isfile(calib) else None
+    ds = Dataset(intrinsics or own or TUM_INTRINSICS, rgb_p, depth_p, None, poses if gt is not None else None, times,
                  depth_scale)
+    if own is not None:
+        ds.intrinsics_source = calib
     ds.left_out = _left_out_note(lacks, first="rgb.txt line")
     return ds
+
+
+def _read_calibration_txt(path: str, image: str) -> Intrinsics:
+    """A TUM-layout folder's own camera, ``calibration.txt`` (ETH3D's RGB-D sequences: one line ``fx fy cx cy`` of the
+    undistorted images), at the size of ``image`` (the first depth image).
+
+    Raises:
+        DatasetError: not one line of four finite numbers with positive focal lengths (the file is named).
+    """
+    with open(path) as fh:
+        lines = [ln.strip() for ln in fh if ln.strip() and not ln.lstrip().startswith("#")]
+    try:
+        vals = [float(v) for v in lines[0].split()] if len(lines) == 1 else []
+    except ValueError:
+        vals = []
+    if len(vals) != 4 or not all(math.isfinite(v) for v in vals) or min(vals[:2]) <= 0:
+        raise DatasetError(f"{path}: expected one line 'fx fy cx cy' (pixels, positive focal lengths), got "
+                           f"{' / '.join(lines)[:120]!r}")
+    h, w = _read_image(image).shape[:2]
+    return Intrinsics(w, h, *vals)
 
 
 def _read_k_txt(path: str, width: int, height: int) -> Intrinsics:
