@@ -29,6 +29,7 @@ CASES = [
     ("home_robot_web", "web_ui_node", "port:=abc", "expecting type 'INTEGER'"),
     ("object_query", "object_query_server", "map_path:=/nonexistent/params.npz", "map file not found"),
     ("decision_maker", "audio_command_node", "model:=/nonexistent/whisper", "/nonexistent/whisper"),
+    ("semantic_gs_slam_ros", "run_gs_slam_client", "start:=abc", "expecting type 'INTEGER'"),
 ]
 
 

@@ -3,5 +3,6 @@
 Modules:
     actions -- ``ActionClient``: rclpy's action client without the reply-before-request race.
     poses -- ``pose_to_matrix``: a geometry_msgs pose as a checked [4, 4] matrix.
-    startup -- ``CONFIG_ERRORS``: what a node's constructor raises for a bad parameter (a ``main()`` exits 2).
+    startup -- starting a node: ``build_node`` / ``spin_node`` (a node that cannot start says why, exit code 2),
+        ``read_once`` (parameters read at start, a later change refused), ``number_in``, ``action_name``.
 """

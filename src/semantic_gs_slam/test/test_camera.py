@@ -111,6 +111,9 @@ def test_a_tum_layout_folder_with_calibration_txt_takes_its_camera_from_it(tmp_p
         (tmp_path / "table_3" / "calibration.txt").write_text(text)
         with pytest.raises(DatasetError, match="calibration.txt: expected one line 'fx fy cx cy'"):
             load_dataset(root)
+        # a file in another format does not stop a source that outranks it
+        assert load_dataset(root, intrinsics=(6.0, 6.5, 4.0, 3.0)).intrinsics == Intrinsics(8, 6, 6.0, 6.5, 4.0, 3.0)
+        assert load_dataset(root, camera="tum-fr3").intrinsics == CAMERA_PRESETS["tum-fr3"].intrinsics
 
 
 def test_command_line_beats_everything_and_takes_the_size_from_the_images(tmp_path):

@@ -177,11 +177,11 @@ def test_cli_writes_the_file_the_loader_then_reads(tmp_path, capsys):
     (tmp_path / "frame-000001.color.png").write_bytes(b"not a PNG")  # a damaged frame: the others still serve
     assert calibrate_colour.main([str(tmp_path), "--frames", "4", "--size", "160x120", "--dry-run"]) == 0
     out, err = capsys.readouterr()
-    assert "frame 1 left out: " in err and "over 3 frames" in out
+    assert "left out: " in err and "frame-000001.color.png" in err and "over 3 frames" in out
     for i in (0, 2, 3):
         (tmp_path / f"frame-00000{i}.color.png").write_bytes(b"")
     assert calibrate_colour.main([str(tmp_path), "--frames", "4", "--size", "160x120"]) == 2
-    assert "none of the 4 frames picked could be read (frames 0, 1, 2, 3)" in capsys.readouterr().err
+    assert "none of the 4 frames picked could be read (the first: " in capsys.readouterr().err
 
 
 SHARED_7SCENES = os.path.abspath(os.path.join(os.path.dirname(__file__), "..", "..", "..", "..", "shared", "data",

@@ -85,6 +85,10 @@ def test_tum_layout_and_association(tmp_path):
     ds = load_tum(str(tmp_path), Intrinsics(6, 4, 5.0, 5.0, 2.5, 1.5))  # 1.033 and 1.066: past the last pose
     assert len(ds) == 1 and ds.left_out == ("frames left out: 1 without a depth image within 0.02 s (first: rgb.txt "
                                             "line 5); 2 without a reference pose at its time (first: rgb.txt line 3)")
+    (tmp_path / "groundtruth.txt").write_text("# gt\n5.0 5 0 0 0 0 0 1\n")  # no pose near any frame
+    with pytest.raises(DatasetError, match=r"no colour/depth/pose triples within 0.02 s .*: frames left out: 1 "
+                                           r"without a depth image within 0.02 s \(first: rgb.txt line 5\); 3 without"):
+        load_tum(str(tmp_path), Intrinsics(6, 4, 5.0, 5.0, 2.5, 1.5))
     assert associate([0.0, 1.0], [0.05, 2.0], 0.08) == [(0, 0)]
     assert associate([0.0, 1.0], [0.05, 2.0], 0.02) == []
 
@@ -161,8 +165,13 @@ def test_replica_files_pair_by_their_numbers_never_by_position(tmp_path):
     assert list(ds.timestamps) == [0.0, 1.0]
     assert ds.left_out == ("frames left out: 1 without a line in traj.txt (3 lines; line n is frame n, from 0) "
                            "(first: frame 3)")
+    (tmp_path / "semantic").mkdir()  # a label image for frame 0 only: 1 and 3 lack theirs (and 3 its line too)
+    _png(str(tmp_path / "semantic" / "semantic000000.png"), np.zeros((6, 8), np.uint8))
+    ds = load_replica(str(tmp_path))
+    assert len(ds) == 1 and ds.left_out == "frames left out: 2 without a label image (first: frame 1)"  # each once
     (tmp_path / "traj.txt").write_text("")
-    with pytest.raises(DatasetError, match="no frame has colour, depth and a trajectory line: frames left out: 3 "):
+    with pytest.raises(DatasetError, match="no frame has colour, depth, labels and a trajectory line: frames left "
+                                           "out: 2 without a label image"):
         load_replica(str(tmp_path))
 
 

@@ -113,6 +113,8 @@ def test_7scenes_bad_files_are_reported(tmp_path, breakage, message):
         (tmp_path / "camera-intrinsics.txt").write_text("585 0 320\n0 585 240\n")
     with pytest.raises(DatasetError, match=message):
         load_dataset(str(tmp_path))
+    if breakage == "badk":  # the K file is not needed when the command line gives the camera
+        assert load_dataset(str(tmp_path), intrinsics=(58.5, 58.5, 32.0, 24.0)).intrinsics.fx == 58.5
 
 
 def test_7scenes_scene_folder_names_its_sequences(tmp_path):

@@ -41,6 +41,7 @@ from sensor_msgs.msg import CameraInfo, Image
 from std_msgs.msg import String
 
 from home_robot_ros.actions import ActionClient
+from home_robot_ros.startup import build_node
 from semantic_gs_slam_ros.images import array_to_image_fields
 
 IMAGE_QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
@@ -293,7 +294,9 @@ def main(args: list[str] | None = None) -> int:
     # supervisors) keeps ignoring it otherwise, and the run could not be cancelled.
     signal.signal(signal.SIGINT, signal.default_int_handler)
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    node = SlamClient()
+    node = build_node(SlamClient, "run_gs_slam_client")
+    if node is None:
+        return 2
     executor = MultiThreadedExecutor(num_threads=2)
     executor.add_node(node)
     spinner = threading.Thread(target=_spin, args=(executor,), daemon=True)

@@ -42,13 +42,13 @@ def main(argv: list[str] | None = None) -> int:
             try:
                 f = small[int(i)]
             except DatasetError as exc:  # a damaged frame: use the others
-                print(f"frame {int(i)} left out: {exc}", file=sys.stderr)
+                print(f"left out: {exc}", file=sys.stderr)  # names the file
                 unreadable.append(int(i))
                 continue
             frames.append((f.rgb.mean(-1).astype(np.float32), f.depth))
         if not frames:
-            raise DatasetError(f"none of the {len(picks)} frames picked could be read (frames "
-                               f"{', '.join(map(str, unreadable))})")
+            raise DatasetError(f"none of the {len(picks)} frames picked could be read (the first: "
+                               f"{ds.rgb_paths[unreadable[0]]})")
         k = small.intrinsics
         est = estimate(frames, k.fx, k.fy, k.cx, k.cy)
         nat = ds.native_intrinsics

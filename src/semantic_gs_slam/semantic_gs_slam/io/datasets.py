@@ -16,8 +16,8 @@ Layouts:
 * ``7scenes`` — Microsoft 7-Scenes (one ``seq-XX`` folder): ``frame-XXXXXX.color.jpg``,
   ``frame-XXXXXX.depth.png`` (16-bit millimetres, 0 or 65535 = invalid), ``frame-XXXXXX.pose.txt``
   (4x4 camera-to-world), optional ``camera-intrinsics.txt`` (3x3 K; default fx = fy = 585,
-  cx = 320, cy = 240), 30 Hz. Colour and depth come from two unregistered cameras: expect the
-  colour a few pixels off the depth.
+  cx = 320, cy = 240), 30 Hz (time = frame number / 30 s). Colour and depth come from two unregistered
+  cameras: expect the colour a few pixels off the depth.
 
 The camera (intrinsics and depth scale) is resolved by :func:`load_dataset`, first source that has it:
 
@@ -120,6 +120,9 @@ class Dataset:
         self.depth_scale_source = "the layout's default"
         self.distortion: tuple[float, ...] | None = None  # a preset's published lens distortion (not corrected)
         self.left_out = ""  # which of the folder's frames the loader left out and why ("" when none)
+        # the layout's own camera file could not be read: raised by load_dataset only when no other source gives the
+        # camera (a malformed file must not stop --intrinsics, --camera or cam.json from being used)
+        self.camera_error: DatasetError | None = None
 
     def camera_line(self) -> str:
         """One log line: the effective camera, where each part came from, the working size's scaled intrinsics."""
@@ -450,10 +453,11 @@ def _load_numbered(root: str, rgb: list[tuple[int, str]], depth: list[tuple[int,
             seen[i] = path
     c, d = dict(rgb), dict(depth)
     s = dict(sem) if sem else None
+    # each frame left out is counted once, under the first thing it lacks
     lacks = {"depth image": sorted(set(c) - set(d)), "colour image": sorted(set(d) - set(c)),
              "label image": sorted(i for i in c if i in d and s is not None and i not in s),
              f"line in {os.path.basename(traj)} ({len(poses_all)} lines; line n is frame n, from 0)":
-                 sorted(i for i in c if i in d and i >= len(poses_all))}
+                 sorted(i for i in c if i in d and (s is None or i in s) and i >= len(poses_all))}
     ids = sorted(i for i in c if i in d and (s is None or i in s) and i < len(poses_all))
     note = _left_out_note(lacks)
     if not ids:
@@ -657,13 +661,21 @@ def load_tum(root: str, intrinsics: Intrinsics | None = None, depth_scale: float
     if not rgb_p:
         span = f" (colour {rgb[0][0]:.3f}..{rgb[-1][0]:.3f} s, poses {gt_t[0]:.3f}..{gt_t[-1]:.3f} s)" \
             if gt and rgb else ""
-        raise DatasetError(f"{root}: no colour/depth{'/pose' if gt else ''} triples within {max_dt} s{span}")
+        note = _left_out_note(lacks, first="rgb.txt line")
+        raise DatasetError(f"{root}: no colour/depth{'/pose' if gt else ''} triples within {max_dt} s{span}"
+                           f"{': ' + note if note else ''}")
     calib = os.path.join(root, TUM_CALIB_FILE)
-    own = _read_calibration_txt(calib, depth_p[0]) if intrinsics is None and os.path.isfile(calib) else None
+    own, error = None, None
+    if intrinsics is None and os.path.isfile(calib):
+        try:
+            own = _read_calibration_txt(calib, depth_p[0])
+        except DatasetError as exc:
+            error = exc
     ds = Dataset(intrinsics or own or TUM_INTRINSICS, rgb_p, depth_p, None, poses if gt is not None else None, times,
                  depth_scale)
     if own is not None:
         ds.intrinsics_source = calib
+    ds.camera_error = error
     ds.left_out = _left_out_note(lacks, first="rgb.txt line")
     return ds
 
@@ -719,10 +731,12 @@ def _read_c2w_file(path: str) -> np.ndarray:
 
 def load_7scenes(root: str, intrinsics: Intrinsics | None = None, depth_scale: float = 1000.0,
                  fps: float = 30.0) -> Dataset:
-    """One 7-Scenes sequence folder (see module docstring); timestamps are ``index / fps``.
+    """One 7-Scenes sequence folder (see module docstring); timestamps are ``frame number / fps``. A frame without
+    its depth image, colour image or (when the folder has poses) pose file is left out (``Dataset.left_out``).
 
     Raises:
-        DatasetError: no frames, colour/depth/pose files that do not pair up, bad pose or K files.
+        DatasetError: no complete frame, a bad pose file. A bad K file is kept in ``Dataset.camera_error``
+            (:func:`load_dataset` raises it when no other source gives the camera).
     """
     rgb = dict(_numbered_with_ids(root, r"frame-(\d+)\.color\.(?:jpg|png)"))
     depth = dict(_numbered_with_ids(root, r"frame-(\d+)\.depth\.png"))
@@ -741,15 +755,19 @@ def load_7scenes(root: str, intrinsics: Intrinsics | None = None, depth_scale: f
                            f"{left_out}")
     poses = [_read_c2w_file(pose[i]) for i in ids] if pose else None
     kp = os.path.join(root, "camera-intrinsics.txt")
-    source = "the layout's default"
+    source, error = "the layout's default", None
     if intrinsics is None and os.path.isfile(kp):
         h, w = _read_image(depth[ids[0]]).shape[:2]  # the K file does not say the image size
-        intrinsics = _read_k_txt(kp, w, h)
-        source = kp
+        try:
+            intrinsics = _read_k_txt(kp, w, h)
+            source = kp
+        except DatasetError as exc:
+            error = exc
     k = intrinsics or SEVEN_SCENES_INTRINSICS
     ds = Dataset(k, [rgb[i] for i in ids], [depth[i] for i in ids], None, poses, [i / fps for i in ids],
                  depth_scale)
     ds.intrinsics_source = source
+    ds.camera_error = error
     ds.invalid_depth_raw = 65535
     ds.colour_calib = SEVEN_SCENES_COLOUR  # one Kinect v1 recorded the dataset; load_dataset may replace it
     ds.left_out = left_out
@@ -855,6 +873,8 @@ def _resolve_camera(ds: Dataset, root: str, intrinsics, depth_scale: float | Non
             intrinsics = Intrinsics(w, h, float(fx), float(fy), float(cx), float(cy))
         k, k_src = intrinsics, "--intrinsics"
         ds.distortion = None
+    if ds.camera_error is not None and implied is None and cam is None and named is None and intrinsics is None:
+        raise ds.camera_error  # the layout's own file is the camera's only source, and it cannot be read
     if depth_scale is not None:
         scale, scale_src = float(depth_scale), "--depth-scale"
     ds.intrinsics = ds.native_intrinsics = k

@@ -16,7 +16,8 @@ id with the given name, in ``params.npz`` and ``semantic.json``. Usage::
     python -m semantic_gs_slam.labels.names --map /tmp/kitchen_map --list
 
 ``--frame N --pixel U V`` (:func:`point_at_pixel`) is the point a person sees in one of the images the map was
-built from: pixel (U, V) of the colour image file of the dataset's frame N (where colour is not registered to
+built from: pixel (U, V) of the colour image file of the dataset's frame N (its 0-based position in the frames the
+loader keeps, as ``--start`` counts: the file's own number when none is left out; where colour is not registered to
 depth, as on 7-Scenes, through the same colour calibration the run used), with that frame's depth and the map's
 own pose of the frame (matched by time stamp, and checked against the dataset's pose when both have one).
 
