@@ -76,3 +76,55 @@ def test_a_parameter_read_at_start_cannot_be_changed_later_without_a_word(ros_do
     finally:
         proc.proc.terminate()
         proc.wait(10)
+
+
+def test_the_slam_server_refuses_a_change_it_would_ignore_or_could_not_run_with(ros_domain, ros_node):
+    """``run_gs_slam_server`` reads most parameters at each goal, so a ``ros2 param set`` between runs reaches the
+    next run; a value that run could not use is refused now with the reason its goal would abort with, and a
+    parameter read at start only (the live view's port, the device) is refused with that reason."""
+    import threading
+
+    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+    from rcl_interfaces.srv import GetParameters, SetParameters
+
+    proc = CapturedProcess([find_executable("semantic_gs_slam_ros", "run_gs_slam_server")],
+                           node_environment(ros_domain))
+    try:
+        setter = ros_node.create_client(SetParameters, "/run_gs_slam_server/set_parameters")
+        getter = ros_node.create_client(GetParameters, "/run_gs_slam_server/get_parameters")
+        assert setter.wait_for_service(timeout_sec=60.0) and getter.wait_for_service(timeout_sec=60.0), proc.text()
+
+        def call(client, req):
+            done = threading.Event()
+            future = client.call_async(req)
+            future.add_done_callback(lambda _f: done.set())
+            assert done.wait(20.0), proc.text()
+            return future.result()
+
+        def set_param(name, value):
+            return call(setter, SetParameters.Request(parameters=[Parameter(name=name, value=value)])).results[0]
+
+        def integer(v):
+            return ParameterValue(type=ParameterType.PARAMETER_INTEGER, integer_value=v)
+
+        def double(v):
+            return ParameterValue(type=ParameterType.PARAMETER_DOUBLE, double_value=v)
+
+        refused = set_param("live_view_port", integer(8765))
+        assert not refused.successful
+        assert refused.reason == ("run_gs_slam_server reads live_view_port at start only; restart the node with "
+                                  "the new value")
+        for name, value, words in [("image_qos_depth", integer(0), "image_qos_depth must be >= 1, got 0"),
+                                   ("done_wait", double(float("nan")), "done_wait must be a finite number"),
+                                   ("lag_low", integer(400), "lag_low and lag_high must satisfy"),
+                                   ("width", integer(-5), "width and height must be >= 0")]:
+            refused = set_param(name, value)
+            assert not refused.successful and words in refused.reason, (name, refused.reason)
+        assert set_param("done_wait", double(3.0)).successful
+        got = call(getter, GetParameters.Request(names=["done_wait", "image_qos_depth", "lag_low", "width"])).values
+        assert [got[0].double_value, got[1].integer_value, got[2].integer_value, got[3].integer_value] == \
+            [3.0, 50, 150, 1200]
+        assert proc.proc.poll() is None, proc.text()
+    finally:
+        proc.proc.terminate()
+        proc.wait(10)

@@ -29,6 +29,7 @@ import time
 import numpy as np
 import rclpy
 from geometry_msgs.msg import PoseStamped
+from rcl_interfaces.msg import SetParametersResult
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
@@ -52,6 +53,13 @@ IMAGE_QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
 #: work_dir when the parameter is "" (its default)
 DEFAULT_WORK_DIR = os.path.join(os.path.expanduser("~"), ".local", "share", "home_robot", "slam")
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
+
+
+#: parameters the server reads once, at start (a change would be ignored, so ``ros2 param set`` refuses it): the
+#: object-query reload client, the live view's address, Python's switch interval and the renderer prepared for
+#: ``device`` (``slam_enabled`` false prepares none)
+START_ONLY = frozenset({"reload_service", "live_view_port", "live_view_host", "gil_switch_interval", "device",
+                        "slam_enabled"})
 
 
 def stamp_seconds(msg: Image) -> float:
@@ -106,11 +114,9 @@ class SlamServer(Node):
         p("min_motion_m", 0.0)  # with odometry: skip frames that moved less than this and ...
         p("min_motion_deg", 0.0)  # ... turned less than this since the last mapped one (0 = take every frame)
         self._config(RunSlam.Goal())  # every run's settings, checked now: a bad value stops the node at start
-        if self.get_parameter("image_qos_depth").value < 1:
-            raise ValueError(f"image_qos_depth must be >= 1, got {self.get_parameter('image_qos_depth').value}")
-        done_wait = self.get_parameter("done_wait").value
-        if not (math.isfinite(done_wait) and done_wait >= 0):
-            raise ValueError(f"done_wait must be a finite number of seconds >= 0, got {done_wait}")
+        # a later ros2 param set: refused with the reason for what is read at start only, or for a value the next
+        # run could not use (checked as at start); else taken by the next run
+        self.add_on_set_parameters_callback(self._on_set_parameters)
         switch = float(self.get_parameter("gil_switch_interval").value)
         if switch > 1.0 or switch != switch:
             raise ValueError(f"gil_switch_interval must be at most 1 s (< 0: auto), got {switch}")
@@ -268,8 +274,22 @@ class SlamServer(Node):
         self._cancels.request(goal_key(goal_handle))
         return CancelResponse.ACCEPT
 
-    def _config(self, goal: RunSlam.Goal) -> SessionConfig:
-        """The run's settings: the goal's folders over the parameters.
+    def _on_set_parameters(self, params: list) -> SetParametersResult:
+        """``ros2 param set``: refused for a parameter read at start only (:data:`START_ONLY`) and for a value the
+        next run could not use (the reason is the one a goal would abort with); else taken by the next run."""
+        fixed = [p.name for p in params if p.name in START_ONLY]
+        if fixed:
+            return SetParametersResult(successful=False, reason=f"{self.get_name()} reads {', '.join(fixed)} at "
+                                                                "start only; restart the node with the new value")
+        try:
+            self._config(RunSlam.Goal(), {p.name: p.value for p in params})
+        except (StreamingError, ValueError, TypeError) as exc:
+            return SetParametersResult(successful=False, reason=str(exc))
+        return SetParametersResult(successful=True)
+
+    def _config(self, goal: RunSlam.Goal, proposed: dict | None = None) -> SessionConfig:
+        """The run's settings: the goal's folders over the parameters (``proposed`` values over the node's own: a
+        change checked before it is taken).
 
         Raises:
             StreamingError: a bad value (the goal aborts with it; at start, the node refuses to run).
@@ -279,18 +299,24 @@ class SlamServer(Node):
             if folder and not os.path.isabs(folder):
                 raise StreamingError(f"the goal's {name} must be an absolute path (the server's working folder is "
                                      f"not the client's), got {folder[:200]!r}")
-        g = self.get_parameter
+        proposed = proposed or {}
+        g = lambda name: proposed[name] if name in proposed else self.get_parameter(name).value  # noqa: E731
+        if g("image_qos_depth") < 1:
+            raise StreamingError(f"image_qos_depth must be >= 1, got {g('image_qos_depth')}")
+        done_wait = g("done_wait")
+        if not (math.isfinite(done_wait) and done_wait >= 0):
+            raise StreamingError(f"done_wait must be a finite number of seconds >= 0, got {done_wait}")
         return SessionConfig(
-            work_dir=goal.output_dir or g("work_dir").value or DEFAULT_WORK_DIR,
-            map_dir=goal.map_dir or g("map_dir").value,
-            width=g("width").value, height=g("height").value, depth_scale=g("depth_scale").value,
-            sync_tolerance=g("sync_tolerance").value, sync_max_wait=g("sync_max_wait").value,
-            use_semantic=g("use_semantic").value, use_odometry=bool(g("odometry_topic").value),
-            min_motion_m=float(g("min_motion_m").value), min_motion_deg=float(g("min_motion_deg").value),
-            lag_high=g("lag_high").value, lag_low=g("lag_low").value, max_behind=int(g("max_behind").value),
-            checkpoint_every=g("checkpoint_every").value, export_every=g("export_every").value,
-            refine_iters=int(g("refine_iters").value),
-            refine_poses=bool(g("refine_poses").value), refine_seconds=float(g("refine_seconds").value),
+            work_dir=goal.output_dir or g("work_dir") or DEFAULT_WORK_DIR,
+            map_dir=goal.map_dir or g("map_dir"),
+            width=g("width"), height=g("height"), depth_scale=g("depth_scale"),
+            sync_tolerance=g("sync_tolerance"), sync_max_wait=g("sync_max_wait"),
+            use_semantic=g("use_semantic"), use_odometry=bool(g("odometry_topic")),
+            min_motion_m=float(g("min_motion_m")), min_motion_deg=float(g("min_motion_deg")),
+            lag_high=g("lag_high"), lag_low=g("lag_low"), max_behind=int(g("max_behind")),
+            checkpoint_every=g("checkpoint_every"), export_every=g("export_every"),
+            refine_iters=int(g("refine_iters")),
+            refine_poses=bool(g("refine_poses")), refine_seconds=float(g("refine_seconds")),
             max_frames=goal.max_frames, clean_start=not goal.resume)
 
     def _execute(self, goal_handle) -> RunSlam.Result:
