@@ -12,6 +12,22 @@ from home_robot_bringup.nodeset import NodeSpec, find_executable, format_param, 
 REPO_CONFIG = os.path.join(os.path.dirname(__file__), "..", "config")
 
 
+def test_every_node_set_has_its_launch_file():
+    """``ros2 launch home_robot_bringup <set>.launch.py`` works for each set of nodesets.yaml, and a launch file
+    names the set it is called after (each is the same three lines over nodeset_launch_common)."""
+    import ast
+
+    launch_dir = os.path.join(os.path.dirname(__file__), "..", "launch")
+    files = {f[:-len(".launch.py")] for f in os.listdir(launch_dir) if f.endswith(".launch.py")}
+    assert files == set(read_nodesets(REPO_CONFIG))
+    for name in files:
+        with open(os.path.join(launch_dir, f"{name}.launch.py")) as fh:
+            tree = ast.parse(fh.read())
+        calls = [n for n in ast.walk(tree) if isinstance(n, ast.Call) and getattr(n.func, "id", "") ==
+                 "nodeset_launch_description"]
+        assert [c.args[0].value for c in calls] == [name], name
+
+
 def write_config(tmp_path, body: str, params: dict[str, str] | None = None) -> str:
     (tmp_path / "params").mkdir()
     (tmp_path / "nodesets.yaml").write_text(textwrap.dedent(body))
