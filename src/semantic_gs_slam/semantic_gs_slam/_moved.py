@@ -8,8 +8,9 @@ modules became packages of the same name (``tracking``, ``loop``, ``synthetic``)
 :func:`forward` gives those packages. ``numba_kernels`` has no old path: it was split into one module per user
 (``render``, ``tracking``, ``eval``) and only the engine's glue modules imported it.
 
-The documented commands ``python -m semantic_gs_slam.colour_registration`` and ``python -m
-semantic_gs_slam.demo_map`` keep working, without a warning (:data:`COMMANDS`): runpy asks the finder for the
+The old commands ``python -m semantic_gs_slam.colour_registration`` and ``python -m semantic_gs_slam.demo_map``
+(now ``semantic_gs_slam.io.calibrate_colour`` and ``semantic_gs_slam.synthetic.demo_map``) keep working, without a
+warning (:data:`COMMANDS`): runpy asks the finder for the
 old name's code, which is the new module's.
 
 Nothing the engine writes names a module (maps and checkpoints are ``.npz`` arrays and JSON, read with

@@ -64,13 +64,14 @@ def test_a_from_import_of_an_old_path_blames_the_importing_line(tmp_path):
     assert r.stderr.count("DeprecationWarning") == 2  # the forwarded name warns once
 
 
-COMMANDS = ["semantic_gs_slam.colour_registration", "semantic_gs_slam.demo_map", "semantic_gs_slam.synthetic",
+COMMANDS = ["semantic_gs_slam.io.calibrate_colour", "semantic_gs_slam.synthetic.demo_map",
+            "semantic_gs_slam.colour_registration", "semantic_gs_slam.demo_map", "semantic_gs_slam.synthetic",
             "semantic_gs_slam.run", "semantic_gs_slam.labels.names"]
 
 
 def test_documented_commands_still_run_without_a_warning():
     # runpy.run_module finds and runs a module as ``python -m`` does (find_spec, then the loader's code as __main__);
-    # one process for the five (each imports torch)
+    # one process for them all (each imports torch); the old names of two of them too
     code = ("import contextlib, io, runpy, sys\n"
             f"for cmd in {COMMANDS!r}:\n"
             "    sys.argv = [cmd, '--help']\n"

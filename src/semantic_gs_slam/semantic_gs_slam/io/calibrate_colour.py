@@ -1,4 +1,4 @@
-"""``python -m semantic_gs_slam.colour_registration DATASET``: estimate where a recording's colour camera sits
+"""``python -m semantic_gs_slam.io.calibrate_colour DATASET``: estimate where a recording's colour camera sits
 relative to its depth camera and write the calibration file the dataset loaders read.
 
 The command line of :mod:`semantic_gs_slam.io.colour_registration` (kept apart from it: the loaders in
@@ -19,7 +19,7 @@ from semantic_gs_slam.io.datasets import load_dataset, parse_size
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="python -m semantic_gs_slam.colour_registration",
+    ap = argparse.ArgumentParser(prog="python -m semantic_gs_slam.io.calibrate_colour",
                                  description="Estimate where the colour camera of an RGB-D recording sits relative to "
                                              "its depth camera (colour edges against depth discontinuities) and write "
                                              "the calibration the dataset loaders read.")

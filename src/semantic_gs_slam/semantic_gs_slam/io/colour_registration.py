@@ -11,7 +11,7 @@ the native image size, and the translation from the depth to the colour camera; 
 on a rigid RGB-D sensor is a fraction of a degree). :func:`register` re-samples a colour image into
 the depth camera's pixels using each pixel's depth. :func:`estimate` finds the calibration from the
 frames themselves, by aligning colour edges with depth discontinuities; ``python -m
-semantic_gs_slam.colour_registration DATASET`` (:mod:`semantic_gs_slam.io.calibrate_colour`) runs it and writes the
+semantic_gs_slam.io.calibrate_colour DATASET`` (:mod:`semantic_gs_slam.io.calibrate_colour`) runs it and writes the
 calibration file the dataset loaders read (``colour-calibration.json`` beside the frames, or any path a user gives).
 
 NumPy, and torch only for the shared hole filling (no ROS).

@@ -816,7 +816,7 @@ def load_dataset(root: str, layout: str = "auto", intrinsics: Intrinsics | tuple
         colour_calib: how colour meets depth. ``"auto"``: the folder's ``colour-calibration.json`` when
             present, else the layout's default (7-Scenes: ``colour_registration.SEVEN_SCENES_COLOUR``; the
             others are registered already); ``"none"``: colour taken as registered; else a calibration
-            file's path (``python -m semantic_gs_slam.colour_registration`` writes one).
+            file's path (``python -m semantic_gs_slam.io.calibrate_colour`` writes one).
         depth_scale: depth image units per metre; overrides every other source.
         camera: ``"auto"`` (a preset when the folder's name implies one, :func:`camera_from_name`), ``"none"`` (no
             preset), or a :data:`CAMERA_PRESETS` name, which outranks ``cam.json``. The order of the sources is in

@@ -9,7 +9,7 @@ once, so spending a minute more on it is worth it). The evaluation table is prin
 Usage (from the repository root, after ``make setup``)::
 
     source scripts/env.sh
-    python -m semantic_gs_slam.demo_map --out data          # about 7 minutes on 2 CPU cores
+    python -m semantic_gs_slam.synthetic.demo_map --out data          # about 7 minutes on 2 CPU cores
 
 The result is deterministic for a given torch build (fixed seeds, 2 threads).
 """
