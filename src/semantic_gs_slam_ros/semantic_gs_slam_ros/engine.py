@@ -211,8 +211,8 @@ def make_labels(mode: str, onnx_model: str, intrinsics: Any, streamed_labels: bo
 
     Args:
         mode: ``auto`` | ``dataset`` | ``geometry`` | ``onnx`` | ``none`` (auto: the streamed labels when
-            the server takes a ``semantic`` stream, else geometry).
-        onnx_model: ONNX file for mode ``onnx``.
+            the server takes a ``semantic`` stream, else the COCO detector, else geometry).
+        onnx_model: ONNX file for modes ``onnx`` and ``auto`` ("" = the installed COCO detector).
         intrinsics: the engine's :class:`~semantic_gs_slam.config.Intrinsics`.
         streamed_labels: whether a ``semantic`` stream comes with the images.
         every: geometry / onnx labels on every k-th engine frame only (``LabelConfig.every``).

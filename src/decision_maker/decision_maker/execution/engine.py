@@ -6,10 +6,10 @@ and executes its primitives sequentially through a :class:`RobotPort` (the ROS s
 with action clients; unit tests with a fake).
 
 Watchdog, as the seed's diagram: the batch's start time is recorded; before every primitive,
-``elapsed > batch_timeout_s`` → abort (``/cancel_command`` is published through
+``elapsed > batch_timeout_s`` → abort (``/hardware_stop`` is published through
 :meth:`RobotPort.emergency_stop`) and report ``timed_out``. Beyond the seed: each primitive waits
 at most ``min(its own timeout, time left in the batch)``, so a hung action cannot hold the batch past
-its deadline; on any timeout the active goal is cancelled, ``/cancel_command`` is published and the
+its deadline; on any timeout the active goal is cancelled, ``/hardware_stop`` is published and the
 batch reports ``timed_out``.
 
 Every command gets an id and at least one status: ``queued`` or ``rejected`` at once, then
@@ -233,7 +233,7 @@ class RobotPort(Protocol):
         ...
 
     def emergency_stop(self, reason: str) -> None:
-        """Tell the hardware layer to stop (publish ``/cancel_command``); never blocks."""
+        """Tell the hardware layer to stop (the ROS shell publishes ``/hardware_stop``); never blocks."""
         ...
 
 

@@ -429,7 +429,7 @@ class LLMPlanner:
 
 @dataclass
 class TieredPlanner:
-    """Registry and LLM together (parameter ``planner_tier``).
+    """Registry and LLM together (``planner_options`` ``tier``).
 
     * ``registry_first``: the scenario registry; the LLM only when no phrase matches.
     * ``llm_only``: the LLM; if the endpoint is down or slow, the registry (the status says so).
@@ -444,7 +444,7 @@ class TieredPlanner:
 
     def __post_init__(self) -> None:
         if self.tier not in TIERS:
-            raise ConfigError(f"planner_tier must be one of {', '.join(TIERS)}, got {self.tier!r}")
+            raise ConfigError(f"planner_options tier must be one of {', '.join(TIERS)}, got {self.tier!r}")
 
     def plan(self, text: str, context: PlanningContext) -> Plan:
         if self.tier == "registry_only":
