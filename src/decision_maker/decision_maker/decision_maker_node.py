@@ -9,7 +9,7 @@ Topics:
     submit_command (decision_maker_interfaces/srv/SubmitCommand, service): the acknowledged way in:
         answers with the command id or the rejection reason (see decision_maker.client.command_client).
         A call repeated with the same ``key`` (its answer was lost) gets the first answer again and
-        is not run twice (execution/answers.py).
+        is not run twice (execution/repeated_calls.py).
         A spoken/typed "stop" / "cancel" / "stop it" / "abort" there or on /manual_command cancels at
         once, like /cancel_command.
     /object_list (std_msgs/String JSON, in, transient local): known objects, for slot filling.
@@ -56,8 +56,8 @@ from std_msgs.msg import String
 
 from decision_maker.command_types import FrameTransform, load_locations, sanitize_text
 from decision_maker.errors import BadKeyError, ConfigError
-from decision_maker.execution.answers import AnswerMemory
 from decision_maker.execution.engine import EngineConfig, ExecutionEngine, TaskState, TaskStatus
+from decision_maker.execution.repeated_calls import AnswerMemory
 from decision_maker.execution.ros_robot import RosRobot
 from decision_maker.execution.stage0 import ExplorationGate
 from decision_maker.memory.link import MemoryLink

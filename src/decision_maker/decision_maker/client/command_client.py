@@ -21,7 +21,7 @@ response reader (a discovery race of ROS 2 services, worst while many nodes star
 carries a unique ``key``; while no answer has come, the same call is sent again after ``retry_s``,
 then after twice, four times... as long (within ``answer_timeout_s``). The brain answers every
 repeat with its first answer without running the command again
-(``decision_maker.execution.answers``). The first answer to arrive is the one reported.
+(``decision_maker.execution.repeated_calls``). The first answer to arrive is the one reported.
 """
 
 from __future__ import annotations

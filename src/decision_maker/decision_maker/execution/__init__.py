@@ -3,7 +3,7 @@ exploration gate.
 
 * :mod:`.engine` — :class:`~decision_maker.execution.engine.ExecutionEngine`: queue, run, cancel, status.
 * :mod:`.ros_robot` — the engine's robot port over ROS actions.
-* :mod:`.answers` — :class:`~decision_maker.execution.answers.AnswerMemory`: a retried ``submit_command``
+* :mod:`.repeated_calls` — :class:`~decision_maker.execution.repeated_calls.AnswerMemory`: a retried ``submit_command``
   call answered once.
 * :mod:`.stage0` — the gate that holds commands while the robot explores its home.
 """

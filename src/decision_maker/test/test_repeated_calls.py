@@ -1,4 +1,5 @@
-"""AnswerMemory: a keyed call runs once, however often it is repeated, even concurrently."""
+"""AnswerMemory (execution/repeated_calls.py): a keyed call runs once, however often it is repeated, even
+concurrently."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ import time
 import pytest
 
 from decision_maker.errors import BadKeyError
-from decision_maker.execution.answers import MAX_KEY_CHARS, AnswerMemory
+from decision_maker.execution.repeated_calls import MAX_KEY_CHARS, AnswerMemory
 
 
 def test_a_key_runs_once_and_repeats_get_the_first_answer():
