@@ -68,84 +68,33 @@ def browser_screenshot(url: str, path: str, width: int = 1280, height: int = 800
                        timeout_s: float = 120.0, ready: Callable[[str], bool] | None = None) -> None:
     """Load ``url`` in a headless Chromium (software WebGL: no GPU needed) and save a PNG screenshot.
 
-    Driven over the DevTools protocol in real time (not Chromium's ``--screenshot``, whose virtual time
-    raced the scene's websocket): the page loads, then a screenshot is taken every ``settle_s`` seconds
-    until ``ready(path)`` says the scene is drawn (default: the first one after ``settle_s``), at most
+    Driven over the DevTools protocol in real time (:mod:`home_robot_web.cdp`; not Chromium's ``--screenshot``,
+    whose virtual time raced the scene's websocket): the page loads, then a screenshot is taken every ``settle_s``
+    seconds until ``ready(path)`` says the scene is drawn (default: the first one after ``settle_s``), at most
     ``timeout_s`` seconds.
 
     Raises:
-        ConfigError: no ``chromium`` on the PATH, it did not start, or the scene was not ready in time
+        ConfigError: no ``chromium`` on the PATH, it did not start or answer, or the scene was not ready in time
             (the last screenshot is still written).
     """
-    import base64
-    import json
-    import shutil
-    import socket
-    import subprocess
-    import tempfile
     import time
-    import urllib.request
 
-    from websockets.sync.client import connect
+    from home_robot_web.cdp import BrowserError, Chromium
 
-    exe = shutil.which("chromium") or shutil.which("chromium-browser")
-    if exe is None:
-        raise ConfigError("no chromium on the PATH (Debian: apt-get install chromium)")
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port = sock.getsockname()[1]
-    profile = tempfile.mkdtemp(prefix="live_view_chromium_")
-    proc = subprocess.Popen([exe, "--headless=new", "--no-sandbox", "--disable-gpu", "--enable-unsafe-swiftshader",
-                             "--use-angle=swiftshader", f"--window-size={width},{height}", "--hide-scrollbars",
-                             f"--remote-debugging-port={port}", "--remote-debugging-address=127.0.0.1",
-                             f"--user-data-dir={profile}", "about:blank"],
-                            stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + timeout_s
     try:
-        target = None
-        while target is None and time.monotonic() < deadline:
-            try:
-                with urllib.request.urlopen(f"http://127.0.0.1:{port}/json", timeout=2) as r:
-                    target = next((t for t in json.load(r) if t.get("type") == "page"), None)
-            except OSError:
-                time.sleep(0.2)
-        if target is None:
-            raise ConfigError(f"chromium did not open its DevTools port within {timeout_s:g} s")
-        with connect(target["webSocketDebuggerUrl"], max_size=None, open_timeout=10) as ws:
-            seq = 0
-
-            def call(method: str, **params: object) -> dict:
-                nonlocal seq
-                seq += 1
-                ws.send(json.dumps({"id": seq, "method": method, "params": params}))
-                while True:
-                    msg = json.loads(ws.recv(timeout=max(1.0, deadline - time.monotonic())))
-                    if msg.get("id") == seq:
-                        if "error" in msg:
-                            raise ConfigError(f"chromium {method}: {msg['error']}")
-                        return msg.get("result", {})
-
-            call("Page.enable")
-            call("Emulation.setDeviceMetricsOverride", width=width, height=height, deviceScaleFactor=1, mobile=False)
-            call("Page.navigate", url=url)
+        with Chromium(start_timeout_s=timeout_s, webgl=True) as browser:
+            page = browser.page(width, height)
+            page.navigate(url, timeout_s=max(1.0, deadline - time.monotonic()))
             while True:
                 time.sleep(settle_s)
-                shot = call("Page.captureScreenshot", format="png")
-                with open(path, "wb") as fh:
-                    fh.write(base64.b64decode(shot["data"]))
+                page.screenshot(path, timeout_s=max(1.0, deadline - time.monotonic()))
                 if ready is None or ready(path):
                     return
                 if time.monotonic() + settle_s > deadline:
                     raise ConfigError(f"the scene was not drawn within {timeout_s:g} s (last screenshot: {path})")
-    except TimeoutError as exc:
-        raise ConfigError(f"chromium did not answer within {timeout_s:g} s") from exc
-    finally:
-        proc.terminate()
-        try:
-            proc.wait(10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-        shutil.rmtree(profile, ignore_errors=True)
+    except BrowserError as exc:
+        raise ConfigError(str(exc)) from exc
 
 
 def coloured_pixels(png_path: str, min_chroma: int = 20) -> int:

@@ -1,4 +1,5 @@
-"""A headless Chromium driven over the DevTools protocol (tests, benchmark, screenshots; no ROS).
+"""A headless Chromium driven over the DevTools protocol (tests, benchmark, screenshots; no ROS): the project's one
+browser driver (the web page's tests and benchmark, the exploration live view's screenshots).
 
 Real clicks and typing go through ``Input.*`` (the page sees trusted events, as from a person);
 page state is read with ``Runtime.evaluate``. Needs the ``chromium`` package (Debian); nothing is
@@ -123,8 +124,9 @@ class Page:
     def text(self, selector: str) -> str:
         return self.evaluate(f"(document.querySelector({json.dumps(selector)}) || {{}}).textContent || ''")
 
-    def screenshot(self, path: str) -> None:
-        data = self.call("Page.captureScreenshot", format="png")["data"]
+    def screenshot(self, path: str, timeout_s: float = 30.0) -> None:
+        """Save what the tab shows as a PNG."""
+        data = self.call("Page.captureScreenshot", timeout_s=timeout_s, format="png")["data"]
         with open(path, "wb") as fh:
             fh.write(base64.b64decode(data))
 
@@ -140,9 +142,10 @@ class Chromium:
 
     Args:
         start_timeout_s: longest wait for its DevTools port.
+        webgl: draw WebGL in software (SwiftShader), for pages with a 3-D scene on a machine without a GPU.
     """
 
-    def __init__(self, start_timeout_s: float = 60.0) -> None:
+    def __init__(self, start_timeout_s: float = 60.0, webgl: bool = False) -> None:
         exe = chromium_path()
         if exe is None:
             raise BrowserError("no chromium on the PATH (Debian: apt-get install chromium)")
@@ -151,6 +154,7 @@ class Chromium:
             [exe, "--headless=new", "--no-sandbox", "--disable-gpu", "--no-first-run", "--no-default-browser-check",
              "--disable-extensions", "--disable-background-networking", "--disable-sync", "--mute-audio",
              "--remote-debugging-port=0", "--remote-debugging-address=127.0.0.1", "--remote-allow-origins=*",
+             *(("--enable-unsafe-swiftshader", "--use-angle=swiftshader") if webgl else ()),
              f"--user-data-dir={self._profile}", "about:blank"],
             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
             env={**os.environ, "TMPDIR": self._profile})  # its singleton socket folder goes with the profile
