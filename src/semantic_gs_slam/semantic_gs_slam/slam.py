@@ -579,8 +579,13 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
     def keyframe_expected(self, guess_c2w: np.ndarray) -> bool:
         """Whether the next frame will be a keyframe if it is tracked near ``guess_c2w`` ([4, 4], e.g. the
         constant-velocity or odometry guess): its index is a multiple of ``mapping.keyframe_every``, or the guess
-        moved past ``mapping.keyframe_motion_*`` from the last keyframe. What the labelling stage asks before the
-        frame is added (``LabelConfig.every``); the engine decides after tracking, with the tracked pose."""
+        moved past ``mapping.keyframe_motion_*`` from the last keyframe, and a mapping thread that defers keyframes
+        (``mapping.defer_keyframes``) is free to map it now. What the labelling stage asks before the frame is added
+        (``LabelConfig.every``); the engine decides after tracking, with the tracked pose. While the thread is busy
+        a due keyframe is deferred frame after frame: labelling each of them (most of a frame's time on a CPU) kept
+        the thread busy and the engine at the labelling's pace."""
+        if self._mapping_busy():
+            return False
         return len(self.poses) % self.cfg.mapping.keyframe_every == 0 or self._kf_due or \
             self._new_view(np.asarray(guess_c2w))
 

@@ -148,10 +148,13 @@ def test_busy_mapping_defers_keyframes_and_the_next_free_frame_takes_it(views):
     _feed(eng, frames[:5])  # frame 0's map update holds the thread: frame 3, due by keyframe_every, is deferred
     assert [lg.index for lg in eng.logs if lg.keyframe] == [0]
     assert eng.stats()["deferred_keyframes"] == 2  # frames 3 and 4 (the due keyframe waits for a free thread)
-    assert eng.keyframe_expected(poses[5])  # the labelling stage is told the next frame is a keyframe
+    # the thread is busy: the next frame would be deferred too, so the labelling stage is not told to label it
+    # (labelling every deferred frame kept a CPU engine at the labelling's pace)
+    assert not eng.keyframe_expected(poses[5])
     assert eng._fe_ref_idx == 3  # the front end renewed its reference, keyframe_every frames old, without mapping
     eng.gate.set()
     eng.drain(120.0)
+    assert eng.keyframe_expected(poses[5])  # the thread is free: the due keyframe is mapped next, labelled
     _feed_from(eng, frames, 5)
     eng.finish(120.0)
     kfs = [lg.index for lg in eng.logs if lg.keyframe]
