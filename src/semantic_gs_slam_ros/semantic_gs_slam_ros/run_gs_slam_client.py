@@ -32,6 +32,7 @@ import time
 
 import numpy as np
 import rclpy
+from action_msgs.msg import GoalStatus
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -45,6 +46,10 @@ from home_robot_ros.startup import build_node
 from semantic_gs_slam_ros.images import array_to_image_fields
 
 IMAGE_QOS = QoSProfile(depth=50, reliability=ReliabilityPolicy.RELIABLE)
+#: goal states after which the server has the result
+_ENDED = (GoalStatus.STATUS_SUCCEEDED, GoalStatus.STATUS_CANCELED, GoalStatus.STATUS_ABORTED)
+#: s to wait for the result of a goal the server reports ended before asking for it again
+RESULT_RETRY_S = 5.0
 LATCHED = QoSProfile(depth=1, durability=DurabilityPolicy.TRANSIENT_LOCAL, reliability=ReliabilityPolicy.RELIABLE)
 
 
@@ -223,9 +228,22 @@ class SlamClient(Node):
                 shown = ", ".join(map(str, skipped[:10])) + (" ..." if len(skipped) > 10 else "")
                 log.warning(f"skipped {len(skipped)} of {len(indices)} frames that could not be read: {shown}")
             log.info(f"sent {n} frames; waiting for the map")
+            asked, gone = time.monotonic(), None
             while not result_future.done():
                 time.sleep(0.5)
                 self._print_progress(n, len(indices))
+                now = time.monotonic()
+                if handle.status in _ENDED and now - asked > RESULT_RETRY_S:
+                    # the goal has ended on the server but its result has not come: a service request or reply
+                    # can be lost while DDS is still matching the two ends, so the result is asked for again (the
+                    # server keeps it)
+                    log.warning(f"the run ended on the server but its result did not arrive within "
+                                f"{RESULT_RETRY_S:g} s: asking again")
+                    result_future, asked = handle.get_result_async(), now
+                gone = None if self._action.server_is_ready() else (gone or now)
+                if gone is not None and now - gone > g("server_timeout"):
+                    log.error(f"the run_gs_slam server has been gone for {g('server_timeout'):.0f} s: no map")
+                    return 1
         except KeyboardInterrupt:
             log.warning("cancelling the run (the server still saves the map)")
             _wait(handle.cancel_goal_async(), 10.0)

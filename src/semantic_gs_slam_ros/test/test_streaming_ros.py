@@ -11,6 +11,7 @@ import json
 import os
 import re
 import signal
+import subprocess
 import time
 
 import pytest
@@ -84,10 +85,18 @@ class Client(CapturedProcess):
         args = [exe, "--ros-args", "-p", f"dataset:={dataset}", "-p", "rate:=0.0"]
         for k, v in params.items():
             args += ["-p", f"{k}:={json.dumps(v)}"]
-        super().__init__(args, node_environment(domain))
+        self.env = node_environment(domain)
+        super().__init__(args, self.env)
 
     def wait(self, timeout: float = 240) -> int:
-        return super().wait(timeout)
+        """Exit code; a client still running after ``timeout`` s is killed and the test fails with what it printed
+        and the ROS environment it ran in (a hang is then diagnosable from the report)."""
+        try:
+            return super().wait(timeout)
+        except subprocess.TimeoutExpired:
+            env = {k: v for k, v in self.env.items() if k.startswith("ROS_")}
+            raise AssertionError(f"run_gs_slam_client did not end within {timeout:g} s ({env}); its output:\n"
+                                 f"{self.text()[-6000:]}") from None
 
 
 def processed_frames(work) -> int:
@@ -199,6 +208,18 @@ def test_resume_after_a_crash(launch_nodes, ros_domain, sequence, tmp_path):
     # the resumed run continued the numbering: the crashed run's frames are still there
     indices = [json.loads(line)["index"] for line in open(work / "completed.jsonl")]
     assert len(indices) == len(set(indices)) and len(os.listdir(work / "frames")) == len(indices)
+
+
+def test_a_client_whose_server_dies_mid_run_says_so_and_exits(launch_nodes, ros_domain, sequence, tmp_path):
+    """The server killed while the client streams: the client stops sending (the image topics lose their
+    subscriber), then waits for the result only while the action server is there, and exits 1 with the reason."""
+    work = tmp_path / "run"
+    sup = launch_nodes(nodes=[server_spec(work, sequence)])
+    client = Client(ros_domain, sequence / "home", rate=2.0, pause_timeout=3.0, server_timeout=5.0)
+    assert wait_for(lambda: processed_frames(work) >= 2, 120), sup.output()
+    sup.get("run_gs_slam_server").send(signal.SIGKILL)
+    assert client.wait(120) == 1, client.text()
+    assert "the run_gs_slam server has been gone for 5 s: no map" in client.text()
 
 
 @pytest.mark.xdist_group("shared_slam_server")
