@@ -228,18 +228,19 @@ class SlamClient(Node):
                 shown = ", ".join(map(str, skipped[:10])) + (" ..." if len(skipped) > 10 else "")
                 log.warning(f"skipped {len(skipped)} of {len(indices)} frames that could not be read: {shown}")
             log.info(f"sent {n} frames; waiting for the map")
-            asked, gone = time.monotonic(), None
+            ended, gone = None, None  # since when the server reports the goal ended / its action server is gone
             while not result_future.done():
                 time.sleep(0.5)
                 self._print_progress(n, len(indices))
                 now = time.monotonic()
-                if handle.status in _ENDED and now - asked > RESULT_RETRY_S:
+                ended = (ended or now) if handle.status in _ENDED else None
+                if ended is not None and now - ended > RESULT_RETRY_S:
                     # the goal has ended on the server but its result has not come: a service request or reply
                     # can be lost while DDS is still matching the two ends, so the result is asked for again (the
                     # server keeps it)
                     log.warning(f"the run ended on the server but its result did not arrive within "
                                 f"{RESULT_RETRY_S:g} s: asking again")
-                    result_future, asked = handle.get_result_async(), now
+                    result_future, ended = handle.get_result_async(), now
                 gone = None if self._action.server_is_ready() else (gone or now)
                 if gone is not None and now - gone > g("server_timeout"):
                     log.error(f"the run_gs_slam server has been gone for {g('server_timeout'):.0f} s: no map")
