@@ -76,7 +76,11 @@ def lost_summary(stats: dict, idx: list[int]) -> tuple[str, str]:
     detail = (f"lost at dataset frames {', '.join(at(n) for n in lost[:20])}{' ...' if len(lost) > 20 else ''}"
               f"{'; recovered (lost at -> recovered at): ' + spans if rec else '; none recovered'}") if lost else ""
     rejoined = stats.get("rejoined_frames", 0)
-    return f"{len(lost)} / {len(rec)}" + (f" ({rejoined} lost frames re-posed in the map)" if rejoined else ""), detail
+    resumed = stats.get("resumed", [])
+    notes = ([f"{rejoined} lost frames re-posed in the map"] if rejoined else []) + \
+        ([f"{len(resumed)} resumed mapping on their own track, not relocalised: "
+          f"{', '.join(f'{at(a)}->{at(b)}' for a, b in resumed[:20])}"] if resumed else [])
+    return f"{len(lost)} / {len(rec)}" + (f" ({'; '.join(notes)})" if notes else ""), detail
 
 
 def engine_config(ds, args: argparse.Namespace) -> SlamConfig:

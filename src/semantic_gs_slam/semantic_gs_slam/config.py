@@ -175,6 +175,13 @@ class TrackingConfig:
     # guess); once the map takes the camera back, the whole lost stretch is moved into the map's frame. Lost frames
     # are not mapped as they come: once joined, the segment's views join the backlog the refinement maps
     # (mapping.backlog_max > 0)
+    lost_resume_after: int = 30  # "keyframe": a camera lost for this many frames in a row that no relocalisation
+    # took back, whose lost segment tracked its last relocalise_confirm frames and started from a trustworthy guess
+    # (the odometry's, or constant velocity extrapolated in full, within velocity_max_scale: not after a stalled
+    # stream or a jump in time), resumes mapping on the segment's own track: the camera went on to ground no
+    # keyframe saw (a quick turn) and would otherwise stay lost, mapping nothing, until it came back. The new ground
+    # is mapped where the segment puts it, the first lost frame's guess being its anchor. 0: never (stay lost until
+    # relocalised)
     relocalise_map_refine: bool = True  # "keyframe": a relocalised frame and the frames confirming it are refined by
     # the "render" front end's ICP against the map rendered at their pose (the map holds more of the scene than the
     # one keyframe they were relocalised against; a mapping thread finishes its job first). On the kitchen, after a
@@ -199,6 +206,10 @@ class TrackingConfig:
                 raise ConfigError(f"tracking.{name} must be a finite number > 0, got {getattr(self, name)}")
         if self.frontend not in ("render", "keyframe"):
             raise ConfigError(f"tracking.frontend must be 'render' or 'keyframe', got {self.frontend!r}")
+        if isinstance(self.lost_resume_after, bool) or not isinstance(self.lost_resume_after, int) or \
+                self.lost_resume_after < 0:
+            raise ConfigError(f"tracking.lost_resume_after must be an integer >= 0 (0: never), got "
+                              f"{self.lost_resume_after!r}")
         if min(self.relocalise_every, self.relocalise_candidates, self.relocalise_confirm) < 1:
             raise ConfigError("tracking.relocalise_every, relocalise_candidates and relocalise_confirm must be >= 1")
         if not (math.isfinite(self.velocity_max_scale) and self.velocity_max_scale >= 0):

@@ -315,7 +315,8 @@ def main(argv: list[str] | None = None) -> int:
             eng.finish(timeout=600.0)  # SlamConfig.threaded: the mapping thread's queue (inline: nothing to wait for)
             if eng.cfg.threaded:
                 print(f"mapping thread drained in {time.perf_counter() - t_drain:.1f} s after the last frame; "
-                      f"lost {eng.stats()['lost_frames']}, recoveries {eng.stats()['recoveries']}, "
+                      f"lost {eng.stats()['lost_frames']}, recoveries {eng.stats()['recoveries']} (resumed on their "
+                      f"own track: {eng.stats()['resumed']}), "
                       f"dropped {eng.stats()['dropped']}", file=sys.stderr)
             if interrupt.requested and not stopped:  # during the last frame
                 stopped = "stopped by Ctrl-C"

@@ -93,7 +93,8 @@ class FrameLog:
     track_agreement: float = float("nan")  # TrackResult.agreement (share of the frame on the map's surface)
     loop: str = ""  # keyframes: what loop detection found ("" = not checked; see SLAM._close_loop)
     # tracking.frontend "keyframe" adds the pose sources lost (not trusted: the previous pose, not mapped),
-    # relocalised and confirming (trusted, not mapped until tracking.relocalise_confirm frames in a row) and recovered
+    # relocalised and confirming (trusted, not mapped until tracking.relocalise_confirm frames in a row), recovered and
+    # resumed (mapped again on the lost frames' own track after tracking.lost_resume_after lost frames)
     # (with either front end too while a start on a saved map is not confirmed: SLAM.from_map)
     track_coverage: float = float("nan")  # "keyframe" front end: share of the frame's points on the reference
     map_queue: str = "inline"  # inline (mapped in add_frame) | queued (SlamConfig.threaded; added, pruned, map_loss
@@ -151,6 +152,8 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
         self._last_kf_index = -1  # the last frame made a keyframe (the caller's thread; the map may lag, threaded)
         self.lost_frames: list[int] = []  # frames whose tracking was lost (not mapped)
         self.recoveries: list[list[int]] = []  # [first lost frame, frame tracking was trusted and mapped again]
+        self.resumed: list[list[int]] = []  # the recoveries where mapping resumed on the lost frames' own track
+        # (tracking.lost_resume_after), not relocalised in the map
         self.dropped_jobs: list[int] = []  # frames whose map update found the queue full (threaded)
         self.deferred_keyframes = 0  # frames due as keyframes but deferred while mapping was busy (defer_keyframes)
         self._kf_due = False  # a deferred keyframe is due on the next frame
@@ -333,7 +336,7 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
             self.poses.append(np.asarray(c2w, np.float64))
         if source == "lost" and self._fe_segment is not None and self._fe_segment.views[-1] == idx:
             self._keep_lost_view(idx, host)
-        elif source == "recovered":
+        elif source in ("recovered", "resumed"):
             self._join_lost_views(idx)
         self.gt_poses.append(gt)
         self.odom_poses.append(odom)
@@ -345,9 +348,9 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
         unverified = source in ("odometry", "odometry_refused")
         unmapped = failed or (unverified and not self.cfg.tracking.odometry_map_unverified) or \
             source in ("relocalised", "confirming")
-        self._note_lost(idx, failed or source == "relocalised", unmapped)
+        self._note_lost(idx, failed or source == "relocalised", unmapped, source)
         due = idx % self.cfg.mapping.keyframe_every == 0 or self._new_view(self.poses[-1]) or self._kf_due
-        needed = source == "recovered" or coverage < self.cfg.tracking.frontend_new_keyframe_coverage
+        needed = source in ("recovered", "resumed") or coverage < self.cfg.tracking.frontend_new_keyframe_coverage
         new_reference = False  # the front end takes this frame as its reference without mapping it now
         if (due or needed) and not unmapped and idx > 0 and self._mapping_busy():
             # mapping.defer_keyframes: the next frame is due instead; a reference the front end needs is taken
@@ -491,6 +494,16 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
         dt_prev, dt = (ts[-1] - ts[-2], self._frame_time - ts[-1]) if len(ts) >= 2 else (math.nan, math.nan)
         return velocity_guess(prev2, prev, dt_prev, dt, self.cfg.tracking.velocity_max_scale)
 
+    def _steady_step(self) -> bool:
+        """Whether the frame being added follows the last one by no more than ``tracking.velocity_max_scale`` times
+        the step before (at least once; no stall, no jump in time): its constant-velocity guess is then extrapolated
+        in full, a pose (a lost segment starting there may resume mapping, tracking.lost_resume_after)."""
+        ts = self.timestamps
+        if len(ts) < 2:
+            return False
+        dt_prev, dt = ts[-1] - ts[-2], self._frame_time - ts[-1]
+        return 0 < dt <= max(self.cfg.tracking.velocity_max_scale, 1.0) * dt_prev
+
     def _defers(self) -> bool:
         """Whether keyframes are deferred while the mapping thread is busy (mapping.defer_keyframes, threaded)."""
         return bool(self.cfg.threaded and self.cfg.mapping.defer_keyframes and self._worker is not None)
@@ -499,16 +512,20 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
         """Whether keyframes are deferred now (:meth:`_defers`): the mapping thread has work."""
         return self._defers() and self._worker.pending > 0
 
-    def _note_lost(self, idx: int, failed: bool, unmapped: bool) -> None:
+    def _note_lost(self, idx: int, failed: bool, unmapped: bool, source: str = "") -> None:
         """Record lost frames (tracking failed; a frame relocalised at once counts too) and lost -> recovered spans
-        (stats(): lost_frames, recoveries)."""
+        (stats(): lost_frames, recoveries; resumed: the spans whose mapping resumed on the lost frames' own track,
+        tracking.lost_resume_after)."""
         if failed:
             self.lost_frames.append(idx)
             if self._lost_at is None:
                 self._lost_at = idx
         elif not unmapped and self._lost_at is not None:
             self.recoveries.append([self._lost_at, idx])
-            log.warning("frame %d: tracking recovered (lost since frame %d)", idx, self._lost_at)
+            if source == "resumed":
+                self.resumed.append([self._lost_at, idx])
+            else:
+                log.warning("frame %d: tracking recovered (lost since frame %d)", idx, self._lost_at)
             self._lost_at = None
 
     def _map_frame(self, idx: int, rgb_t: Tensor, depth_t: Tensor, sem_t: Tensor | None, is_kf: bool,
@@ -983,13 +1000,15 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
 
     def stats(self) -> dict:
         """Summary for logs: frames, keyframes, Gaussians, lost frames, lost -> recovered spans ([first lost frame,
-        frame mapped again]), frames whose map update the full queue dropped (threaded), whether the frames are in
-        the map's frame (:attr:`localised`: False while a start on a saved map is not relocalised), the keyframe
-        front end's noisy references (keyframes whose depth was smoothed: tracking.frontend_noisy_roughness) and the
-        last reference's depth roughness, last frame log."""
+        frame mapped again]; ``resumed``: those where mapping resumed on the lost frames' own track), frames whose
+        map update the full queue dropped (threaded), whether the frames are in the map's frame (:attr:`localised`:
+        False while a start on a saved map is not relocalised), the keyframe front end's noisy references (keyframes
+        whose depth was smoothed: tracking.frontend_noisy_roughness) and the last reference's depth roughness, last
+        frame log."""
         return {"frames": len(self.poses), "keyframes": len(self.keyframes), "gaussians": len(self.map),
                 "localised": self.localised,
                 "lost_frames": list(self.lost_frames), "recoveries": [list(r) for r in self.recoveries],
+                "resumed": [list(r) for r in self.resumed],
                 "dropped": list(self.dropped_jobs), "deferred_keyframes": self.deferred_keyframes,
                 "backlog": len(self.backlog), "caught_up": self.caught_up,
                 "noisy_references": len(self._fe_noisy), "reference_roughness": self._fe_roughness,

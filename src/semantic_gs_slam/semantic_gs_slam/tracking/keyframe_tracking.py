@@ -22,6 +22,14 @@ map takes the camera back (recovered), the whole segment is moved by the one rig
 relocalised frame on its relocalised pose: the lost stretch is re-posed in the map's frame. Lost frames are not mapped
 as they come; once joined, the segment's views (the frames that became its reference) join the backlog that the
 refinement maps (``SLAM._join_lost_views``).
+
+A camera that turns to ground no keyframe saw is not taken back by the map until it returns. After
+``tracking.lost_resume_after`` lost frames, when its lost segment tracked its last ``relocalise_confirm`` frames and
+started from a trustworthy guess (the odometry's, or constant velocity extrapolated in full, over at most
+``velocity_max_scale`` steps: not after a stall or a jump in time, where the guess is no pose), mapping *resumes* on
+the segment's own track (pose source ``resumed``): the segment's frames keep their poses, its views join the
+backlog, and the frame becomes a keyframe. The new ground is then mapped where the segment puts it, the first lost
+frame's guess being its anchor.
 """
 
 from __future__ import annotations
@@ -69,6 +77,8 @@ class LostSegment:
     frames: list[int]  # the segment's frames, in order (the last one tracked into it last)
     ref: ReferenceModel  # the latest reference frame, at its segment pose
     views: list[int]  # the frames that became its reference (new views: mapped once the segment is joined)
+    anchored: bool = False  # its first frame's guess is trustworthy (no stall): mapping may resume on its track
+    trusted_run: int = 0  # its latest frames trusted against its reference, in a row
 
 
 def thumbnail(depth: np.ndarray, rgb: np.ndarray) -> np.ndarray:
@@ -123,8 +133,9 @@ class KeyframeTracking:
         self._fe_speckled = False  # a reference's isolated holes were filled (logged once)
         self._fe_fill_live = False  # the last reference built was speckled: live frames' isolated holes are filled
         self._fe_segment: LostSegment | None = None  # lost frames tracked among themselves (tracking.lost_segment)
-        self._fe_join: tuple[int, np.ndarray, list[int], list[int]] | None = None  # relocalised: (its frame, its
-        # segment pose, the segment's earlier frames, their views), joined to the map when recovered
+        self._fe_join: tuple[int, np.ndarray | None, list[int], list[int]] | None = None  # relocalised: (its frame,
+        # its segment pose, the segment's earlier frames, their views), joined to the map when recovered (segment pose
+        # None: mapping resumed on the segment's track, nothing moves)
         self.rejoined_frames = 0  # lost frames re-posed in the map's frame by a recovery (stats())
 
     def _fe_frame(self, depth: np.ndarray, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -212,12 +223,14 @@ class KeyframeTracking:
         return res
 
     def _fe_segment_track(self, idx: int, live: LiveFrame, depth: np.ndarray, rgb: np.ndarray,
-                          odom_guess: np.ndarray | None, first_guess: np.ndarray | None) -> np.ndarray:
+                          odom_guess: np.ndarray | None, first_guess: np.ndarray | None,
+                          anchored: bool = False) -> np.ndarray:
         """Lost frame ``idx``'s pose in the lost segment (:class:`LostSegment`), tracked against the segment's
         reference from the odometry's guess, else constant velocity within the segment (then from the previous
         pose). The first lost frame starts a segment at ``first_guess`` (its tracking guess). A frame the segment does
         not track goes on the same segment at that guess, from itself as the new reference: the chain then holds to
-        about one frame's motion, where a segment started afresh would keep its guessed frame for good."""
+        about one frame's motion, where a segment started afresh would keep its guessed frame for good. ``anchored``:
+        the first frame's guess is trustworthy (:attr:`LostSegment.anchored`)."""
         fe = self._fe_cfg
         seg = self._fe_segment
         with self._poses_lock:
@@ -227,7 +240,8 @@ class KeyframeTracking:
             start = first_guess if first_guess is not None else (odom_guess if odom_guess is not None else prev)
             self._fe_segment = LostSegment([idx], build_reference(depth, start, self._fe_k, fe, rgb=rgb,
                                                                    keyframe_id=idx,
-                                                                   roughness=self._fe_roughness or None), [idx])
+                                                                   roughness=self._fe_roughness or None), [idx],
+                                           anchored=anchored)
             return start
         guess = odom_guess if odom_guess is not None else \
             self._velocity_guess(prev2, prev) if len(seg.frames) >= 2 else prev
@@ -235,6 +249,7 @@ class KeyframeTracking:
         if not res.quality.trusted and guess is not prev:
             res = track(live, seg.ref, prev, fe)
         seg.frames.append(idx)
+        seg.trusted_run = seg.trusted_run + 1 if res.quality.trusted else 0
         if res.quality.trusted:
             pose = res.c2w
             if res.quality.coverage >= self.cfg.tracking.frontend_new_keyframe_coverage:
@@ -259,6 +274,8 @@ class KeyframeTracking:
         if join is None:
             return []
         at, seg_pose, frames, views = join
+        if seg_pose is None:  # mapping resumed on the segment's own track: its frames keep their poses
+            return views
         with self._poses_lock:
             corr = self.poses[at] @ np.linalg.inv(seg_pose)
             moved = 0.0
@@ -279,7 +296,7 @@ class KeyframeTracking:
 
         Returns:
             pose [4, 4], residual (m), correspondences, lost, pose source (tracking | lost | relocalised |
-            confirming | recovered), coverage of the reference.
+            confirming | recovered | resumed), coverage of the reference.
         """
         tc = self.cfg.tracking
         fe = self._fe_cfg
@@ -289,6 +306,7 @@ class KeyframeTracking:
         live = prepare_live(depth, self._fe_k, fe, rgb, fill_holes=self._fe_fill_live)
         res: TrackResult | None = None
         first_guess = None  # the first lost frame's tracking guess (where a lost segment starts)
+        anchored = False  # ... and whether it is trustworthy (LostSegment.anchored)
         if self._fe_state != "lost":
             if odom_guess is not None:
                 guess = odom_guess
@@ -326,7 +344,8 @@ class KeyframeTracking:
             self._fe_join = None  # a relocalisation not confirmed: its segment is not joined
             self._fe_segment = None
             first_guess = guess
-        seg_pose = self._fe_segment_track(idx, live, depth, rgb, odom_guess, first_guess) \
+            anchored = odom_guess is not None or self._steady_step()
+        seg_pose = self._fe_segment_track(idx, live, depth, rgb, odom_guess, first_guess, anchored) \
             if tc.lost_segment else None
         tries = (idx - self._fe_lost_at) // tc.relocalise_every
         if (idx - self._fe_lost_at) % tc.relocalise_every == 0 and self._fe_views:
@@ -367,6 +386,18 @@ class KeyframeTracking:
                 log.warning("frame %d: relocalised against the keyframe of frame %d (coverage %.2f, agreement %.2f); "
                             "confirming", idx, r.keyframe_id, q.coverage, q.agreement)
                 return r.c2w, q.residual, q.correspondences, False, "relocalised", q.coverage
+        seg = self._fe_segment
+        if seg_pose is not None and seg is not None and 0 < tc.lost_resume_after <= len(seg.frames) and \
+                seg.anchored and seg.trusted_run >= tc.relocalise_confirm:
+            # ground no keyframe saw: the map will not take the camera back until it returns; map on the segment's track
+            self._fe_join = (idx, None, seg.frames[:-1], [v for v in seg.views if v != idx])
+            self._fe_segment = None
+            self._fe_state = "tracking"
+            self._fe_prev = (idx, depth, rgb)
+            log.warning("frame %d: lost since frame %d and not relocalised in the map for %d frames; mapping resumes "
+                        "on the lost frames' own track, anchored at frame %d's guess (tracking.lost_resume_after)", idx,
+                        seg.frames[0], len(seg.frames), seg.frames[0])
+            return seg_pose, float("nan"), 0, False, "resumed", float("nan")
         q = res.quality if res is not None else None
         return (prev if seg_pose is None else seg_pose, float("nan") if q is None else q.residual,
                 0 if q is None else q.correspondences, True, "lost",
