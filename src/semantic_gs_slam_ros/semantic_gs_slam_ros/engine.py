@@ -97,10 +97,14 @@ class EngineAdapter:
         """What the engine did with the frames it was given (the session logs it at the end of a run): frames
         tracked, keyframes, keyframes deferred while the mapping thread was busy (``mapping.defer_keyframes``) and
         what became of them, frames lost (and how many of them were re-posed in the map once it took the camera back:
-        ``tracking.lost_segment``), map updates dropped by a full queue, and keyframes whose depth read as a noisy
-        camera's (smoothed before tracking against them: ``tracking.frontend_noisy_roughness``)."""
+        ``tracking.lost_segment``; how often mapping resumed on the lost frames' own track instead:
+        ``tracking.lost_resume_after``), map updates dropped by a full queue, and keyframes whose depth read as a
+        noisy camera's (smoothed before tracking against them: ``tracking.frontend_noisy_roughness``)."""
         s = self.slam.stats()
-        rejoined = f" ({s['rejoined_frames']} re-posed in the map once recovered)" if s["rejoined_frames"] else ""
+        notes = ([f"{s['rejoined_frames']} re-posed in the map once recovered"] if s["rejoined_frames"] else []) + \
+            ([f"mapping resumed {len(s['resumed'])} time(s) on the lost frames' own track, not relocalised in the map "
+              f"(from frames {', '.join(str(a) for a, _ in s['resumed'])})"] if s.get("resumed") else [])
+        rejoined = f" ({'; '.join(notes)})" if notes else ""
         noisy = (f", {s['noisy_references']} keyframes' depth smoothed as a noisy camera's (roughness "
                  f"{s['reference_roughness']:.4f} /m)" if s["noisy_references"] else "")
         return (f"{s['frames']} frames tracked, {s['keyframes']} keyframes, {s['deferred_keyframes']} keyframes "

@@ -631,6 +631,9 @@ def test_engine_adapter_reports_the_engines_last_frame():
     assert "re-posed" not in noisy.run_note()
     noisy.slam.rejoined_frames = 3  # as after a lost stretch re-posed on recovery (test_recovery_real.py runs one)
     assert "0 frames lost (3 re-posed in the map once recovered)" in noisy.run_note(), noisy.run_note()
+    noisy.slam.resumed = [[7, 36]]  # as after a camera lost on unseen ground (test_recovery_real.py runs one)
+    assert "(3 re-posed in the map once recovered; mapping resumed 1 time(s) on the lost frames' own track, not " \
+        "relocalised in the map (from frames 7))" in noisy.run_note(), noisy.run_note()
 
 
 def _short_fits(cfg):
