@@ -171,43 +171,26 @@ def run_ours(ds, idx: list[int], args: argparse.Namespace, frames: dict, decode_
 
 
 def run_open3d(ds, idx: list[int], frames: dict, voxel: float, depth_max: float, device: str) -> dict | None:
-    """Open3D's frame-to-model tracker (``t.pipelines.slam.Model``) on the same frames; None without open3d."""
-    try:
-        import open3d as o3d
-        import open3d.core as o3c
-    except ImportError as exc:
-        print(f"open3d not importable ({exc}): skipping the Open3D baseline "
-              f"(pip install -r requirements/bench-real.in)", file=sys.stderr)
+    """Open3D's frame-to-model tracker (``t.pipelines.slam.Model``) on the same frames, in a child process
+    (``bench/open3d_baseline.py``: a crash inside Open3D ends only that process and is reported). None without
+    open3d, or when it crashed."""
+    import importlib.util
+
+    if importlib.util.find_spec("open3d") is None:
+        print("open3d not importable: skipping the Open3D baseline (pip install -r requirements/bench-real.in)",
+              file=sys.stderr)
         return None
-    dev = o3c.Device("CUDA:0" if device == "cuda" and o3d.core.cuda.is_available() else "CPU:0")
-    k = ds.intrinsics
-    intr = o3c.Tensor(np.array(k.as_matrix(), np.float64))
+    import os
+
+    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # bench/ is not a package
+    from open3d_baseline import run_in_child
+
     frames = [frames[i] for i in idx]  # decoded up front (load_frames): the timing is the tracker's, not the decoder's
     first = frames[0].gt_c2w if frames[0].gt_c2w is not None else np.eye(4)
-    t_cur = o3c.Tensor(np.eye(4))
-    model = o3d.t.pipelines.slam.Model(voxel, 16, 40000, t_cur, dev)
-    inp = o3d.t.pipelines.slam.Frame(k.height, k.width, intr, dev)
-    ray = o3d.t.pipelines.slam.Frame(k.height, k.width, intr, dev)
-    poses, lost = [], 0
-    t0 = time.perf_counter()
-    for n, f in enumerate(frames):
-        depth_mm = np.ascontiguousarray((f.depth * 1000.0).round().astype(np.uint16))
-        rgb8 = np.ascontiguousarray((f.rgb * 255 + 0.5).astype(np.uint8))
-        inp.set_data_from_image("depth", o3d.t.geometry.Image(o3c.Tensor(depth_mm)).to(dev))
-        inp.set_data_from_image("color", o3d.t.geometry.Image(o3c.Tensor(rgb8)).to(dev))
-        if n > 0:
-            try:
-                r = model.track_frame_to_model(inp, ray, 1000.0, depth_max, 0.07)
-                t_cur = t_cur @ r.transformation
-            except RuntimeError as exc:  # Open3D reports a failed odometry this way
-                lost += 1
-                print(f"open3d frame {n}: tracking failed ({exc}); keeping the previous pose", file=sys.stderr)
-        poses.append(first @ t_cur.cpu().numpy())
-        model.update_frame_pose(n, t_cur)
-        model.integrate(inp, 1000.0, depth_max, 8.0)
-        model.synthesize_model_frame(ray, 1000.0, 0.1, depth_max, 8.0, False)
-    wall = time.perf_counter() - t0
-    return {"poses": poses, "fps": len(frames) / wall, "lost": lost, "version": o3d.__version__, "device": str(dev)}
+    depth_mm = np.stack([(f.depth * 1000.0).round().astype(np.uint16) for f in frames])
+    rgb8 = np.stack([(f.rgb * 255 + 0.5).astype(np.uint8) for f in frames])
+    return run_in_child(depth_mm, rgb8, np.array(ds.intrinsics.as_matrix(), np.float64), first, voxel, depth_max,
+                        device)
 
 
 def main() -> int:

@@ -183,7 +183,7 @@ def main() -> int:
             tsdf = _TsdfReference(k, args.o3d_voxel, args.o3d_depth_max) if args.reference == "tsdf" else None
             ours = run_front_end(frames, k, cfg, args.keyframe_every, args.keyframe_coverage, not args.no_rgb, tsdf)
             ate = 100 * ate_rmse(ours["poses"], gts)
-            o3 = None if args.no_open3d else run_open3d(dec, idx, args.o3d_voxel, args.o3d_depth_max, "cpu")
+            o3 = None if args.no_open3d else run_open3d(dec, idx, dec.frames, args.o3d_voxel, args.o3d_depth_max, "cpu")
             o3_ate = 100 * ate_rmse(o3["poses"], gts) if o3 else float("nan")
             print(f"| {start}-{stop - 1} | {stride} | {len(idx)} | {ate:.2f} | {o3_ate:.2f} | {ate / o3_ate:.2f} | "
                   f"{100 * rpe_rmse(ours['poses'], gts, 1):.2f} | {ours['fps']:.1f} | {1000 / ours['track_ms']:.1f} | "
