@@ -314,10 +314,11 @@ def main(argv: list[str] | None = None) -> int:
             t_drain = time.perf_counter()
             eng.finish(timeout=600.0)  # SlamConfig.threaded: the mapping thread's queue (inline: nothing to wait for)
             if eng.cfg.threaded:
+                st = eng.stats()
+                resumed = f" (resumed on their own track: {st['resumed']})" if st["resumed"] else ""
                 print(f"mapping thread drained in {time.perf_counter() - t_drain:.1f} s after the last frame; "
-                      f"lost {eng.stats()['lost_frames']}, recoveries {eng.stats()['recoveries']} (resumed on their "
-                      f"own track: {eng.stats()['resumed']}), "
-                      f"dropped {eng.stats()['dropped']}", file=sys.stderr)
+                      f"lost {st['lost_frames']}, recoveries {st['recoveries']}{resumed}, dropped {st['dropped']}",
+                      file=sys.stderr)
             if interrupt.requested and not stopped:  # during the last frame
                 stopped = "stopped by Ctrl-C"
             if skipped:

@@ -41,6 +41,7 @@ from std_msgs.msg import String
 from std_srvs.srv import Trigger
 
 from home_robot_ros.poses import pose_to_matrix
+from home_robot_ros.spinning import spin
 from home_robot_ros.startup import build_node
 from semantic_gs_slam_ros.cancels import CancelRouter
 from semantic_gs_slam_ros.engine import camera_info_intrinsics, make_engine, prepare_renderer, switch_interval_for
@@ -492,7 +493,7 @@ def main(args: list[str] | None = None) -> int:
     executor = MultiThreadedExecutor(num_threads=4)
     executor.add_node(node)
     try:
-        executor.spin()
+        spin(executor, node.get_logger())  # a run's end destroys its image subscriptions while the executor spins
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     finally:
