@@ -32,6 +32,8 @@ depth in range) are left out for both trackers and listed. Timings depend on wha
 from __future__ import annotations
 
 import argparse
+import importlib.util
+import os
 import sys
 import time
 
@@ -47,6 +49,9 @@ from semantic_gs_slam.io.degrade import DegradedDataset, drop_frames
 from semantic_gs_slam.labels import LABEL_MODES, LabelConfig, LabelStage
 from semantic_gs_slam.run import add_camera_args, camera_kwargs, label_frame
 from semantic_gs_slam.slam import SLAM
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # bench/ is not a package: open3d_baseline beside it
+from open3d_baseline import run_in_child  # noqa: E402
 
 REALTIME_REFINE_S = 30.0  # --refine-seconds' default with the realtime profile (the targets' "within 30 s")
 
@@ -174,17 +179,10 @@ def run_open3d(ds, idx: list[int], frames: dict, voxel: float, depth_max: float,
     """Open3D's frame-to-model tracker (``t.pipelines.slam.Model``) on the same frames, in a child process
     (``bench/open3d_baseline.py``: a crash inside Open3D ends only that process and is reported). None without
     open3d, or when it crashed."""
-    import importlib.util
-
     if importlib.util.find_spec("open3d") is None:
         print("open3d not importable: skipping the Open3D baseline (pip install -r requirements/bench-real.in)",
               file=sys.stderr)
         return None
-    import os
-
-    sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # bench/ is not a package
-    from open3d_baseline import run_in_child
-
     frames = [frames[i] for i in idx]  # decoded up front (load_frames): the timing is the tracker's, not the decoder's
     first = frames[0].gt_c2w if frames[0].gt_c2w is not None else np.eye(4)
     depth_mm = np.stack([(f.depth * 1000.0).round().astype(np.uint16) for f in frames])

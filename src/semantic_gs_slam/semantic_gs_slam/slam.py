@@ -490,18 +490,20 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
     def _velocity_guess(self, prev2: np.ndarray, prev: np.ndarray) -> np.ndarray:
         """The constant-velocity guess [4, 4] for the frame being added: the last frame's pose ``prev`` moved on by the
         step from the one before (``prev2``), scaled by the frames' times (``tracking.velocity_max_scale``)."""
-        ts = self.timestamps
-        dt_prev, dt = (ts[-1] - ts[-2], self._frame_time - ts[-1]) if len(ts) >= 2 else (math.nan, math.nan)
+        dt_prev, dt = self._time_steps()
         return velocity_guess(prev2, prev, dt_prev, dt, self.cfg.tracking.velocity_max_scale)
+
+    def _time_steps(self) -> tuple[float, float]:
+        """(time between the last two frames, time from the last frame to the one being added), seconds; NaN both
+        before two frames."""
+        ts = self.timestamps
+        return (ts[-1] - ts[-2], self._frame_time - ts[-1]) if len(ts) >= 2 else (math.nan, math.nan)
 
     def _steady_step(self) -> bool:
         """Whether the frame being added follows the last one by no more than ``tracking.velocity_max_scale`` times
         the step before (at least once; no stall, no jump in time): its constant-velocity guess is then extrapolated
         in full, a pose (a lost segment starting there may resume mapping, tracking.lost_resume_after)."""
-        ts = self.timestamps
-        if len(ts) < 2:
-            return False
-        dt_prev, dt = ts[-1] - ts[-2], self._frame_time - ts[-1]
+        dt_prev, dt = self._time_steps()  # NaN before two frames: False
         return 0 < dt <= max(self.cfg.tracking.velocity_max_scale, 1.0) * dt_prev
 
     def _defers(self) -> bool:
