@@ -3,6 +3,7 @@
 import json
 import subprocess
 import threading
+import time
 
 import pytest
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -177,10 +178,16 @@ def test_a_query_whose_answer_does_not_come_is_sent_again(ros_node, ros_domain, 
     script = tmp_path / "silent_first.py"
     script.write_text(SILENT_FIRST)
     release = tmp_path / "release"
-    proc = subprocess.Popen([sys.executable, str(script), str(release)], env=node_environment(ros_domain),
-                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    log = tmp_path / "silent_first.log"
+    with log.open("w") as out:  # one file for both streams: DDS may log (e.g. a shared-memory port in use) first
+        proc = subprocess.Popen([sys.executable, str(script), str(release)], env=node_environment(ros_domain),
+                                stdout=out, stderr=subprocess.STDOUT, text=True)
     try:
-        assert proc.stdout.readline().strip() == "ready"
+        deadline = time.monotonic() + 60.0
+        while "ready" not in log.read_text(errors="replace").splitlines():
+            assert proc.poll() is None, f"exited ({proc.returncode}):\n{log.read_text(errors='replace')}"
+            assert time.monotonic() < deadline, f"not ready:\n{log.read_text(errors='replace')}"
+            time.sleep(0.05)
         client = ObjectQueryClient(ros_node, resend_s=0.5)
         assert client.wait_for_service(timeout_sec=20.0)
         answer = client.query("bottle", timeout_sec=60.0)
