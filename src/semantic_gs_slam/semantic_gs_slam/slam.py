@@ -168,9 +168,11 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
         self._ms_state = "done"  # from_map: relocalising | confirming | done (tracking/map_start.py)
 
     def __getstate__(self) -> dict:
-        """Copies (copy.deepcopy, pickle) take the engine's state without its lock and mapping thread."""
+        """Copies (copy.deepcopy, pickle) take the engine's state without its lock, its mapping thread and its
+        captured ICP graphs (CUDA graphs cannot be copied; the copy captures its own on demand)."""
         state = self.__dict__.copy()
         state["_poses_lock"], state["_worker"] = None, None
+        state["_icp_graphs"] = IcpGraphs(self._icp_graphs.max_graphs, self._icp_graphs.capture)
         return state
 
     def __setstate__(self, state: dict) -> None:

@@ -154,6 +154,30 @@ def test_frames_as_cameras_give_them():
     assert float(rgb_t.min()) == 0.5 and int(sem_t.max()) == 7  # not views of the caller's arrays
 
 
+def test_a_copy_of_the_engine_leaves_its_captured_icp_graphs_behind():
+    """copy.deepcopy and pickle copy the engine without what cannot be copied: its lock, its mapping thread and its
+    cache of captured ICP graphs (CUDA graphs refuse to be copied: a lock stands in for one here). The copy starts an
+    empty cache; the original keeps its own."""
+    import pickle
+    import threading
+    from copy import deepcopy
+
+    k = Intrinsics(16, 12, 8.0, 8.0, 7.5, 5.5)
+    eng = SLAM(SlamConfig(intrinsics=k, device="cpu"))
+    eng.add_frame(np.full((12, 16, 3), 0.5, np.float32), np.full((12, 16), 2.0, np.float32), timestamp=0.0)
+    uncopyable = threading.Lock()
+    with pytest.raises(TypeError):
+        deepcopy(uncopyable)
+    eng._icp_graphs._graphs[("problem",)] = uncopyable
+    for copied in (deepcopy(eng), pickle.loads(pickle.dumps(eng))):
+        assert len(copied._icp_graphs._graphs) == 0 and copied._icp_graphs is not eng._icp_graphs
+        assert copied._icp_graphs.max_graphs == eng._icp_graphs.max_graphs
+        assert len(copied.poses) == 1 and np.array_equal(copied.poses[0], eng.poses[0])
+        with copied._poses_lock:  # a lock of its own
+            pass
+    assert eng._icp_graphs._graphs[("problem",)] is uncopyable
+
+
 def test_config_errors():
     k = Intrinsics(16, 12, 8.0, 8.0, 7.5, 5.5)
     with pytest.raises(ConfigError, match="checkpoint_dir"):
