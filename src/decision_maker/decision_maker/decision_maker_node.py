@@ -110,7 +110,7 @@ class DecisionMakerNode(Node):
             "grasp_timeout_s": d.grasp_timeout_s, "place_timeout_s": d.place_timeout_s,
             "query_timeout_s": d.query_timeout_s,
             "confirm_llm_plans": d.confirm_llm_plans, "confirm_timeout_s": d.confirm_timeout_s,
-            "server_wait_s": 5.0, "cancel_wait_s": 2.0,
+            "server_wait_s": 5.0, "cancel_wait_s": 2.0, "memory_report_timeout_s": 5.0,
             "frame_id": "map", "frame_offset": [0.0, 0.0, 0.0],
             "nav_action": "navigate_to_pose", "grasp_action": "grasp", "place_action": "place",
             "query_service": "object_query",
@@ -126,7 +126,7 @@ class DecisionMakerNode(Node):
             query_timeout_s=float(v["query_timeout_s"]),
             confirm_llm_plans=bool(v["confirm_llm_plans"]), confirm_timeout_s=float(v["confirm_timeout_s"]),
         )
-        for name in ("server_wait_s", "cancel_wait_s"):
+        for name in ("server_wait_s", "cancel_wait_s", "memory_report_timeout_s"):
             if not float(v[name]) > 0:
                 raise ConfigError(f"{name} must be > 0, got {v[name]}")
         offset = list(v["frame_offset"])
@@ -162,7 +162,8 @@ class DecisionMakerNode(Node):
         )
         self._last_timed_id = 0  # command whose first goal was already logged (execution thread only)
         # the object memory: /object_memory in, the robot's own grasps/places reported out
-        self.memory = MemoryLink(self, self._input_group, self._client_group)
+        self.memory = MemoryLink(self, self._input_group, self._client_group,
+                                 timeout_s=float(v["memory_report_timeout_s"]))
         self.engine = ExecutionEngine(self._planner, self.robot, config, self._publish_status, self._planning_context,
                                       on_outcome=self.memory.report)
         self._setup_stage0(str(v["exploration_mode"]), float(v["exploration_timeout_s"]))

@@ -320,3 +320,14 @@ def test_payloads_that_break_number_conversion_or_nesting_leave_the_brain_and_th
                     and "world objects from /object_list: bottle, cup" in arm.output(), 20.0), \
         (brain.output()[-1500:], arm.output()[-1500:])
     assert brain.returncode() is None and arm.returncode() is None
+
+
+@pytest.mark.parametrize("param", ["memory_report_timeout_s:=0.0", "server_wait_s:=-1.0"])
+def test_a_wait_that_is_not_positive_is_refused_at_start(ros_domain, param):
+    """The node's own waits must be > 0: it exits with status 2 and says which parameter, before any ROS traffic."""
+    run = subprocess.run([find_executable("decision_maker", "decision_maker_node"), "--ros-args", "-p", param],
+                         env=node_environment(ros_domain), capture_output=True, text=True, timeout=60,
+                         stdin=subprocess.DEVNULL)
+    name = param.split(":=")[0]
+    assert run.returncode == 2 and f"{name} must be > 0" in run.stdout + run.stderr, run.stdout + run.stderr
+    assert "Traceback" not in run.stdout + run.stderr

@@ -32,11 +32,12 @@ class MemoryLink:
         input_group: callback group of the ``/object_memory`` subscription.
         client_group: callback group of the report client.
         timeout_s: longest wait for a report's answer (> 0); a report not answered in time is
-            logged and dropped (the action's own result stands).
+            logged, its answer dropped (the action's own result stands; the memory publishes the change on
+            ``/object_memory`` once it records it).
     """
 
     def __init__(self, node: Node, input_group: CallbackGroup, client_group: CallbackGroup,
-                 timeout_s: float = 1.0) -> None:
+                 timeout_s: float = 5.0) -> None:
         self._node = node
         self._timeout_s = timeout_s
         self._lock = threading.Lock()  # guards _revision, _beliefs
