@@ -499,6 +499,7 @@ def test_a_malformed_camera_info_is_refused_with_its_reason_and_the_server_goes_
     assert result.result().status == GoalStatus.STATUS_CANCELED
 
 
+@pytest.mark.xdist_group("shared_slam_server")  # the one worker that started the shared server
 def test_the_server_hands_pythons_lock_over_as_set_and_refuses_a_bad_interval(ros_domain, shared_server):
     """``gil_switch_interval``: auto, with the engine on the CPU, it is 0.5 ms (Python's own on CUDA), applied and
     logged; more than 1 s is a clear error at start (exit code 2), not a server that runs with it. So are the other
