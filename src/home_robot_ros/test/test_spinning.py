@@ -24,7 +24,7 @@ STRESS_S = 3.0
 def test_the_executor_survives_subscriptions_destroyed_by_another_thread(ros_domain):
     import rclpy
     from rclpy.callback_groups import MutuallyExclusiveCallbackGroup
-    from rclpy.executors import MultiThreadedExecutor
+    from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
     from std_msgs.msg import String
 
     from home_robot_ros.spinning import spin
@@ -45,7 +45,9 @@ def test_the_executor_survives_subscriptions_destroyed_by_another_thread(ros_dom
     def run() -> None:
         try:
             spin(executor, Trips())
-        except BaseException as exc:  # noqa: BLE001  (the test reports whatever ended the spin)
+        except ExternalShutdownException:
+            pass  # the context shut down at the test's end
+        except BaseException as exc:  # noqa: BLE001  (the test reports whatever else ended the spin)
             errors.append(exc)
 
     switch = sys.getswitchinterval()
@@ -62,13 +64,16 @@ def test_the_executor_survives_subscriptions_destroyed_by_another_thread(ros_dom
             for sub in subs:
                 node.destroy_subscription(sub)
             cycles += 1
-        alive = spinner.is_alive()
+        alive, during = spinner.is_alive(), list(errors)  # what the stress did, before the teardown below
     finally:
         sys.setswitchinterval(switch)
+        # stopping a spin from another thread races rclpy's own teardown (executor.shutdown() sets its guard
+        # conditions to None, a context shut down fails the next wait set) whatever the order: errors from here on
+        # are not the race under test
         executor.shutdown(timeout_sec=5.0)
+        spinner.join(5.0)
         node.destroy_node()
         ctx.try_shutdown()
-    spinner.join(5.0)
-    assert not errors and alive, (errors, cycles, Trips.n)
+    assert not during and alive, (during, cycles, Trips.n)
     assert cycles > 10, cycles
     print(f"{cycles} create/destroy cycles, {Trips.n} trips over a destroyed entity survived")
