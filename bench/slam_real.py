@@ -15,6 +15,7 @@ Usage (from the repository root; the data stays outside the repository, mind its
     python bench/slam_real.py <seq> --gain 0.3                  # exposure swinging by 30 % (both trackers)
     python bench/slam_real.py <seq> --holes 0.3                 # 30 % of the depth pixels dropped (both trackers)
     python bench/slam_real.py <seq> --frames 500 --stride 1 --gap 250:90   # 3 s of a 30-Hz camera missing
+    python bench/slam_real.py <seq> --frames 500 --stride 1 --jump 150:240  # carried 240 frames on in no time
     python bench/slam_real.py <seq> --frames 250 --stride 1 --drop 0.5     # half the frames dropped unevenly
     python bench/slam_real.py <seq> --colour-lag 1              # colour 33 ms after its depth (both trackers)
 
@@ -82,9 +83,13 @@ def lost_summary(stats: dict, idx: list[int]) -> tuple[str, str]:
               f"{'; recovered (lost at -> recovered at): ' + spans if rec else '; none recovered'}") if lost else ""
     rejoined = stats.get("rejoined_frames", 0)
     resumed = stats.get("resumed", [])
+    reanchored = stats.get("reanchored", [])
     notes = ([f"{rejoined} lost frames re-posed in the map"] if rejoined else []) + \
-        ([f"{len(resumed)} resumed mapping on their own track, not relocalised: "
-          f"{', '.join(f'{at(a)}->{at(b)}' for a, b in resumed[:20])}"] if resumed else [])
+        ([f"{len(resumed)} resumed mapping on their own track (not relocalised then): "
+          f"{', '.join(f'{at(a)}->{at(b)}' for a, b in resumed[:20])}"] if resumed else []) + \
+        ([f"{len(reanchored)} resumed track(s) later relocalised and moved into the map's frame: "
+          + ", ".join(f"from {at(int(a))} at {at(int(b))} by {cm:.0f} cm, {deg:.1f} deg"
+                      for a, b, cm, deg in reanchored[:20])] if reanchored else [])
     return f"{len(lost)} / {len(rec)}" + (f" ({'; '.join(notes)})" if notes else ""), detail
 
 
@@ -110,6 +115,24 @@ def load_frames(ds, idx: list[int], cfg: SlamConfig) -> tuple[dict, list[tuple[i
             continue
         frames[i] = f
     return frames, refused
+
+
+def steady_clock(frames: dict, idx: list[int], after: list[int]) -> dict:
+    """``frames`` ({index: Frame}, fed in the order ``idx``) with the time jump before each frame of ``after`` taken
+    out: that frame comes one median step after the frame before it, and every later frame by as much earlier."""
+    import dataclasses
+
+    t = np.array([frames[i].timestamp for i in idx], np.float64)
+    steps = np.diff(t)
+    jump_at = {n for n, i in enumerate(idx) if i in after and n > 0}
+    usual = np.median([d for n, d in enumerate(steps, start=1) if n not in jump_at]) if len(steps) > len(jump_at) \
+        else 1.0 / 30
+    shift, out = 0.0, {}
+    for n, i in enumerate(idx):
+        if n in jump_at:
+            shift += steps[n - 1] - usual
+        out[i] = dataclasses.replace(frames[i], timestamp=float(t[n] - shift))
+    return out
 
 
 def run_ours(ds, idx: list[int], args: argparse.Namespace, frames: dict, decode_ms: float) -> dict:
@@ -254,6 +277,9 @@ def _run() -> int:
     ap.add_argument("--gap", action="append", default=[], metavar="FIRST:COUNT",
                     help="leave out COUNT recorded frames from dataset frame FIRST on (a stream that stalled; both "
                          "trackers; may be repeated)")
+    ap.add_argument("--jump", action="append", default=[], metavar="FIRST:COUNT",
+                    help="as --gap, but the frames after it are stamped as if no time had passed (a steady clock: "
+                         "the camera carried elsewhere in no time, a kidnapping the frame times do not tell)")
     ap.add_argument("--drop", type=float, default=0.0, metavar="P",
                     help="leave out each selected frame but the first with probability P, at random (seeded: "
                          "repeatable): a stream that drops frames unevenly (both trackers; 0: none)")
@@ -280,17 +306,22 @@ def _run() -> int:
         ds = DegradedDataset(ds, args.depth_noise, args.blur, args.gain, holes=args.holes, colour_lag=args.colour_lag)
         print(f"frames degraded: {ds.describe()}")
     idx = frame_indices(len(ds), args.start, args.stride, args.frames)
-    for gap in args.gap:
+    jumps = []  # (first frame after a --jump, its first left-out frame)
+    for gap in [("--gap", g) for g in args.gap] + [("--jump", g) for g in args.jump]:
+        opt, gap = gap
         try:
             first, count = (int(v) for v in gap.split(":"))
         except ValueError:
-            ap.error(f"--gap {gap!r}: expected FIRST:COUNT, two integers")
+            ap.error(f"{opt} {gap!r}: expected FIRST:COUNT, two integers")
         if first < 0 or count < 1:
-            ap.error(f"--gap {gap!r}: need FIRST >= 0 and COUNT >= 1")
+            ap.error(f"{opt} {gap!r}: need FIRST >= 0 and COUNT >= 1")
         left = [i for i in idx if not first <= i < first + count]
         if len(left) < 2:
-            ap.error(f"--gap {gap!r} leaves fewer than 2 frames")
-        print(f"gap: dataset frames {first}..{first + count - 1} left out ({len(idx) - len(left)} of the selected)")
+            ap.error(f"{opt} {gap!r} leaves fewer than 2 frames")
+        print(f"{opt[2:]}: dataset frames {first}..{first + count - 1} left out ({len(idx) - len(left)} of the "
+              f"selected){'; the frames after it keep a steady clock' if opt == '--jump' else ''}")
+        if opt == "--jump":
+            jumps += [(i, first) for i in left if i >= first + count][:1]
         idx = left
     if args.drop:
         if not 0 <= args.drop < 1:
@@ -311,6 +342,8 @@ def _run() -> int:
         if len(idx) < 2:
             print("fewer than 2 usable frames: nothing to compare", file=sys.stderr)
             return 2
+    if jumps:
+        frames = steady_clock(frames, idx, [a for a, _ in jumps])
     gts = [ds.poses[i] for i in idx]
     k = ds.intrinsics
     print(f"sequence {args.dataset}: frames {idx[0]}..{idx[-1]} every {args.stride} ({len(idx)} frames), "

@@ -81,7 +81,26 @@ def test_lost_summary_names_the_spans_that_resumed_mapping_on_their_own_track():
     lost_summary = _bench().lost_summary
     stats = {"lost_frames": [2, 3, 4], "recoveries": [[2, 5]], "resumed": [[2, 5]]}
     assert lost_summary(stats, [0, 2, 4, 6, 8, 10])[0] == \
-        "3 / 1 (1 resumed mapping on their own track, not relocalised: 4->10)"
+        "3 / 1 (1 resumed mapping on their own track (not relocalised then): 4->10)"
+    stats["reanchored"] = [[2, 5, 103.4, 14.25]]
+    assert lost_summary(stats, [0, 2, 4, 6, 8, 10])[0].endswith(
+        "; 1 resumed track(s) later relocalised and moved into the map's frame: from 4 at 10 by 103 cm, 14.2 deg)")
+
+
+def test_a_jump_takes_the_time_out_of_the_stream_a_gap_leaves_in():
+    """--jump's frames after the jump come one usual step after the frame before it (a steady clock); the frames
+    and their other fields are unchanged."""
+    import numpy as np
+
+    from semantic_gs_slam.io.datasets import Frame
+
+    idx = [0, 1, 2, 50, 51]
+    frames = {i: Frame(i, i / 30.0, np.zeros((2, 2, 3), np.float32), np.ones((2, 2), np.float32), None, None)
+              for i in idx}
+    out = _bench().steady_clock(frames, idx, [50])
+    np.testing.assert_allclose([out[i].timestamp for i in idx], [0, 1 / 30, 2 / 30, 3 / 30, 4 / 30])
+    assert out[50].index == 50 and out[50].depth is frames[50].depth
+    assert [frames[i].timestamp for i in idx] == [i / 30.0 for i in idx]  # the caller's frames are not changed
 
 
 def _baseline():

@@ -182,6 +182,11 @@ class TrackingConfig:
     # keyframe saw (a quick turn) and would otherwise stay lost, mapping nothing, until it came back. The new ground
     # is mapped where the segment puts it, the first lost frame's guess being its anchor. 0: never (stay lost until
     # relocalised)
+    reanchor_every: int = 15  # "keyframe": once mapping resumed on a lost segment's own track (lost_resume_after),
+    # every k-th frame is relocalised against the keyframes from before the loss (about 100 ms of CPU a try) until
+    # one is, twice in a row (the next frame confirms): the resumed track, anchored at a guess, and everything mapped
+    # on it then move into the map's frame (a camera carried elsewhere with no time passing resumes up to metres
+    # off). 0: never
     relocalise_map_refine: bool = True  # "keyframe": a relocalised frame and the frames confirming it are refined by
     # the "render" front end's ICP against the map rendered at their pose (the map holds more of the scene than the
     # one keyframe they were relocalised against; a mapping thread finishes its job first). On the kitchen, after a
@@ -206,10 +211,10 @@ class TrackingConfig:
                 raise ConfigError(f"tracking.{name} must be a finite number > 0, got {getattr(self, name)}")
         if self.frontend not in ("render", "keyframe"):
             raise ConfigError(f"tracking.frontend must be 'render' or 'keyframe', got {self.frontend!r}")
-        if isinstance(self.lost_resume_after, bool) or not isinstance(self.lost_resume_after, int) or \
-                self.lost_resume_after < 0:
-            raise ConfigError(f"tracking.lost_resume_after must be an integer >= 0 (0: never), got "
-                              f"{self.lost_resume_after!r}")
+        for name in ("lost_resume_after", "reanchor_every"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+                raise ConfigError(f"tracking.{name} must be an integer >= 0 (0: never), got {v!r}")
         if min(self.relocalise_every, self.relocalise_candidates, self.relocalise_confirm) < 1:
             raise ConfigError("tracking.relocalise_every, relocalise_candidates and relocalise_confirm must be >= 1")
         if not (math.isfinite(self.velocity_max_scale) and self.velocity_max_scale >= 0):

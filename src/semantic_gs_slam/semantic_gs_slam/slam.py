@@ -154,6 +154,8 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
         self.recoveries: list[list[int]] = []  # [first lost frame, frame tracking was trusted and mapped again]
         self.resumed: list[list[int]] = []  # the recoveries where mapping resumed on the lost frames' own track
         # (tracking.lost_resume_after), not relocalised in the map
+        self.reanchored: list[list[float]] = []  # resumed tracks moved into the map's frame (tracking.reanchor_every):
+        # [first frame moved, frame relocalised, cm, deg the camera moved]
         self.dropped_jobs: list[int] = []  # frames whose map update found the queue full (threaded)
         self.deferred_keyframes = 0  # frames due as keyframes but deferred while mapping was busy (defer_keyframes)
         self._kf_due = False  # a deferred keyframe is due on the next frame
@@ -340,6 +342,8 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
             self._keep_lost_view(idx, host)
         elif source in ("recovered", "resumed"):
             self._join_lost_views(idx)
+        if self.reanchor_due is not None:
+            self._reanchor(idx)
         self.gt_poses.append(gt)
         self.odom_poses.append(odom)
         self.timestamps.append(self._frame_time)
@@ -488,6 +492,38 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
             log.info("frame %d: %d views of the lost stretch kept for the refinement (frames %s)", idx, len(views),
                      views)
         self._lost_views.clear()
+
+    def _reanchor(self, idx: int) -> None:
+        """Apply the front end's confirmed correction (``reanchor_due``: a resumed track relocalised in the keyframes
+        from before the loss): every frame from the resumed segment's first on, the keyframes among them and the
+        Gaussians they created move by it, and the pose-graph edges from the keyframes before to those after take the
+        corrected relative poses (the old ones held the guessed anchor). A mapping thread finishes its jobs first;
+        when it does not within ``queue_timeout_s``, the correction waits for the next frame."""
+        first, corr = self.reanchor_due
+        if self._worker is not None:
+            try:
+                self._worker.drain(self.cfg.queue_timeout_s)
+            except MappingError as exc:
+                if self._worker.failed:
+                    raise
+                log.warning("frame %d: the resumed track is not moved yet (%s)", idx, exc)
+                return
+        self.reanchor_due = None
+        with self._poses_lock:
+            before = self.poses[idx].copy()
+            self._move_frames([0, first], [np.eye(4), corr])
+            after = self.poses[idx].copy()
+        slot = next((n for n, kf in enumerate(self.keyframes) if kf.index >= first), len(self.keyframes))
+        for kf in self.keyframes[slot:]:
+            kf.c2w = torch.as_tensor(corr, dtype=kf.c2w.dtype, device=kf.c2w.device) @ kf.c2w
+        kf_poses = [kf.c2w.double().cpu().numpy() for kf in self.keyframes]
+        for e in self.edges:
+            if e.i < slot <= e.j < len(kf_poses):
+                e.rel = np.linalg.inv(kf_poses[e.i]) @ kf_poses[e.j]
+        self.map.move_by_frame(torch.as_tensor([0, first], dtype=torch.int64, device=self.device),
+                               torch.as_tensor(np.stack([np.eye(4), corr]), dtype=torch.float32, device=self.device))
+        cm, deg = pose_error(before, after)
+        self.reanchored.append([first, idx, round(100 * cm, 1), round(deg, 2)])
 
     def _velocity_guess(self, prev2: np.ndarray, prev: np.ndarray) -> np.ndarray:
         """The constant-velocity guess [4, 4] for the frame being added: the last frame's pose ``prev`` moved on by the
@@ -1016,5 +1052,5 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
                 "dropped": list(self.dropped_jobs), "deferred_keyframes": self.deferred_keyframes,
                 "backlog": len(self.backlog), "caught_up": self.caught_up,
                 "noisy_references": len(self._fe_noisy), "reference_roughness": self._fe_roughness,
-                "rejoined_frames": self.rejoined_frames,
+                "rejoined_frames": self.rejoined_frames, "reanchored": [list(r) for r in self.reanchored],
                 "last": asdict(self.logs[-1]) if self.logs else None}

@@ -241,11 +241,11 @@ def test_config_overrides_parse_each_fields_type():
     for bad in ("tracking.velocity_max_scale=-1", "tracking.velocity_max_scale=inf"):  # parsed, then refused
         with pytest.raises(ConfigError, match="velocity_max_scale must be a finite number >= 0"):
             SlamConfig(intrinsics=k).with_overrides([bad]).check()
-    for bad in ("tracking.lost_resume_after=-1",):
-        with pytest.raises(ConfigError, match="lost_resume_after must be an integer >= 0"):
-            SlamConfig(intrinsics=k).with_overrides([bad]).check()
-    with pytest.raises(ConfigError, match="lost_resume_after must be an integer >= 0"):
-        SlamConfig(intrinsics=k).with_json('{"tracking": {"lost_resume_after": 2.5}}').check()
+    for name in ("lost_resume_after", "reanchor_every"):
+        with pytest.raises(ConfigError, match=f"{name} must be an integer >= 0"):
+            SlamConfig(intrinsics=k).with_overrides([f"tracking.{name}=-1"]).check()
+        with pytest.raises(ConfigError, match=f"{name} must be an integer >= 0"):
+            SlamConfig(intrinsics=k).with_json(f'{{"tracking": {{"{name}": 2.5}}}}').check()
     assert SlamConfig(intrinsics=k).with_overrides(["tracking.lost_resume_after=0"]).tracking.lost_resume_after == 0
 
 

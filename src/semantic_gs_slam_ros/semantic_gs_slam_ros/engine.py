@@ -98,12 +98,15 @@ class EngineAdapter:
         tracked, keyframes, keyframes deferred while the mapping thread was busy (``mapping.defer_keyframes``) and
         what became of them, frames lost (and how many of them were re-posed in the map once it took the camera back:
         ``tracking.lost_segment``; how often mapping resumed on the lost frames' own track instead:
-        ``tracking.lost_resume_after``), map updates dropped by a full queue, and keyframes whose depth read as a
+        ``tracking.lost_resume_after``; and how many of those tracks were later moved into the map's frame:
+        ``tracking.reanchor_every``), map updates dropped by a full queue, and keyframes whose depth read as a
         noisy camera's (smoothed before tracking against them: ``tracking.frontend_noisy_roughness``)."""
         s = self.slam.stats()
         notes = ([f"{s['rejoined_frames']} re-posed in the map once recovered"] if s["rejoined_frames"] else []) + \
             ([f"mapping resumed {len(s['resumed'])} time(s) on the lost frames' own track, not relocalised in the map "
-              f"(from frames {', '.join(str(a) for a, _ in s['resumed'])})"] if s.get("resumed") else [])
+              f"(from frames {', '.join(str(a) for a, _ in s['resumed'])})"] if s.get("resumed") else []) + \
+            ([f"{len(s['reanchored'])} resumed track(s) later relocalised and moved into the map's frame (from frames "
+              f"{', '.join(str(int(a)) for a, *_ in s['reanchored'])})"] if s.get("reanchored") else [])
         rejoined = f" ({'; '.join(notes)})" if notes else ""
         noisy = (f", {s['noisy_references']} keyframes' depth smoothed as a noisy camera's (roughness "
                  f"{s['reference_roughness']:.4f} /m)" if s["noisy_references"] else "")

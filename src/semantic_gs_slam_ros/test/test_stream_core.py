@@ -634,6 +634,9 @@ def test_engine_adapter_reports_the_engines_last_frame():
     noisy.slam.resumed = [[7, 36]]  # as after a camera lost on unseen ground (test_recovery_real.py runs one)
     assert "(3 re-posed in the map once recovered; mapping resumed 1 time(s) on the lost frames' own track, not " \
         "relocalised in the map (from frames 7))" in noisy.run_note(), noisy.run_note()
+    noisy.slam.reanchored = [[7, 80, 103.4, 14.3]]  # ... and later moved into the map's frame (the same file)
+    assert "; 1 resumed track(s) later relocalised and moved into the map's frame (from frames 7))" in \
+        noisy.run_note(), noisy.run_note()
 
 
 def _short_fits(cfg):

@@ -29,7 +29,9 @@ started from a trustworthy guess (the odometry's, or constant velocity extrapola
 ``velocity_max_scale`` steps: not after a stall or a jump in time, where the guess is no pose), mapping *resumes* on
 the segment's own track (pose source ``resumed``): the segment's frames keep their poses, its views join the
 backlog, and the frame becomes a keyframe. The new ground is then mapped where the segment puts it, the first lost
-frame's guess being its anchor.
+frame's guess being its anchor. Every ``tracking.reanchor_every`` frames a frame of the resumed track is relocalised
+against the keyframes from before the loss; a correction that the next frame confirms is due (``reanchor_due``), and
+``SLAM.add_frame`` moves the resumed track, its keyframes and their Gaussians by it into the map's frame.
 """
 
 from __future__ import annotations
@@ -40,6 +42,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from semantic_gs_slam.geometry import pose_error
 from semantic_gs_slam.tracking.frontend import (
     FrontendConfig,
     LiveFrame,
@@ -57,6 +60,11 @@ log = logging.getLogger("semantic_gs_slam")
 
 _THUMB = (15, 20)  # rows, columns of the relocalisation thumbnails
 AUTO_MIN_WIDTH = 320  # tracking.frontend_downsample 0: the front end's image is halved while it stays this wide
+#: a resumed track (tracking.reanchor_every) whose relocalisation in the keyframes from before the loss is this close
+#: to its tracked pose (metres, degrees) is in the map's frame already: nothing is moved (loop closure sees the rest)
+REANCHOR_MIN = (0.10, 5.0)
+#: a correction is applied once a second relocalisation, on the next frame, finds the same one within this (m, deg)
+REANCHOR_AGREE = (0.05, 3.0)
 
 
 @dataclass
@@ -137,6 +145,11 @@ class KeyframeTracking:
         # its segment pose, the segment's earlier frames, their views), joined to the map when recovered (segment pose
         # None: mapping resumed on the segment's track, nothing moves)
         self.rejoined_frames = 0  # lost frames re-posed in the map's frame by a recovery (stats())
+        self._fe_resumed: tuple[int, list[int]] | None = None  # mapping resumed on a lost segment's own track: (the
+        # segment's first frame, the keyframe views from before it), tried for a re-anchoring (tracking.reanchor_every)
+        self._fe_reanchor: tuple[int, np.ndarray] | None = None  # a correction found on a frame, not yet confirmed
+        self.reanchor_due: tuple[int, np.ndarray] | None = None  # a confirmed correction [4, 4] of every frame from
+        # the first one given on (SLAM.add_frame applies it to the poses, keyframes and Gaussians)
 
     def _fe_frame(self, depth: np.ndarray, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The front end's copy of a frame ([H, W] metres, [H, W, 3] in [0, 1]): float64, halved
@@ -221,6 +234,47 @@ class KeyframeTracking:
             log.info("frame %d: tracked against the keyframe of frame %d with more steps (%s with fewer)", idx,
                      self._fe_ref_idx, reason)
         return res
+
+    def _fe_check_anchor(self, idx: int, live: LiveFrame, depth: np.ndarray, rgb: np.ndarray, c2w: np.ndarray
+                         ) -> None:
+        """Frame ``idx``, tracked to ``c2w`` on a resumed track (``_fe_resumed``): every ``tracking.reanchor_every``
+        frames, relocalise it against the keyframes from before the loss. A relocalisation within ``REANCHOR_MIN``
+        of ``c2w`` ends the tries (the track was anchored well enough); a farther one is tried again on the next
+        frame, and when both give the same correction (``REANCHOR_AGREE``) it is due (``reanchor_due``): the
+        resumed track, anchored at a guess, moves into the map's frame."""
+        tc = self.cfg.tracking
+        first, base = self._fe_resumed
+        pending, self._fe_reanchor = self._fe_reanchor, None
+        if pending is None and (idx - first) % tc.reanchor_every:
+            return
+        base = [i for i in base if i in self._fe_views]
+        if not base:
+            self._fe_resumed = None
+            return
+        th = thumbnail(depth, rgb)
+        cands = sorted(base, key=lambda i: thumbnail_distance(th, self._fe_views[i].thumb))[:tc.relocalise_candidates]
+        try:
+            r = relocalise(live, [self._fe_model(i) for i in cands], self._fe_cfg, angles_deg=(10.0, 20.0),
+                           shifts_m=(0.1, 0.25))
+        except RelocalisationError:
+            return
+        corr = r.c2w @ np.linalg.inv(c2w)
+        moved_m, moved_deg = pose_error(c2w, r.c2w)  # how far off the map the camera is on the resumed track
+        if moved_m < REANCHOR_MIN[0] and moved_deg < REANCHOR_MIN[1]:
+            log.info("frame %d: relocalised against the keyframe of frame %d within %.1f cm and %.1f deg of its "
+                     "resumed track: the track is in the map's frame", idx, r.keyframe_id, 100 * moved_m, moved_deg)
+            self._fe_resumed = None
+            return
+        if pending is not None and pending[0] == idx - 1:
+            apart_m, apart_deg = pose_error(pending[1] @ c2w, r.c2w)  # the two corrections, on this frame
+            if apart_m <= REANCHOR_AGREE[0] and apart_deg <= REANCHOR_AGREE[1]:
+                log.warning("frame %d: the track resumed at frame %d is %.0f cm and %.1f deg off the map, relocalised "
+                            "twice against the keyframes from before the loss: every frame since moves into the "
+                            "map's frame", idx, first, 100 * moved_m, moved_deg)
+                self.reanchor_due = (first, corr)
+                self._fe_resumed = None
+                return
+        self._fe_reanchor = (idx, corr)  # confirmed (or not) on the next frame
 
     def _fe_segment_track(self, idx: int, live: LiveFrame, depth: np.ndarray, rgb: np.ndarray,
                           odom_guess: np.ndarray | None, first_guess: np.ndarray | None,
@@ -329,6 +383,8 @@ class KeyframeTracking:
                         return res.c2w, q.residual, q.correspondences, False, "recovered", q.coverage
                     return res.c2w, q.residual, q.correspondences, False, "confirming", q.coverage
                 self._fe_prev = (idx, depth, rgb)
+                if self._fe_resumed is not None and tc.reanchor_every > 0:
+                    self._fe_check_anchor(idx, live, depth, rgb, res.c2w)
                 return res.c2w, q.residual, q.correspondences, False, "tracking", q.coverage
             if self._fe_state == "tracking":
                 alt = self._fe_retry(idx, live, guess, q.reason)
@@ -391,6 +447,8 @@ class KeyframeTracking:
                 seg.anchored and seg.trusted_run >= tc.relocalise_confirm:
             # ground no keyframe saw: the map will not take the camera back until it returns; map on the segment's track
             self._fe_join = (idx, None, seg.frames[:-1], [v for v in seg.views if v != idx])
+            if self._fe_resumed is None:  # (a second resume before a re-anchoring chains on the first one's track)
+                self._fe_resumed = (seg.frames[0], sorted(i for i in self._fe_views if i < seg.frames[0]))
             self._fe_segment = None
             self._fe_state = "tracking"
             self._fe_prev = (idx, depth, rgb)
