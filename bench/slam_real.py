@@ -306,7 +306,7 @@ def _run() -> int:
         ds = DegradedDataset(ds, args.depth_noise, args.blur, args.gain, holes=args.holes, colour_lag=args.colour_lag)
         print(f"frames degraded: {ds.describe()}")
     idx = frame_indices(len(ds), args.start, args.stride, args.frames)
-    jumps = []  # (first frame after a --jump, its first left-out frame)
+    jumps = []  # --jump's (FIRST, COUNT)
     for gap in [("--gap", g) for g in args.gap] + [("--jump", g) for g in args.jump]:
         opt, gap = gap
         try:
@@ -321,7 +321,7 @@ def _run() -> int:
         print(f"{opt[2:]}: dataset frames {first}..{first + count - 1} left out ({len(idx) - len(left)} of the "
               f"selected){'; the frames after it keep a steady clock' if opt == '--jump' else ''}")
         if opt == "--jump":
-            jumps += [(i, first) for i in left if i >= first + count][:1]
+            jumps.append((first, count))
         idx = left
     if args.drop:
         if not 0 <= args.drop < 1:
@@ -342,8 +342,16 @@ def _run() -> int:
         if len(idx) < 2:
             print("fewer than 2 usable frames: nothing to compare", file=sys.stderr)
             return 2
-    if jumps:
-        frames = steady_clock(frames, idx, [a for a, _ in jumps])
+    if jumps:  # marked on the frames fed (after --drop and the frames left out): the first one past each jump
+        after = []
+        for first, count in jumps:
+            n = next((n for n in range(1, len(idx)) if idx[n - 1] < first and idx[n] >= first + count), None)
+            if n is None:
+                print(f"--jump {first}:{count}: no frame fed on both sides of it; the clock is left as recorded",
+                      file=sys.stderr)
+            else:
+                after.append(idx[n])
+        frames = steady_clock(frames, idx, after)
     gts = [ds.poses[i] for i in idx]
     k = ds.intrinsics
     print(f"sequence {args.dataset}: frames {idx[0]}..{idx[-1]} every {args.stride} ({len(idx)} frames), "

@@ -183,7 +183,7 @@ class TrackingConfig:
     # is mapped where the segment puts it, the first lost frame's guess being its anchor. 0: never (stay lost until
     # relocalised)
     reanchor_every: int = 15  # "keyframe": once mapping resumed on a lost segment's own track (lost_resume_after),
-    # every k-th frame is relocalised against the keyframes from before the loss (about 100 ms of CPU a try) until
+    # every k-th frame is relocalised against keyframes from before the loss (about 150 ms of CPU a try) until
     # one is, twice in a row (the next frame confirms): the resumed track, anchored at a guess, and everything mapped
     # on it then move into the map's frame (a camera carried elsewhere with no time passing resumes up to metres
     # off). 0: never

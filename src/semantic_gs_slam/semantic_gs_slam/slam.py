@@ -342,8 +342,6 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
             self._keep_lost_view(idx, host)
         elif source in ("recovered", "resumed"):
             self._join_lost_views(idx)
-        if self.reanchor_due is not None:
-            self._reanchor(idx)
         self.gt_poses.append(gt)
         self.odom_poses.append(odom)
         self.timestamps.append(self._frame_time)
@@ -385,6 +383,8 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
         entry = FrameLog(idx, self.timestamps[-1], is_kf, len(self.map), 0, 0, residual, inliers, failed,
                          float("nan"), t1 - t0, 0.0, source, self._agreement, "", coverage)
         self.logs.append(entry)
+        if self.reanchor_due is not None:  # before this frame's map update is queued (it reads the moved pose)
+            self._reanchor(idx)
         wants_map = not unmapped and (is_kf or self.cfg.mapping.densify_every_frame or
                                       (has_sem and self.cfg.mapping.label_votes))
         if wants_map and rgb_t is None:
@@ -493,13 +493,16 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
                      views)
         self._lost_views.clear()
 
-    def _reanchor(self, idx: int) -> None:
-        """Apply the front end's confirmed correction (``reanchor_due``: a resumed track relocalised in the keyframes
-        from before the loss): every frame from the resumed segment's first on, the keyframes among them and the
-        Gaussians they created move by it, and the pose-graph edges from the keyframes before to those after take the
-        corrected relative poses (the old ones held the guessed anchor). A mapping thread finishes its jobs first;
-        when it does not within ``queue_timeout_s``, the correction waits for the next frame."""
-        first, corr = self.reanchor_due
+    def _reanchor(self, idx: int) -> bool:
+        """Apply the front end's confirmed re-anchoring (``reanchor_due``: a resumed track relocalised in the
+        keyframes from before the loss): the correction that puts the relocalised frame on the pose found, taken
+        relative to the keyframe it was found against now (a mapping thread may have moved it since), moves every
+        frame from the resumed segment's first on, the keyframes among them and the Gaussians they made, and the
+        pose-graph edges from the keyframes before to those after take the corrected relative poses (the old ones
+        held the guessed anchor). A mapping thread finishes its jobs first; when it does not within
+        ``queue_timeout_s``, the re-anchoring waits for the next frame (or :meth:`finish`). Returns whether it was
+        applied."""
+        first, at, kf, rel = self.reanchor_due
         if self._worker is not None:
             try:
                 self._worker.drain(self.cfg.queue_timeout_s)
@@ -507,23 +510,25 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
                 if self._worker.failed:
                     raise
                 log.warning("frame %d: the resumed track is not moved yet (%s)", idx, exc)
-                return
+                return False
         self.reanchor_due = None
         with self._poses_lock:
-            before = self.poses[idx].copy()
+            corr = self.poses[kf] @ rel @ np.linalg.inv(self.poses[at])
+            before = self.poses[at].copy()
             self._move_frames([0, first], [np.eye(4), corr])
-            after = self.poses[idx].copy()
-        slot = next((n for n, kf in enumerate(self.keyframes) if kf.index >= first), len(self.keyframes))
-        for kf in self.keyframes[slot:]:
-            kf.c2w = torch.as_tensor(corr, dtype=kf.c2w.dtype, device=kf.c2w.device) @ kf.c2w
-        kf_poses = [kf.c2w.double().cpu().numpy() for kf in self.keyframes]
+            after = self.poses[at].copy()
+        slot = next((n for n, k in enumerate(self.keyframes) if k.index >= first), len(self.keyframes))
+        for k in self.keyframes[slot:]:
+            k.c2w = torch.as_tensor(corr, dtype=k.c2w.dtype, device=k.c2w.device) @ k.c2w
+        kf_poses = [k.c2w.double().cpu().numpy() for k in self.keyframes]
         for e in self.edges:
             if e.i < slot <= e.j < len(kf_poses):
                 e.rel = np.linalg.inv(kf_poses[e.i]) @ kf_poses[e.j]
         self.map.move_by_frame(torch.as_tensor([0, first], dtype=torch.int64, device=self.device),
                                torch.as_tensor(np.stack([np.eye(4), corr]), dtype=torch.float32, device=self.device))
         cm, deg = pose_error(before, after)
-        self.reanchored.append([first, idx, round(100 * cm, 1), round(deg, 2)])
+        self.reanchored.append([first, at, round(100 * cm, 1), round(deg, 2)])
+        return True
 
     def _velocity_guess(self, prev2: np.ndarray, prev: np.ndarray) -> np.ndarray:
         """The constant-velocity guess [4, 4] for the frame being added: the last frame's pose ``prev`` moved on by the
@@ -594,16 +599,20 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
 
     def drain(self, timeout: float = 60.0) -> None:
         """Wait until the mapping thread (SlamConfig.threaded) has mapped every queued frame, at most ``timeout``
-        seconds (0: only check). Returns at once when mapping is inline.
+        seconds (0: only check); a re-anchoring still due (``tracking.reanchor_every``: the thread was busy) is
+        applied then. Returns at once when mapping is inline.
 
         Raises:
             MappingError: the mapping thread failed (the cause chained) or jobs were pending at the deadline.
         """
         if self._worker is not None:
             self._worker.drain(timeout)
+        if getattr(self, "reanchor_due", None) is not None:
+            self._reanchor(len(self.poses) - 1)
 
     def finish(self, timeout: float = 60.0) -> None:
-        """Drain the mapping thread (see :meth:`drain`) and stop it; a later add_frame starts a new one.
+        """Drain the mapping thread (see :meth:`drain`) and stop it; a later add_frame starts a new one. A
+        re-anchoring still due (``tracking.reanchor_every``: the thread was busy) is applied then.
 
         Raises:
             MappingError: as :meth:`drain`.
@@ -611,6 +620,8 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
         w, self._worker = self._worker, None
         if w is not None:
             w.close(timeout)
+        if getattr(self, "reanchor_due", None) is not None:
+            self._reanchor(len(self.poses) - 1)
 
     def exposure_of(self, n: int) -> Tensor | None:
         """Frame ``n``'s exposure [2, 3] (gain, bias) when compensation is on, else None (renders as they are).

@@ -65,6 +65,8 @@ AUTO_MIN_WIDTH = 320  # tracking.frontend_downsample 0: the front end's image is
 REANCHOR_MIN = (0.10, 5.0)
 #: a correction is applied once a second relocalisation, on the next frame, finds the same one within this (m, deg)
 REANCHOR_AGREE = (0.05, 3.0)
+#: metres; the association gate of a re-anchoring try on the coarsest level (a lost frame's: FrontendConfig.max_dist)
+REANCHOR_COARSE_GATE = 0.4
 
 
 @dataclass
@@ -147,9 +149,12 @@ class KeyframeTracking:
         self.rejoined_frames = 0  # lost frames re-posed in the map's frame by a recovery (stats())
         self._fe_resumed: tuple[int, list[int]] | None = None  # mapping resumed on a lost segment's own track: (the
         # segment's first frame, the keyframe views from before it), tried for a re-anchoring (tracking.reanchor_every)
-        self._fe_reanchor: tuple[int, np.ndarray] | None = None  # a correction found on a frame, not yet confirmed
-        self.reanchor_due: tuple[int, np.ndarray] | None = None  # a confirmed correction [4, 4] of every frame from
-        # the first one given on (SLAM.add_frame applies it to the poses, keyframes and Gaussians)
+        self._fe_reanchor: tuple[int, np.ndarray, int] | None = None  # a correction [4, 4] found on a frame against
+        # a keyframe, not yet confirmed: (frame, correction, keyframe)
+        self._fe_reanchor_turn = 0  # the next keyframe from before the loss a re-anchoring try takes in turn
+        self.reanchor_due: tuple[int, int, int, np.ndarray] | None = None  # a confirmed re-anchoring: (the first
+        # frame to move, the frame relocalised, the keyframe it was relocalised against, its pose [4, 4] in that
+        # keyframe's camera); SLAM.add_frame moves the poses, keyframes and Gaussians from the first frame on
 
     def _fe_frame(self, depth: np.ndarray, rgb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The front end's copy of a frame ([H, W] metres, [H, W, 3] in [0, 1]): float64, halved
@@ -238,43 +243,58 @@ class KeyframeTracking:
     def _fe_check_anchor(self, idx: int, live: LiveFrame, depth: np.ndarray, rgb: np.ndarray, c2w: np.ndarray
                          ) -> None:
         """Frame ``idx``, tracked to ``c2w`` on a resumed track (``_fe_resumed``): every ``tracking.reanchor_every``
-        frames, relocalise it against the keyframes from before the loss. A relocalisation within ``REANCHOR_MIN``
-        of ``c2w`` ends the tries (the track was anchored well enough); a farther one is tried again on the next
-        frame, and when both give the same correction (``REANCHOR_AGREE``) it is due (``reanchor_due``): the
-        resumed track, anchored at a guess, moves into the map's frame."""
+        frames, relocalise it against keyframes from before the loss: the best by thumbnail and the next of them in
+        turn (a thumbnail compares depths, which a view from a metre away does not share), from guesses 50 cm out and
+        with a 40 cm association gate on the coarsest level (a try is rare: it may look farther than a lost frame's).
+        A relocalisation within ``REANCHOR_MIN`` of ``c2w`` ends the tries (the track was anchored well enough); a
+        farther one is tried again on the next frame against the same keyframe, and when both give the same
+        correction (``REANCHOR_AGREE``) it is due (``reanchor_due``: the pose it found, kept relative to that
+        keyframe, which a mapping thread may still move)."""
         tc = self.cfg.tracking
         first, base = self._fe_resumed
         pending, self._fe_reanchor = self._fe_reanchor, None
+        pending = pending if pending is not None and pending[0] == idx - 1 else None  # a confirmation is the next frame
         if pending is None and (idx - first) % tc.reanchor_every:
             return
         base = [i for i in base if i in self._fe_views]
         if not base:
             self._fe_resumed = None
             return
-        th = thumbnail(depth, rgb)
-        cands = sorted(base, key=lambda i: thumbnail_distance(th, self._fe_views[i].thumb))[:tc.relocalise_candidates]
+        if pending is not None:
+            cands = [pending[2]] if pending[2] in base else []
+        else:
+            th = thumbnail(depth, rgb)
+            best = min(base, key=lambda i: thumbnail_distance(th, self._fe_views[i].thumb))
+            rest = [i for i in base if i != best]
+            n = min(tc.relocalise_candidates - 1, len(rest))
+            turn, self._fe_reanchor_turn = self._fe_reanchor_turn, self._fe_reanchor_turn + n
+            cands = [best] + [rest[(turn + j) % len(rest)] for j in range(n)]
+        if not cands:
+            return
+        fe = replace(self._fe_cfg, max_dist=self._fe_cfg.max_dist[:-1] + (REANCHOR_COARSE_GATE,))
         try:
-            r = relocalise(live, [self._fe_model(i) for i in cands], self._fe_cfg, angles_deg=(10.0, 20.0),
-                           shifts_m=(0.1, 0.25))
+            r = relocalise(live, [self._fe_model(i) for i in cands], fe, angles_deg=(10.0, 20.0),
+                           shifts_m=(0.1, 0.25, 0.5))
         except RelocalisationError:
             return
-        corr = r.c2w @ np.linalg.inv(c2w)
         moved_m, moved_deg = pose_error(c2w, r.c2w)  # how far off the map the camera is on the resumed track
         if moved_m < REANCHOR_MIN[0] and moved_deg < REANCHOR_MIN[1]:
             log.info("frame %d: relocalised against the keyframe of frame %d within %.1f cm and %.1f deg of its "
                      "resumed track: the track is in the map's frame", idx, r.keyframe_id, 100 * moved_m, moved_deg)
             self._fe_resumed = None
             return
-        if pending is not None and pending[0] == idx - 1:
+        corr = r.c2w @ np.linalg.inv(c2w)
+        if pending is not None:
             apart_m, apart_deg = pose_error(pending[1] @ c2w, r.c2w)  # the two corrections, on this frame
             if apart_m <= REANCHOR_AGREE[0] and apart_deg <= REANCHOR_AGREE[1]:
                 log.warning("frame %d: the track resumed at frame %d is %.0f cm and %.1f deg off the map, relocalised "
-                            "twice against the keyframes from before the loss: every frame since moves into the "
-                            "map's frame", idx, first, 100 * moved_m, moved_deg)
-                self.reanchor_due = (first, corr)
+                            "twice against the keyframe of frame %d: every frame since moves into the map's frame",
+                            idx, first, 100 * moved_m, moved_deg, r.keyframe_id)
+                kf_c2w = self._fe_model(r.keyframe_id).c2w
+                self.reanchor_due = (first, idx, r.keyframe_id, np.linalg.inv(kf_c2w) @ r.c2w)
                 self._fe_resumed = None
                 return
-        self._fe_reanchor = (idx, corr)  # confirmed (or not) on the next frame
+        self._fe_reanchor = (idx, corr, r.keyframe_id)  # confirmed (or not) on the next frame
 
     def _fe_segment_track(self, idx: int, live: LiveFrame, depth: np.ndarray, rgb: np.ndarray,
                           odom_guess: np.ndarray | None, first_guess: np.ndarray | None,
@@ -421,6 +441,13 @@ class KeyframeTracking:
                 except RelocalisationError as exc:
                     if wide:
                         log.warning("frame %d: relocalisation failed against frames %s: %s", idx, cands, exc)
+            if r is not None and self._fe_resumed is not None and r.keyframe_id < self._fe_resumed[0]:
+                # lost again, and taken back by a keyframe from before the resumed track: the camera is in the map's
+                # frame again, the resumed track's frames are not (their correction is not this segment's)
+                log.warning("frame %d: relocalised against the keyframe of frame %d, from before the track resumed at "
+                            "frame %d: that track's frames %d..%d keep their anchor", idx, r.keyframe_id,
+                            self._fe_resumed[0], self._fe_resumed[0], self._fe_lost_at - 1)
+                self._fe_resumed = self._fe_reanchor = None
             if r is not None:
                 self._fe_ref_idx = r.keyframe_id
                 self._fe_used = (r.keyframe_id, self._fe_model(r.keyframe_id).c2w)
