@@ -419,14 +419,8 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
         Returns:
             (pose [4, 4], residual (m), correspondences).
         """
-        if self._worker is not None:  # the map must not change under the render: the mapping thread's job first
-            try:
-                self._worker.drain(self.cfg.queue_timeout_s)
-            except MappingError as exc:
-                if self._worker.failed:
-                    raise
-                log.warning("frame %d: relocalised pose not refined on the map (%s)", idx, exc)
-                return None
+        if not self._drain_for(idx, "relocalised pose not refined on the map"):  # the map must not change under
+            return None  # the render: the mapping thread's jobs first
         rgb_t, depth_t, _ = self._device_frame(host)
         out, residual, inliers, failed, _ = self._track(
             rgb_t, depth_t, None, guess=c2w, on_failure="the map does not confirm the relocalised pose; the front "
@@ -493,6 +487,21 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
                      views)
         self._lost_views.clear()
 
+    def _drain_for(self, idx: int, otherwise: str) -> bool:
+        """Let a mapping thread finish its queued jobs before frame ``idx`` changes what they read (the map, the
+        poses), at most ``queue_timeout_s``. Returns False (and logs ``otherwise`` with why) when they did not finish
+        in time; re-raises when the thread failed."""
+        if self._worker is None:
+            return True
+        try:
+            self._worker.drain(self.cfg.queue_timeout_s)
+        except MappingError as exc:
+            if self._worker.failed:
+                raise
+            log.warning("frame %d: %s (%s)", idx, otherwise, exc)
+            return False
+        return True
+
     def _reanchor(self, idx: int) -> bool:
         """Apply the front end's confirmed re-anchoring (``reanchor_due``: a resumed track relocalised in the
         keyframes from before the loss): the correction that puts the relocalised frame on the pose found, taken
@@ -503,14 +512,8 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
         ``queue_timeout_s``, the re-anchoring waits for the next frame (or :meth:`finish`). Returns whether it was
         applied."""
         first, at, kf, rel = self.reanchor_due
-        if self._worker is not None:
-            try:
-                self._worker.drain(self.cfg.queue_timeout_s)
-            except MappingError as exc:
-                if self._worker.failed:
-                    raise
-                log.warning("frame %d: the resumed track is not moved yet (%s)", idx, exc)
-                return False
+        if not self._drain_for(idx, "the resumed track is not moved yet"):
+            return False
         self.reanchor_due = None
         with self._poses_lock:
             corr = self.poses[kf] @ rel @ np.linalg.inv(self.poses[at])
