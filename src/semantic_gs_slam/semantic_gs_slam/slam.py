@@ -610,7 +610,7 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
         """
         if self._worker is not None:
             self._worker.drain(timeout)
-        if getattr(self, "reanchor_due", None) is not None:
+        if self.reanchor_due is not None:
             self._reanchor(len(self.poses) - 1)
 
     def finish(self, timeout: float = 60.0) -> None:
@@ -623,7 +623,7 @@ class SLAM(MappingSteps, LoopClosing, KeyframeTracking, MapStart):
         w, self._worker = self._worker, None
         if w is not None:
             w.close(timeout)
-        if getattr(self, "reanchor_due", None) is not None:
+        if self.reanchor_due is not None:
             self._reanchor(len(self.poses) - 1)
 
     def exposure_of(self, n: int) -> Tensor | None:
